@@ -1,0 +1,35 @@
+# Two-command set-up: `make demo` and `make test` (README). Both create .venv when missing.
+PYTHON ?= python3
+VENV   := .venv
+BIN    := $(VENV)/bin
+STAMP  := $(VENV)/.installed-stamp
+export QT_QPA_PLATFORM ?= offscreen
+
+.PHONY: demo test lint bench constraints clean
+
+$(BIN)/python:
+	$(PYTHON) -m venv $(VENV)
+
+$(STAMP): $(BIN)/python pyproject.toml constraints.txt
+	$(BIN)/python -m pip install --quiet --disable-pip-version-check -c constraints.txt -e '.[test]'
+	touch $(STAMP)
+
+demo: $(STAMP)
+	$(BIN)/pelvislab demo --out demo-output
+
+lint: $(STAMP)
+	$(BIN)/ruff check .
+
+test: lint
+	$(BIN)/python -m pytest -q
+
+bench: $(STAMP)
+	$(BIN)/python -m pelvislab.tests.benchmarks
+
+# Re-pin after a deliberate dependency change.
+constraints: $(STAMP)
+	( printf '# Pinned versions of every dependency (runtime and test), so a fresh install next month\n# resolves the same set. Regenerate with: make constraints\n'; \
+	  $(BIN)/python -m pip freeze --exclude-editable | grep -vi '^pelvislab' ) > constraints.txt
+
+clean:
+	rm -rf $(VENV) build *.egg-info demo-output

@@ -1,0 +1,218 @@
+"""The FRF set of design 4.2 (``/frf``): an in-memory container and its HDF5 reader/writer.
+
+This is the one place that knows the ``/frf`` layout; session files, FRF-only files, UFF
+import and every consumer (identification, EMA, gap diagnosis) go through it.
+Receptance in m/N, SI units throughout.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import h5py
+import numpy as np
+
+FRF_SCHEMA = "pelvislab-frf"
+FRF_SCHEMA_VERSION = 1
+BONES = ("innominate_right", "innominate_left", "sacrum", "")
+
+
+class FrfFileError(ValueError):
+    """A file or group that does not hold a valid /frf set; the message names what is wrong."""
+
+
+@dataclass
+class Channels:
+    """Named measurement or excitation points: bone, position (m, model frame), unit direction."""
+
+    name: list[str]
+    bone: list[str]
+    position_m: np.ndarray  # (n, 3)
+    direction: np.ndarray  # (n, 3), unit vectors
+
+    def __post_init__(self) -> None:
+        self.name = [str(n) for n in self.name]
+        self.bone = [str(b) for b in self.bone]
+        self.position_m = np.asarray(self.position_m, dtype=float).reshape(-1, 3)
+        self.direction = np.asarray(self.direction, dtype=float).reshape(-1, 3)
+        n = len(self.name)
+        if not (len(self.bone) == n == self.position_m.shape[0] == self.direction.shape[0]):
+            raise FrfFileError(
+                f"channel arrays disagree: {n} names, {len(self.bone)} bones, "
+                f"{self.position_m.shape[0]} positions, {self.direction.shape[0]} directions"
+            )
+        if len(set(self.name)) != n:
+            raise FrfFileError(f"channel names are not unique: {self.name}")
+        unknown = sorted(set(self.bone) - set(BONES))
+        if unknown:
+            raise FrfFileError(f"unknown bone(s) {unknown}; expected one of {list(BONES)}")
+        norms = np.linalg.norm(self.direction, axis=1)
+        if n and not np.allclose(norms, 1.0, atol=1e-6):
+            raise FrfFileError(f"channel directions must be unit vectors (norms {norms})")
+
+    def __len__(self) -> int:
+        return len(self.name)
+
+    def index(self, name: str) -> int:
+        """Position of the channel called ``name``."""
+        try:
+            return self.name.index(name)
+        except ValueError:
+            raise KeyError(f"no channel named {name!r}; have {self.name}") from None
+
+    def subset(self, indices: list[int] | np.ndarray) -> Channels:
+        """The channels at ``indices``, in that order."""
+        idx = list(np.asarray(indices, dtype=int))
+        return Channels(
+            [self.name[i] for i in idx], [self.bone[i] for i in idx],
+            self.position_m[idx], self.direction[idx],
+        )
+
+
+@dataclass
+class FrfSet:
+    """Receptance FRFs ``H[f, out, in]`` (m/N) with optional standard uncertainty and times."""
+
+    frequency_hz: np.ndarray  # (n_f,)
+    H: np.ndarray  # (n_f, n_out, n_in) complex; NaN where not measured
+    outputs: Channels
+    inputs: Channels
+    H_std: np.ndarray | None = None  # (n_f, n_out, n_in) float
+    acquired_at_s: np.ndarray | None = None  # (n_f,)
+    attrs: dict[str, object] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        self.frequency_hz = np.asarray(self.frequency_hz, dtype=float).reshape(-1)
+        self.H = np.asarray(self.H, dtype=complex)
+        n_f = self.frequency_hz.size
+        expected = (n_f, len(self.outputs), len(self.inputs))
+        if self.H.shape != expected:
+            raise FrfFileError(
+                f"H has shape {self.H.shape}, expected (n_f, n_out, n_in) = {expected}"
+            )
+        if np.any(~np.isfinite(self.frequency_hz)) or np.any(self.frequency_hz < 0):
+            raise FrfFileError("frequency_hz must be finite and non-negative")
+        if n_f > 1 and np.any(np.diff(self.frequency_hz) <= 0):
+            raise FrfFileError("frequency_hz must be strictly increasing")
+        if self.H_std is not None:
+            self.H_std = np.asarray(self.H_std, dtype=float)
+            if self.H_std.shape != expected:
+                raise FrfFileError(f"H_std has shape {self.H_std.shape}, expected {expected}")
+        if self.acquired_at_s is not None:
+            self.acquired_at_s = np.asarray(self.acquired_at_s, dtype=float).reshape(-1)
+            if self.acquired_at_s.shape != (n_f,):
+                raise FrfFileError(
+                    f"acquired_at_s has {self.acquired_at_s.size} values, expected {n_f}"
+                )
+
+    @property
+    def measured(self) -> np.ndarray:
+        """Boolean mask (n_f, n_out, n_in) of the lines that hold a measurement."""
+        return np.isfinite(self.H)
+
+
+def _write_channels(group: h5py.Group, channels: Channels) -> None:
+    text = h5py.string_dtype()
+    group.create_dataset("name", data=np.array(channels.name, dtype=object), dtype=text)
+    group.create_dataset("bone", data=np.array(channels.bone, dtype=object), dtype=text)
+    group.create_dataset("position_m", data=channels.position_m)
+    group.create_dataset("direction", data=channels.direction)
+
+
+def write_frf(target: h5py.File | h5py.Group | str | Path, frf: FrfSet, name: str = "frf") -> None:
+    """Write ``frf`` as the group ``name`` (default ``/frf``) of an open file/group or a new file.
+
+    An existing group of that name is replaced, so a session's FRF can be rewritten as lines
+    are added. When given a path, the file is created (an FRF-only file) and must not exist.
+    """
+    if isinstance(target, (str, Path)):
+        path = Path(target)
+        if path.exists():
+            raise FileExistsError(f"{path} exists; not overwriting")
+        with h5py.File(path, "w") as handle:
+            handle.attrs["schema"] = FRF_SCHEMA
+            handle.attrs["schema_version"] = FRF_SCHEMA_VERSION
+            write_frf(handle, frf, name)
+        return
+    if name in target:
+        del target[name]
+    group = target.create_group(name)
+    group.attrs["schema"] = FRF_SCHEMA
+    group.attrs["schema_version"] = FRF_SCHEMA_VERSION
+    group.attrs["units"] = "m/N"
+    for key, value in frf.attrs.items():
+        if key not in ("schema", "schema_version", "units"):
+            group.attrs[key] = value
+    group.create_dataset("frequency_hz", data=frf.frequency_hz)
+    group.create_dataset("H", data=frf.H.astype(np.complex128))
+    if frf.H_std is not None:
+        group.create_dataset("H_std", data=frf.H_std)
+    if frf.acquired_at_s is not None:
+        group.create_dataset("acquired_at_s", data=frf.acquired_at_s)
+    _write_channels(group.create_group("outputs"), frf.outputs)
+    _write_channels(group.create_group("inputs"), frf.inputs)
+
+
+def _read_strings(dataset: h5py.Dataset) -> list[str]:
+    return [v.decode() if isinstance(v, bytes) else str(v) for v in dataset[()]]
+
+
+def _read_channels(group: h5py.Group, where: str) -> Channels:
+    try:
+        return Channels(
+            _read_strings(group["name"]), _read_strings(group["bone"]),
+            group["position_m"][()], group["direction"][()],
+        )
+    except KeyError as exc:
+        raise FrfFileError(f"{where} lacks a required dataset: {exc}") from None
+
+
+def read_frf_group(group: h5py.Group) -> FrfSet:
+    """Read an open ``/frf`` group, checking its schema and version."""
+    schema = group.attrs.get("schema")
+    if isinstance(schema, bytes):
+        schema = schema.decode()
+    if schema != FRF_SCHEMA:
+        raise FrfFileError(f"{group.name} has schema {schema!r}, expected {FRF_SCHEMA!r}")
+    version = int(group.attrs.get("schema_version", -1))
+    if version != FRF_SCHEMA_VERSION:
+        raise FrfFileError(
+            f"{group.name} has schema_version {version}; this pelvislab reads {FRF_SCHEMA_VERSION}"
+        )
+    try:
+        frequency = group["frequency_hz"][()]
+        H = group["H"][()]
+    except KeyError as exc:
+        raise FrfFileError(f"{group.name} lacks a required dataset: {exc}") from None
+    attrs = {k: group.attrs[k] for k in group.attrs if k not in ("schema", "schema_version")}
+    return FrfSet(
+        frequency_hz=frequency,
+        H=H,
+        outputs=_read_channels(group["outputs"], f"{group.name}/outputs")
+        if "outputs" in group else _missing(group, "outputs"),
+        inputs=_read_channels(group["inputs"], f"{group.name}/inputs")
+        if "inputs" in group else _missing(group, "inputs"),
+        H_std=group["H_std"][()] if "H_std" in group else None,
+        acquired_at_s=group["acquired_at_s"][()] if "acquired_at_s" in group else None,
+        attrs=attrs,
+    )
+
+
+def _missing(group: h5py.Group, name: str) -> Channels:
+    raise FrfFileError(f"{group.name} lacks the group {name!r}")
+
+
+def read_frf(path: str | Path, name: str = "frf") -> FrfSet:
+    """Read the FRF set of a session or FRF-only file; clear errors for anything else."""
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"no such file: {path}")
+    try:
+        handle = h5py.File(path, "r")
+    except OSError as exc:
+        raise FrfFileError(f"{path} is not a readable HDF5 file ({exc})") from None
+    with handle:
+        if name not in handle:
+            raise FrfFileError(f"{path} holds no /{name} group (no FRFs measured yet?)")
+        return read_frf_group(handle[name])

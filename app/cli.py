@@ -1,0 +1,88 @@
+"""The ``pelvislab`` command line (design notes, section 4.3).
+
+Each command family lives in its own module under :mod:`pelvislab.app.commands` and
+registers its subparsers here. Every command exits 0 on success; bad input gives a
+non-zero exit code and a one-line reason on stderr, never a traceback (``-v`` adds it).
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import sys
+from collections.abc import Sequence
+from importlib import metadata
+
+from pelvislab.app.commands import COMMAND_MODULES
+from pelvislab.app.errors import NotImplementedCommand
+
+log = logging.getLogger("pelvislab")
+
+EXIT_OK = 0
+EXIT_FAILURE = 1
+EXIT_USAGE = 2
+EXIT_INTERRUPTED = 130
+
+
+def package_version() -> str:
+    """Installed version of the ``pelvislab`` distribution."""
+    try:
+        return metadata.version("pelvislab")
+    except metadata.PackageNotFoundError:  # running from an uninstalled tree
+        return "0+unknown"
+
+
+def configure_logging(verbosity: int) -> None:
+    """The one logging configuration of the application: stderr, level by ``-v`` count."""
+    level = logging.WARNING if verbosity <= 0 else logging.INFO if verbosity == 1 else logging.DEBUG
+    handler = logging.StreamHandler(sys.stderr)
+    handler.setFormatter(logging.Formatter("%(levelname)s %(name)s: %(message)s"))
+    root = logging.getLogger()
+    root.handlers[:] = [handler]
+    root.setLevel(level)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The full argument parser with every subcommand of design 4.3 registered."""
+    parser = argparse.ArgumentParser(
+        prog="pelvislab",
+        description="Vibration-based diagnosis of the sacroiliac joints: instrument control, "
+        "session files, identification and sim-to-real gap diagnosis.",
+    )
+    parser.add_argument("--version", action="version", version=f"pelvislab {package_version()}")
+    parser.add_argument(
+        "-v", "--verbose", action="count", default=0,
+        help="log to stderr (-v info, -vv debug); show tracebacks on errors",
+    )
+    subparsers = parser.add_subparsers(dest="command", metavar="COMMAND")
+    subparsers.required = True
+    for module in COMMAND_MODULES:
+        module.register(subparsers)
+    return parser
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Entry point of the ``pelvislab`` console script; returns the process exit code."""
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    configure_logging(args.verbose)
+    try:
+        code = args.handler(args)
+    except NotImplementedCommand as exc:
+        print(f"pelvislab {exc}", file=sys.stderr)
+        return EXIT_USAGE
+    except KeyboardInterrupt:
+        print("pelvislab: interrupted", file=sys.stderr)
+        return EXIT_INTERRUPTED
+    except Exception as exc:  # the one place that turns any failure into one line
+        if args.verbose:
+            log.exception("command failed")
+        reason = str(exc) or exc.__class__.__name__
+        reason = " ".join(reason.split())  # one line, whatever the exception carried
+        print(f"pelvislab {args.command}: error: {reason}", file=sys.stderr)
+        return EXIT_FAILURE
+    return EXIT_OK if code is None else int(code)
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())

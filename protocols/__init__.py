@@ -1,0 +1,1 @@
+"""Protocol files (TOML) and the landmark catalogue shipped with pelvislab; data only."""

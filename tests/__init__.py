@@ -1,0 +1,1 @@
+"""The pelvislab test suite."""
