@@ -1,0 +1,511 @@
+"""The bench: which instrument plays which role, calibration constants, safe state.
+
+A bench file (TOML, described in ``docs/bench-file.md``) maps the roles of design
+section 2 to instruments and resources::
+
+    [bench]
+    name = "lab 3"
+
+    [limits]
+    max_drive_vpp = 2.0              # hard limit on the shaker-drive generator (V pk-pk)
+
+    [calibration]
+    drive_newton_per_volt = "8.5-0.4j"   # drive volts -> force (N/V); number, "a+bj", {re, im}
+    speed_of_sound_m_s = 1540.0          # default for every digitizer channel
+    [calibration.channel_speed_of_sound_m_s]
+    2 = 1560.0                           # per-channel override (channel number as key)
+
+    [trigger]                         # Agilent 33220A #1, pulse-repetition trigger
+    resource = "USB0::0x0957::0x0407::MY00000001::INSTR"
+    [drive]                           # Agilent 33220A #2, shaker drive
+    resource = "USB0::0x0957::0x0407::MY00000002::INSTR"
+    load_ohm = "inf"
+    [digitizer]                       # Acqiris DP235
+    resource = "PCI::INSTR0"
+    [[pulsers]]                       # Panametrics 5077PR, one table per channel
+    resource = "/dev/ttyUSB0"
+    [[pulsers]]
+    resource = "/dev/ttyUSB1"
+
+No bench file means the simulated bench (:func:`open_bench` with ``None``).
+"""
+
+from __future__ import annotations
+
+import cmath
+import logging
+import math
+import tomllib
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from pelvislab.drivers.interfaces import Digitizer, DriverError, Generator, PulserReceiver
+
+__all__ = [
+    "Bench",
+    "BenchConfig",
+    "BenchConfigError",
+    "InstrumentConfig",
+    "open_bench",
+]
+
+log = logging.getLogger(__name__)
+
+DEFAULT_SPEED_OF_SOUND_M_S = 1540.0
+"""Soft-tissue speed of sound used by the thesis (ch. 8), m/s."""
+DEFAULT_MAX_DRIVE_VPP = 2.0
+"""Default shaker-drive limit (V pk-pk into the amplifier) when the bench file gives none."""
+DEFAULT_REFERENCE_CLOCK_HZ = 10e6
+
+# Drivers a role may use, and the options (besides `driver` and `resource`) each accepts
+# with their expected types. Unknown keys are refused so that a typo cannot silently
+# disable, e.g., a limit.
+_GENERATOR_OPTIONS: dict[str, tuple[type, ...]] = {
+    "load_ohm": (int, float, str),
+    "timeout_s": (int, float),
+    "external_reference": (bool,),
+    "max_vpp": (int, float),
+}
+_DRIVER_OPTIONS: dict[str, dict[str, dict[str, tuple[type, ...]]]] = {
+    "trigger": {"agilent33220a": _GENERATOR_OPTIONS},
+    "drive": {"agilent33220a": _GENERATOR_OPTIONS},
+    "digitizer": {
+        "acqiris": {
+            "library": (str,),
+            "external_clock_hz": (int, float),
+            "options": (str,),
+            "timeout_s": (int, float),
+        }
+    },
+    "pulsers": {
+        "panametrics5077": {
+            "baudrate": (int,),
+            "timeout_s": (int, float),
+            "channel": (int,),
+        }
+    },
+}
+_DEFAULT_DRIVER = {
+    "trigger": "agilent33220a",
+    "drive": "agilent33220a",
+    "digitizer": "acqiris",
+    "pulsers": "panametrics5077",
+}
+_TOP_KEYS = {"bench", "limits", "calibration", "trigger", "drive", "digitizer", "pulsers"}
+
+
+class BenchConfigError(ValueError):
+    """The bench file is invalid; the message names the file and the key."""
+
+
+@dataclass(frozen=True)
+class InstrumentConfig:
+    """One instrument of the bench: its role, driver name, resource and driver options."""
+
+    role: str
+    """``trigger``, ``drive``, ``digitizer`` or ``pulsers[i]``."""
+    driver: str
+    """Driver name: ``agilent33220a``, ``acqiris``, ``panametrics5077``."""
+    resource: str
+    """VISA resource, Acqiris resource (``PCI::INSTR0``) or serial port / pyserial URL."""
+    options: Mapping[str, Any] = field(default_factory=dict)
+    """Driver keyword options (validated names and types)."""
+
+
+@dataclass(frozen=True)
+class BenchConfig:
+    """A parsed bench file (or the default simulated bench)."""
+
+    name: str = "simulated bench"
+    simulated: bool = True
+    """True: the simulated bench (sim_instruments) with these constants."""
+    trigger: InstrumentConfig | None = None
+    drive: InstrumentConfig | None = None
+    digitizer: InstrumentConfig | None = None
+    pulsers: tuple[InstrumentConfig, ...] = ()
+    drive_newton_per_volt: complex = complex(1.0, 0.0)
+    """Calibrated drive chain: force phasor (N) per drive-voltage phasor (V, amplitude)."""
+    max_drive_vpp: float = DEFAULT_MAX_DRIVE_VPP
+    """Hard limit on the shaker-drive amplitude, V pk-pk; enforced in the driver."""
+    max_trigger_vpp: float | None = None
+    """Optional limit on the trigger generator's pulse amplitude, V pk-pk."""
+    speed_of_sound_m_s: float = DEFAULT_SPEED_OF_SOUND_M_S
+    """Default speed of sound for every channel, m/s."""
+    channel_speed_of_sound_m_s: Mapping[int, float] = field(default_factory=dict)
+    """Per digitizer channel (1-based) overrides, m/s."""
+    reference_clock_hz: float = DEFAULT_REFERENCE_CLOCK_HZ
+    """Shared reference clock (33220A option 001 / Acqiris external clock), Hz."""
+    source: Path | None = None
+    """The bench file this was read from (None: built in code)."""
+
+    # ------------------------------------------------------------------ queries
+    def speed_of_sound_for(self, channel: int) -> float:
+        """Speed of sound (m/s) to use for digitizer ``channel`` (1-based)."""
+        return float(self.channel_speed_of_sound_m_s.get(channel, self.speed_of_sound_m_s))
+
+    # ------------------------------------------------------------------ builders
+    @classmethod
+    def default(cls) -> BenchConfig:
+        """The default (simulated) bench: thesis constants, no instrument resources."""
+        return cls()
+
+    @classmethod
+    def load(cls, path: Path | str) -> BenchConfig:
+        """Read and validate a bench TOML file.
+
+        Raises FileNotFoundError when the file is missing and :class:`BenchConfigError`
+        (a ValueError) naming the offending key otherwise.
+        """
+        path = Path(path)
+        if not path.is_file():
+            raise FileNotFoundError(f"bench file not found: {path}")
+        try:
+            data = tomllib.loads(path.read_text(encoding="utf-8"))
+        except tomllib.TOMLDecodeError as exc:
+            raise BenchConfigError(f"{path}: not valid TOML: {exc}") from None
+        return cls.from_dict(data, source=path)
+
+    @classmethod
+    def from_dict(cls, data: Mapping[str, Any], source: Path | None = None) -> BenchConfig:
+        """Validate an already-parsed bench mapping (same layout as the TOML file)."""
+        where = str(source) if source is not None else "bench config"
+
+        def err(key: str, msg: str) -> BenchConfigError:
+            return BenchConfigError(f"{where}: {key}: {msg}")
+
+        unknown = sorted(set(data) - _TOP_KEYS)
+        if unknown:
+            raise err(unknown[0], f"unknown section (expected one of {sorted(_TOP_KEYS)})")
+
+        bench = _table(data, "bench", err)
+        _check_keys(bench, {"name", "simulated"}, "bench", err)
+        name = bench.get("name", source.stem if source is not None else "bench")
+        if not isinstance(name, str):
+            raise err("bench.name", "must be a string")
+        simulated = bench.get("simulated", False)
+        if not isinstance(simulated, bool):
+            raise err("bench.simulated", "must be true or false")
+
+        limits = _table(data, "limits", err)
+        _check_keys(limits, {"max_drive_vpp", "max_trigger_vpp"}, "limits", err)
+        if "max_drive_vpp" not in limits:
+            raise err("limits.max_drive_vpp",
+                      "missing: a bench file must state the shaker-drive limit (V pk-pk)")
+        max_drive_vpp = _positive(limits["max_drive_vpp"], "limits.max_drive_vpp", err)
+        max_trigger_vpp = None
+        if "max_trigger_vpp" in limits:
+            max_trigger_vpp = _positive(limits["max_trigger_vpp"], "limits.max_trigger_vpp", err)
+
+        cal = _table(data, "calibration", err)
+        _check_keys(
+            cal,
+            {"drive_newton_per_volt", "speed_of_sound_m_s", "channel_speed_of_sound_m_s",
+             "reference_clock_hz"},
+            "calibration", err,
+        )
+        if "drive_newton_per_volt" not in cal:
+            raise err("calibration.drive_newton_per_volt",
+                      "missing: the drive chain calibration (N per V) is needed for the FRFs")
+        n_per_v = _complex(cal["drive_newton_per_volt"], "calibration.drive_newton_per_volt", err)
+        if n_per_v == 0 or not cmath.isfinite(n_per_v):
+            raise err("calibration.drive_newton_per_volt", "must be finite and non-zero")
+        c_default = _positive(cal.get("speed_of_sound_m_s", DEFAULT_SPEED_OF_SOUND_M_S),
+                              "calibration.speed_of_sound_m_s", err)
+        per_channel: dict[int, float] = {}
+        raw_pc = cal.get("channel_speed_of_sound_m_s", {})
+        if not isinstance(raw_pc, Mapping):
+            raise err("calibration.channel_speed_of_sound_m_s",
+                      "must be a table {channel = m/s}")
+        for k, v in raw_pc.items():
+            key = f"calibration.channel_speed_of_sound_m_s.{k}"
+            try:
+                ch = int(k)
+            except ValueError:
+                raise err(key, "channel must be an integer (1-based)") from None
+            if ch < 1:
+                raise err(key, "channel must be >= 1")
+            per_channel[ch] = _positive(v, key, err)
+        ref_hz = _positive(cal.get("reference_clock_hz", DEFAULT_REFERENCE_CLOCK_HZ),
+                           "calibration.reference_clock_hz", err)
+
+        def instrument(role: str, raw: Any, label: str) -> InstrumentConfig:
+            if not isinstance(raw, Mapping):
+                raise err(label, "must be a table")
+            driver = raw.get("driver", _DEFAULT_DRIVER[role])
+            allowed = _DRIVER_OPTIONS[role]
+            if driver not in allowed:
+                raise err(f"{label}.driver",
+                          f"unknown driver {driver!r} for this role (known: {sorted(allowed)})")
+            opts: dict[str, Any] = {}
+            for k, v in raw.items():
+                if k in ("driver", "resource"):
+                    continue
+                if k not in allowed[driver]:
+                    raise err(f"{label}.{k}",
+                              f"unknown option for driver {driver!r} "
+                              f"(known: {sorted(allowed[driver])})")
+                types = allowed[driver][k]
+                if isinstance(v, bool) and bool not in types:
+                    raise err(f"{label}.{k}", f"wrong type {type(v).__name__}")
+                if not isinstance(v, types):
+                    raise err(f"{label}.{k}", f"wrong type {type(v).__name__}")
+                opts[k] = v
+            if "resource" not in raw:
+                raise err(f"{label}.resource", "missing")
+            resource = raw["resource"]
+            if not isinstance(resource, str) or not resource.strip():
+                raise err(f"{label}.resource", "must be a non-empty string")
+            if "load_ohm" in opts:
+                _load_ohm(opts["load_ohm"], f"{label}.load_ohm", err)
+            return InstrumentConfig(role=label, driver=driver, resource=resource, options=opts)
+
+        roles: dict[str, InstrumentConfig | None] = {}
+        for role in ("trigger", "drive", "digitizer"):
+            if role in data:
+                roles[role] = instrument(role, data[role], role)
+            elif simulated:
+                roles[role] = None
+            else:
+                raise err(role, "missing section (or set [bench] simulated = true)")
+        raw_pulsers = data.get("pulsers", [])
+        if not isinstance(raw_pulsers, list):
+            raise err("pulsers", "must be an array of tables ([[pulsers]])")
+        pulsers = tuple(
+            instrument("pulsers", p, f"pulsers[{i}]") for i, p in enumerate(raw_pulsers)
+        )
+        if not simulated and not pulsers:
+            raise err("pulsers", "missing: at least one [[pulsers]] table")
+
+        return cls(
+            name=name,
+            simulated=simulated,
+            trigger=roles["trigger"],
+            drive=roles["drive"],
+            digitizer=roles["digitizer"],
+            pulsers=pulsers,
+            drive_newton_per_volt=n_per_v,
+            max_drive_vpp=max_drive_vpp,
+            max_trigger_vpp=max_trigger_vpp,
+            speed_of_sound_m_s=c_default,
+            channel_speed_of_sound_m_s=per_channel,
+            reference_clock_hz=ref_hz,
+            source=source,
+        )
+
+
+# --------------------------------------------------------------------------- helpers
+_ErrFactory = Callable[[str, str], BenchConfigError]
+
+
+def _table(data: Mapping[str, Any], key: str, err: _ErrFactory) -> Mapping[str, Any]:
+    value = data.get(key, {})
+    if not isinstance(value, Mapping):
+        raise err(key, "must be a table")
+    return value
+
+
+def _check_keys(table: Mapping[str, Any], known: set[str], prefix: str,
+                err: _ErrFactory) -> None:
+    for k in table:
+        if k not in known:
+            raise err(f"{prefix}.{k}", f"unknown key (known: {sorted(known)})")
+
+
+def _positive(value: Any, key: str, err: _ErrFactory) -> float:
+    if isinstance(value, bool) or not isinstance(value, int | float):
+        raise err(key, f"must be a number, got {value!r}")
+    v = float(value)
+    if not (math.isfinite(v) and v > 0):
+        raise err(key, f"must be finite and > 0, got {value!r}")
+    return v
+
+
+def _complex(value: Any, key: str, err: _ErrFactory) -> complex:
+    if isinstance(value, bool):
+        raise err(key, f"must be a number, got {value!r}")
+    if isinstance(value, int | float):
+        return complex(float(value), 0.0)
+    if isinstance(value, str):
+        try:
+            return complex(value.replace(" ", ""))
+        except ValueError:
+            raise err(key, f"not a complex number: {value!r} (write e.g. \"8.5-0.4j\")") from None
+    if isinstance(value, Mapping):
+        extra = set(value) - {"re", "im"}
+        if extra or "re" not in value:
+            raise err(key, "a table must be {re = ..., im = ...}")
+        re_ = value["re"]
+        im_ = value.get("im", 0.0)
+        for part, v in (("re", re_), ("im", im_)):
+            if isinstance(v, bool) or not isinstance(v, int | float):
+                raise err(f"{key}.{part}", f"must be a number, got {v!r}")
+        return complex(float(re_), float(im_))
+    raise err(key, f"must be a number, a string like \"8.5-0.4j\" or {{re, im}}, got {value!r}")
+
+
+def _load_ohm(value: Any, key: str, err: _ErrFactory) -> float:
+    """Output load: ohms (1..10000) or "inf"/"high-z" (returns math.inf)."""
+    if isinstance(value, str):
+        if value.strip().lower() in ("inf", "infinity", "high-z", "highz", "hiz"):
+            return math.inf
+        raise err(key, f"must be ohms (1..10000) or \"inf\", got {value!r}")
+    v = float(value)
+    if not 1.0 <= v <= 10_000.0:
+        raise err(key, f"must be 1..10000 ohm or \"inf\", got {value!r}")
+    return v
+
+
+# --------------------------------------------------------------------------- the bench
+@dataclass
+class Bench:
+    """The opened instruments. Use as a context manager: outputs go off on exit, always.
+
+    ``safe_state()`` switches every output off and never raises; ``close()`` does the
+    safe state and releases every instrument.
+    """
+
+    trigger: Generator
+    drive: Generator
+    digitizer: Digitizer
+    pulsers: list[PulserReceiver]
+    config: BenchConfig
+    simulated: bool
+    safe_state_errors: list[str] = field(default_factory=list)
+    """Messages of failures met by safe_state()/close() (logged, never raised)."""
+    _closed: bool = field(default=False, init=False, repr=False)
+
+    @property
+    def generators(self) -> tuple[Generator, Generator]:
+        """(drive, trigger): the drive first, so the shaker stops before anything else."""
+        return (self.drive, self.trigger)
+
+    def safe_state(self) -> None:
+        """Every output off: shaker drive first, then trigger, digitizer abort, pulsers.
+
+        Never raises an Exception: each failure is logged and appended to
+        ``safe_state_errors`` and the remaining instruments are still made safe. A
+        KeyboardInterrupt/SystemExit arriving meanwhile is re-raised only after every
+        instrument has been handled.
+        """
+        if self._closed:
+            return
+        steps: list[tuple[str, Any]] = [
+            ("drive", getattr(self.drive, "safe_state", None)),
+            ("trigger", getattr(self.trigger, "safe_state", None)),
+            ("digitizer", getattr(self.digitizer, "abort", None)),
+        ]
+        steps += [(f"pulsers[{i}]", getattr(p, "safe_state", None))
+                  for i, p in enumerate(self.pulsers)]
+        self._run_all(steps, "safe state")
+
+    def close(self) -> None:
+        """Safe state, then release every instrument. Idempotent; never raises an Exception."""
+        if self._closed:
+            return
+        self.safe_state()
+        self._closed = True
+        instruments: list[tuple[str, Any]] = [
+            ("drive", self.drive), ("trigger", self.trigger), ("digitizer", self.digitizer)
+        ] + [(f"pulsers[{i}]", p) for i, p in enumerate(self.pulsers)]
+        self._run_all([(label, getattr(inst, "close", None)) for label, inst in instruments],
+                      "close")
+
+    def _run_all(self, steps: list[tuple[str, Any]], what: str) -> None:
+        pending: BaseException | None = None
+        for label, fn in steps:
+            if fn is None:
+                continue
+            try:
+                fn()
+            except BaseException as exc:  # the other outputs must still go off
+                msg = f"{label}: {what} failed: {type(exc).__name__}: {exc}"
+                self.safe_state_errors.append(msg)
+                log.error(msg)
+                if not isinstance(exc, Exception) and pending is None:
+                    pending = exc
+        if pending is not None:
+            raise pending
+
+    def __enter__(self) -> Bench:
+        return self
+
+    def __exit__(self, exc_type: object, exc: object, tb: object) -> None:
+        # close() starts with safe_state(): outputs off whatever ended the block.
+        self.close()
+
+
+# --------------------------------------------------------------------------- factory
+def _open_instrument(cfg: InstrumentConfig, bench: BenchConfig) -> Any:
+    """Open one real instrument (driver modules imported lazily)."""
+    opts = dict(cfg.options)
+    if cfg.driver == "agilent33220a":
+        from pelvislab.drivers.agilent33220a import Agilent33220A
+
+        if cfg.role == "drive":
+            limit = min(bench.max_drive_vpp, float(opts.pop("max_vpp", bench.max_drive_vpp)))
+        else:
+            limit = opts.pop("max_vpp", bench.max_trigger_vpp)
+        return Agilent33220A.open(cfg.resource, max_vpp=limit, **opts)
+    if cfg.driver == "acqiris":
+        from pelvislab.drivers.acqiris import AcqirisDigitizer
+
+        opts.setdefault("external_clock_hz", bench.reference_clock_hz)
+        return AcqirisDigitizer.open(cfg.resource, **opts)
+    if cfg.driver == "panametrics5077":
+        from pelvislab.drivers.panametrics5077 import Panametrics5077PR
+
+        return Panametrics5077PR.open(cfg.resource, **opts)
+    raise BenchConfigError(f"{cfg.role}.driver: unknown driver {cfg.driver!r}")
+
+
+def _open_simulated(config: BenchConfig | None) -> Bench:
+    try:
+        from pelvislab.sim_instruments.bench import open_simulated_bench
+    except ImportError as exc:
+        raise DriverError(
+            "the simulated bench (pelvislab.sim_instruments.bench.open_simulated_bench) "
+            f"is not available: {exc}"
+        ) from exc
+    return open_simulated_bench(config) if config is not None else open_simulated_bench()
+
+
+def open_bench(path: Path | None) -> Bench:
+    """Open the bench described by the TOML file ``path``.
+
+    ``None`` opens the simulated bench (``pelvislab.sim_instruments``, imported lazily, the
+    only non-test import of it); so does a bench file with ``[bench] simulated = true``,
+    which then supplies the calibration constants and limits.
+    If any instrument fails to open, those already opened are made safe and closed before
+    the error propagates.
+    """
+    if path is None:
+        return _open_simulated(None)
+    config = BenchConfig.load(path)
+    if config.simulated:
+        return _open_simulated(config)
+
+    opened: list[Any] = []
+    try:
+        assert config.trigger is not None and config.drive is not None  # validated in load
+        assert config.digitizer is not None
+        trigger = _open_instrument(config.trigger, config)
+        opened.append(trigger)
+        drive = _open_instrument(config.drive, config)
+        opened.append(drive)
+        digitizer = _open_instrument(config.digitizer, config)
+        opened.append(digitizer)
+        pulsers = []
+        for p in config.pulsers:
+            pulsers.append(_open_instrument(p, config))
+            opened.append(pulsers[-1])
+    except BaseException:
+        for inst in reversed(opened):
+            try:
+                inst.close()
+            except Exception as exc:  # report the original error instead
+                log.error("closing %s after a failed bench open: %s", inst, exc)
+        raise
+    return Bench(trigger=trigger, drive=drive, digitizer=digitizer, pulsers=pulsers,
+                 config=config, simulated=False)

@@ -1,0 +1,191 @@
+"""Bench file parsing (clear errors naming the key) and Bench safe state."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from pelvislab.drivers.bench import Bench, BenchConfig, BenchConfigError, open_bench
+from pelvislab.drivers.interfaces import SegmentedRecord
+
+GOOD = """
+[bench]
+name = "lab 3"
+
+[limits]
+max_drive_vpp = 2.5
+
+[calibration]
+drive_newton_per_volt = "8.5-0.4j"
+speed_of_sound_m_s = 1550.0
+[calibration.channel_speed_of_sound_m_s]
+2 = 1600.0
+
+[trigger]
+resource = "USB0::1::2::A::INSTR"
+load_ohm = 50
+[drive]
+resource = "USB0::1::2::B::INSTR"
+load_ohm = "inf"
+[digitizer]
+resource = "PCI::INSTR0"
+[[pulsers]]
+resource = "loop://"
+[[pulsers]]
+resource = "loop://"
+"""
+
+
+def write(tmp_path: Path, text: str) -> Path:
+    p = tmp_path / "bench.toml"
+    p.write_text(text)
+    return p
+
+
+def test_good_bench_file_parses(tmp_path):
+    cfg = BenchConfig.load(write(tmp_path, GOOD))
+    assert cfg.name == "lab 3"
+    assert not cfg.simulated
+    assert cfg.drive_newton_per_volt == complex(8.5, -0.4)
+    assert cfg.max_drive_vpp == 2.5
+    assert cfg.speed_of_sound_for(1) == 1550.0
+    assert cfg.speed_of_sound_for(2) == 1600.0
+    assert cfg.trigger.resource == "USB0::1::2::A::INSTR"
+    assert cfg.trigger.driver == "agilent33220a"
+    assert cfg.drive.options["load_ohm"] == "inf"
+    assert cfg.digitizer.driver == "acqiris"
+    assert len(cfg.pulsers) == 2 and cfg.pulsers[1].role == "pulsers[1]"
+
+
+@pytest.mark.parametrize(
+    "edit, key",
+    [
+        (("max_drive_vpp = 2.5", ""), "limits.max_drive_vpp"),
+        (("max_drive_vpp = 2.5", "max_drive_vpp = -1"), "limits.max_drive_vpp"),
+        (("max_drive_vpp = 2.5", "max_drive_vp = 2.5"), "limits.max_drive_vp"),
+        (('"8.5-0.4j"', '"eight"'), "calibration.drive_newton_per_volt"),
+        (('resource = "PCI::INSTR0"', 'resourc = "PCI::INSTR0"'), "digitizer.resourc"),
+        (('load_ohm = "inf"', 'load_ohm = "open"'), "drive.load_ohm"),
+        (("2 = 1600.0", "zero = 1600.0"), "calibration.channel_speed_of_sound_m_s.zero"),
+        (('[digitizer]\nresource = "PCI::INSTR0"', '[digitizer]\nresource = "PCI::INSTR0"\n'
+          'driver = "tektronix"'), "digitizer.driver"),
+    ],
+)
+def test_bad_bench_file_names_the_key(tmp_path, edit, key):
+    text = GOOD.replace(*edit)
+    assert text != GOOD
+    with pytest.raises(BenchConfigError, match=f"{key.replace('.', '[.]')}: "):
+        BenchConfig.load(write(tmp_path, text))
+
+
+def test_missing_section_and_missing_file(tmp_path):
+    text = GOOD.replace('[drive]\nresource = "USB0::1::2::B::INSTR"\nload_ohm = "inf"\n', "")
+    with pytest.raises(BenchConfigError, match="drive: missing section"):
+        BenchConfig.load(write(tmp_path, text))
+    with pytest.raises(FileNotFoundError):
+        BenchConfig.load(tmp_path / "nope.toml")
+    with pytest.raises(BenchConfigError, match="not valid TOML"):
+        BenchConfig.load(write(tmp_path, "[limits\n"))
+
+
+def test_complex_forms(tmp_path):
+    for form, value in [("3", 3 + 0j), ("{re = 1.0, im = -2.0}", 1 - 2j), ('"1+2j"', 1 + 2j)]:
+        text = GOOD.replace('"8.5-0.4j"', form)
+        assert BenchConfig.load(write(tmp_path, text)).drive_newton_per_volt == value
+
+
+def test_simulated_flag_needs_no_instruments(tmp_path):
+    text = """
+[bench]
+simulated = true
+[limits]
+max_drive_vpp = 1.0
+[calibration]
+drive_newton_per_volt = 4.0
+"""
+    cfg = BenchConfig.load(write(tmp_path, text))
+    assert cfg.simulated and cfg.trigger is None and cfg.pulsers == ()
+    assert math.isclose(cfg.max_drive_vpp, 1.0)
+
+
+class FakeGen:
+    def __init__(self, name, log, fail=None):
+        self.name, self.log, self.fail = name, log, fail
+        self.output_enabled = True
+
+    def safe_state(self):
+        self.log.append((self.name, "safe"))
+        if self.fail:
+            raise self.fail
+        self.output_enabled = False
+
+    def close(self):
+        self.log.append((self.name, "close"))
+
+
+class FakeDig:
+    def __init__(self, log):
+        self.log = log
+
+    def abort(self):
+        self.log.append(("dig", "abort"))
+
+    def close(self):
+        self.log.append(("dig", "close"))
+
+
+def make_bench(log, drive_fail=None):
+    return Bench(trigger=FakeGen("trig", log), drive=FakeGen("drive", log, drive_fail),
+                 digitizer=FakeDig(log), pulsers=[FakeGen("p0", log)],
+                 config=BenchConfig.default(), simulated=True)
+
+
+def test_bench_exit_makes_everything_safe_even_when_one_fails():
+    log = []
+    with pytest.raises(ZeroDivisionError):
+        with make_bench(log, drive_fail=OSError("link down")) as bench:
+            1 / 0  # noqa: B018
+    # drive first (shaker stops first), every instrument still handled
+    assert log[:4] == [("drive", "safe"), ("trig", "safe"), ("dig", "abort"), ("p0", "safe")]
+    assert ("trig", "close") in log and ("dig", "close") in log
+    assert bench.trigger.output_enabled is False
+    assert any("link down" in m for m in bench.safe_state_errors)
+    n = len(log)
+    bench.close()  # idempotent
+    assert len(log) == n
+
+
+def test_keyboard_interrupt_in_safe_state_reraised_after_all_done():
+    log = []
+    bench = make_bench(log, drive_fail=KeyboardInterrupt())
+    with pytest.raises(KeyboardInterrupt):
+        bench.safe_state()
+    assert ("p0", "safe") in log and ("trig", "safe") in log
+
+
+def test_open_bench_none_without_sim_gives_clear_error(monkeypatch):
+    import builtins
+
+    real_import = builtins.__import__
+
+    def fake_import(name, *a, **k):
+        if name.startswith("pelvislab.sim_instruments.bench"):
+            raise ImportError("no module")
+        return real_import(name, *a, **k)
+
+    monkeypatch.setattr(builtins, "__import__", fake_import)
+    with pytest.raises(RuntimeError, match="simulated bench"):
+        open_bench(None)
+
+
+def test_segmented_record_checks_and_conversions():
+    codes = np.array([[0, 10], [-5, 127]], dtype=np.int8)
+    rec = SegmentedRecord(codes, np.array([1e-10, -2e-10]), 5e8, 1e-6, 0.01, 0.1)
+    assert rec.n_segments == 2 and rec.n_samples == 2
+    np.testing.assert_allclose(rec.volts()[1], [-0.05 - 0.1, 1.27 - 0.1])
+    np.testing.assert_allclose(rec.time_s()[0], [1e-6 + 1e-10, 1e-6 + 2e-9 + 1e-10])
+    with pytest.raises(ValueError, match="trigger_offset_s"):
+        SegmentedRecord(codes, np.zeros(3), 5e8, 0.0, 0.01, 0.0)
