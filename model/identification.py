@@ -1,0 +1,538 @@
+"""FRF-based model updating (thesis ch. 6.2, versions A and B of ch. 7).
+
+The identification works on any linear structural model given as *system matrices with
+parameter derivatives* (:class:`SystemMatrices`) plus real observation/excitation matrices
+mapping the model DOFs to measurement points: the pelvis model of ``pelvislab.model``
+supplies both (see :func:`pelvislab.model.identification_model.pelvis_problem`).
+
+Dynamic stiffness (receptance convention of design 4.1, eq. 7.1-7.3 of the thesis)::
+
+    Z(w) = -w^2 M + (1 + f_k w / (4 w_max)) K + i (w + f_c w_max / 4) C
+
+Version A is ``f_k = f_c = 0``; version B identifies ``f_k`` and ``f_c`` as well.
+H(w) = O Z(w)^-1 B and its analytic Jacobian dH/dp = -(O Z^-1) dZ/dp (Z^-1 B) is
+evaluated batched over all frequencies (one LU solve per frequency with stacked
+right-hand sides).
+
+Residual formulations (``ResidualSpec.kind``):
+
+* ``"eq610"`` -- the thesis' cost eq. 6.10: ``a Re(H - H~)^2 + b Im(H - H~)^2`` (absolute);
+* ``"std"``   -- the same difference divided by the measurement standard uncertainty
+  ``H_std`` (design 4.2): a chi-square, so the covariance of the estimate is absolute;
+* ``"log"``   -- complex log-ratio ``log(H / H~)``: log-magnitude and phase residuals, which
+  weight every line by its *relative* misfit (small FRFs away from resonance count as
+  much as the peaks).
+
+Parameters are optimised as ``log(p)`` (positive physical parameters, relative scaling)
+with bounds; the frequency-dependence factors of version B are optimised linearly
+(they may be 0) and bounded to ``[0, 5]``.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy.optimize import least_squares
+
+FREQ_DEP_NAMES = ("f_k", "f_c")
+
+
+@dataclass(frozen=True)
+class SystemMatrices:
+    """M, C, K (n_dof, n_dof) and their derivatives (n_p, n_dof, n_dof) w.r.t. each parameter.
+
+    Units: kg, N s/m, N/m for the matrices; per unit of the parameter (SI) for derivatives.
+    """
+
+    M: np.ndarray
+    C: np.ndarray
+    K: np.ndarray
+    dM: np.ndarray
+    dC: np.ndarray
+    dK: np.ndarray
+
+
+Assemble = Callable[[np.ndarray], SystemMatrices]
+
+
+@dataclass(frozen=True)
+class FrfProblem:
+    """A parametric FRF model: named parameters, matrix assembly, observation and excitation.
+
+    ``assemble(values)`` returns the system matrices for the full parameter vector
+    ``values`` (SI, same order as ``names``) and their derivatives. ``outputs`` (n_out, n_dof)
+    maps DOF displacements to measured displacements (m) along the measurement directions;
+    ``inputs`` (n_dof, n_in) maps unit point forces (N) to generalised forces.
+    ``omega_max_rad_s`` is w_max of eq. 7.2-7.3 (version B only).
+    """
+
+    names: tuple[str, ...]
+    nominal: np.ndarray
+    assemble: Assemble
+    outputs: np.ndarray
+    inputs: np.ndarray
+    omega_max_rad_s: float = 2 * np.pi * 300.0
+
+    @property
+    def n_params(self) -> int:
+        """Number of physical parameters."""
+        return len(self.names)
+
+
+@dataclass(frozen=True)
+class ResidualSpec:
+    """How the FRF misfit is turned into a residual vector (see the module docstring)."""
+
+    kind: str = "log"
+    a: float = 1.0
+    b: float = 1.0
+
+    def __post_init__(self) -> None:
+        if self.kind not in ("eq610", "std", "log"):
+            raise ValueError(f"unknown residual kind {self.kind!r}; use eq610, std or log")
+        if self.a < 0 or self.b < 0 or self.a + self.b == 0:
+            raise ValueError("weights a, b must be non-negative and not both zero")
+
+
+def dynamic_stiffness_terms(
+    omega_rad_s: np.ndarray, omega_max_rad_s: float, f_k: float, f_c: float,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Frequency factors (mass, stiffness, damping) of Z = -w^2 M + kappa K + i gamma C.
+
+    kappa = 1 + f_k w / (4 w_max) (eq. 7.3), gamma = w + f_c w_max / 4 (eq. 7.2); w in rad/s.
+    """
+    w = np.asarray(omega_rad_s, dtype=float)
+    return -(w**2), 1.0 + f_k * w / (4.0 * omega_max_rad_s), w + f_c * omega_max_rad_s / 4.0
+
+
+def frf_with_jacobian(
+    mats: SystemMatrices,
+    outputs: np.ndarray,
+    inputs: np.ndarray,
+    frequency_hz: np.ndarray,
+    *,
+    f_k: float = 0.0,
+    f_c: float = 0.0,
+    omega_max_rad_s: float = 2 * np.pi * 300.0,
+    jacobian: bool = True,
+    freq_dep_jacobian: bool = False,
+) -> tuple[np.ndarray, np.ndarray | None]:
+    """Receptance H (n_f, n_out, n_in) in m/N and dH/dp (n_f, n_p[+2], n_out, n_in).
+
+    Eq. 7.1 with eq. 7.2-7.3 (f_k = f_c = 0: the plain viscous model of ch. 4.4).
+    dH/dp_j = -(O Z^-1) dZ_j (Z^-1 B) batched over frequency; with ``freq_dep_jacobian``
+    two trailing columns hold dH/df_k and dH/df_c.
+    """
+    w = 2 * np.pi * np.asarray(frequency_hz, dtype=float)
+    am, ak, ac = dynamic_stiffness_terms(w, omega_max_rad_s, f_k, f_c)
+    Z = (am[:, None, None] * mats.M + ak[:, None, None] * mats.K
+         + 1j * ac[:, None, None] * mats.C)
+    n_in = inputs.shape[1]
+    # Z is complex symmetric, so (O Z^-1)^T = Z^-1 O^T: one solve for both sides.
+    rhs = np.concatenate([inputs, outputs.T], axis=1).astype(complex)
+    sol = np.linalg.solve(Z, np.broadcast_to(rhs, (w.size, *rhs.shape)))
+    X = sol[:, :, :n_in]  # Z^-1 B (n_f, n, n_in)
+    Lt = sol[:, :, n_in:]  # (O Z^-1)^T (n_f, n, n_out)
+    H = np.einsum("on,fni->foi", outputs, X)
+    if not jacobian:
+        return H, None
+    L = np.swapaxes(Lt, 1, 2)  # (n_f, n_out, n)
+    # Terms L dX X for X in (M, K, C), then combine with the frequency factors.
+    def sandwich(d: np.ndarray) -> np.ndarray:
+        return np.einsum("fon,fjni->fjoi", L, np.einsum("jnm,fmi->fjni", d, X))
+
+    dH = -(am[:, None, None, None] * sandwich(mats.dM)
+           + ak[:, None, None, None] * sandwich(mats.dK)
+           + 1j * ac[:, None, None, None] * sandwich(mats.dC))
+    if freq_dep_jacobian:
+        LKX = L @ mats.K @ X
+        LCX = L @ mats.C @ X
+        d_fk = -(w / (4.0 * omega_max_rad_s))[:, None, None] * LKX
+        d_fc = -(1j * omega_max_rad_s / 4.0) * LCX
+        dH = np.concatenate([dH, d_fk[:, None], d_fc[:, None]], axis=1)
+    return H, dH
+
+
+# --------------------------------------------------------------------------------------
+# Residuals
+
+
+@dataclass
+class _Target:
+    """Measured data flattened to the measured lines only."""
+
+    frequency_hz: np.ndarray
+    mask: np.ndarray  # (n_f, n_out, n_in) bool
+    H: np.ndarray  # (n_lines,) complex
+    weight: np.ndarray  # (n_lines,) real, multiplies H - H~ for eq610/std
+    spec: ResidualSpec
+
+    @classmethod
+    def build(cls, frequency_hz: np.ndarray, H: np.ndarray, H_std: np.ndarray | None,
+              spec: ResidualSpec) -> _Target:
+        mask = np.isfinite(H)
+        if H_std is not None:
+            mask &= np.isfinite(H_std) & (H_std > 0)
+        if spec.kind == "log":
+            mask &= np.abs(np.where(mask, H, 0)) > 0
+        if not mask.any():
+            raise ValueError("no measured FRF lines to fit")
+        h = H[mask]
+        if spec.kind == "std":
+            if H_std is None:
+                raise ValueError("residual 'std' needs H_std in the FRF file")
+            # H_std is the rms of the complex error: each of Re/Im has sigma/sqrt(2).
+            weight = np.sqrt(2.0) / H_std[mask]
+        elif spec.kind == "eq610":
+            # One global scale so the cost is O(1) and tolerances make sense; the
+            # minimiser of eq. 6.10 is unchanged.
+            weight = np.full(h.shape, 1.0 / np.sqrt(np.mean(np.abs(h) ** 2)))
+        else:
+            weight = np.ones(h.shape)
+        return cls(np.asarray(frequency_hz, float), mask, h, weight, spec)
+
+    @property
+    def n_residuals(self) -> int:
+        return 2 * self.H.size
+
+    def residual(self, H_model: np.ndarray) -> np.ndarray:
+        h = H_model[self.mask]
+        s = self.spec
+        if s.kind == "log":
+            ratio = h / self.H
+            return np.concatenate([np.sqrt(s.a) * np.log(np.abs(ratio)),
+                                   np.sqrt(s.b) * np.angle(ratio)])
+        d = self.weight * (h - self.H)
+        wa, wb = (np.sqrt(s.a), np.sqrt(s.b)) if s.kind == "eq610" else (1.0, 1.0)
+        return np.concatenate([wa * d.real, wb * d.imag])
+
+    def jacobian(self, H_model: np.ndarray, dH: np.ndarray) -> np.ndarray:
+        # dH (n_f, n_p, n_out, n_in) -> (n_lines, n_p)
+        d = np.moveaxis(dH, 1, -1)[self.mask]
+        s = self.spec
+        if s.kind == "log":
+            g = d / H_model[self.mask][:, None]  # d log H
+            return np.concatenate([np.sqrt(s.a) * g.real, np.sqrt(s.b) * g.imag])
+        g = self.weight[:, None] * d
+        wa, wb = (np.sqrt(s.a), np.sqrt(s.b)) if s.kind == "eq610" else (1.0, 1.0)
+        return np.concatenate([wa * g.real, wb * g.imag])
+
+
+# --------------------------------------------------------------------------------------
+# Parameter mapping (log-parameters for physical ones, linear for f_k/f_c)
+
+
+@dataclass(frozen=True)
+class _Mapping:
+    free: np.ndarray  # indices into the physical parameter vector
+    base: np.ndarray  # full physical vector (fixed values used for non-free parameters)
+    freq_dep: bool  # version B: two extra linear parameters f_k, f_c
+    fixed_fk: float
+    fixed_fc: float
+
+    def unpack(self, x: np.ndarray) -> tuple[np.ndarray, float, float]:
+        n = self.free.size
+        values = self.base.copy()
+        values[self.free] = np.exp(x[:n])
+        if self.freq_dep:
+            return values, float(x[n]), float(x[n + 1])
+        return values, self.fixed_fk, self.fixed_fc
+
+    def pack(self, values: np.ndarray, f_k: float, f_c: float) -> np.ndarray:
+        x = np.log(values[self.free])
+        return np.concatenate([x, [f_k, f_c]]) if self.freq_dep else x
+
+
+@dataclass
+class FitResult:
+    """Outcome of one identification (physical SI values, not log-parameters)."""
+
+    names: list[str]
+    values: np.ndarray
+    std: np.ndarray  # standard errors (SI); NaN where the layout cannot determine them
+    correlation: np.ndarray
+    cost: float  # 0.5 * sum(residual^2) of the chosen residual kind
+    converged: bool
+    evaluations: int
+    wall_time_s: float
+    residual_kind: str
+    singular_values: np.ndarray  # of the relative (log-parameter) Jacobian, descending
+    weak_directions: list[dict[str, float]]  # parameter combinations the data barely sees
+    starts: int = 1
+    message: str = ""
+    extra: dict[str, object] = field(default_factory=dict)
+
+    def as_dict(self) -> dict[str, object]:
+        """JSON-ready dict (design 4.5)."""
+        return {
+            "parameters": {n: {"value": float(v), "std": _nan_to_none(s)}
+                           for n, v, s in zip(self.names, self.values, self.std, strict=True)},
+            "converged": bool(self.converged),
+            "cost": float(self.cost),
+            "evaluations": int(self.evaluations),
+            "wall_time_s": float(self.wall_time_s),
+            "residual": self.residual_kind,
+            "starts": int(self.starts),
+            "message": self.message,
+            "correlation": {"names": list(self.names),
+                            "matrix": [[_nan_to_none(c) for c in row]
+                                       for row in self.correlation]},
+            "identifiability": {
+                "singular_values": [float(s) for s in self.singular_values],
+                "weak_directions": self.weak_directions,
+            },
+            **self.extra,
+        }
+
+
+def _nan_to_none(x: float) -> float | None:
+    return None if not np.isfinite(x) else float(x)
+
+
+class _Evaluator:
+    """Caches the last FRF/Jacobian evaluation, counts model evaluations."""
+
+    def __init__(self, problem: FrfProblem, target: _Target, mapping: _Mapping,
+                 frequency_hz: np.ndarray) -> None:
+        self.problem = problem
+        self.target = target
+        self.mapping = mapping
+        self.frequency_hz = frequency_hz
+        self.evaluations = 0
+        self._key: bytes | None = None
+        self._cache: tuple[np.ndarray, np.ndarray] | None = None
+
+    def _eval(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        key = np.asarray(x, float).tobytes()
+        if key == self._key and self._cache is not None:
+            return self._cache
+        values, f_k, f_c = self.mapping.unpack(x)
+        mats = self.problem.assemble(values)
+        H, dH = frf_with_jacobian(
+            mats, self.problem.outputs, self.problem.inputs, self.frequency_hz,
+            f_k=f_k, f_c=f_c, omega_max_rad_s=self.problem.omega_max_rad_s,
+            freq_dep_jacobian=self.mapping.freq_dep,
+        )
+        assert dH is not None
+        n_phys = self.problem.n_params
+        cols = list(self.mapping.free) + (
+            [n_phys, n_phys + 1] if self.mapping.freq_dep else [])
+        dH = dH[:, cols]
+        # chain rule for log-parameters: dH/dlog p = p dH/dp
+        scale = np.ones(len(cols))
+        scale[: self.mapping.free.size] = values[self.mapping.free]
+        dH = dH * scale[None, :, None, None]
+        self.evaluations += 1
+        self._key, self._cache = key, (H, dH)
+        return H, dH
+
+    def residual(self, x: np.ndarray) -> np.ndarray:
+        return self.target.residual(self._eval(x)[0])
+
+    def jacobian(self, x: np.ndarray) -> np.ndarray:
+        H, dH = self._eval(x)
+        return self.target.jacobian(H, dH)
+
+
+# --------------------------------------------------------------------------------------
+# Uncertainty and identifiability
+
+
+def covariance_report(
+    jac_log: np.ndarray, residual: np.ndarray, names: Sequence[str], values: np.ndarray,
+    *, absolute_sigma: bool, n_weak: int = 3, rel_threshold: float = 1e-6,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, list[dict[str, object]]]:
+    """Standard errors, correlations and identifiability from the Jacobian at the optimum.
+
+    ``jac_log`` is d residual / d log p (linear columns for f_k, f_c: ``values`` must
+    then hold 1.0 for them so that std = value * std(log p) stays right). Covariance
+    = s^2 (J^T J)^+ with s^2 = 1 (``absolute_sigma``: residuals already divided by the
+    measurement std) or the residual variance 2 cost / (m - n). Singular directions of
+    J below ``rel_threshold`` x the largest are reported and their parameters' std is NaN.
+    Returns (std, correlation, singular_values, weak_directions).
+    """
+    m, n = jac_log.shape
+    U, s, Vt = np.linalg.svd(jac_log, full_matrices=False)
+    dof = max(m - n, 1)
+    s2 = 1.0 if absolute_sigma else float(residual @ residual) / dof
+    keep = s > rel_threshold * s[0] if s.size and s[0] > 0 else np.zeros(n, bool)
+    inv = np.where(keep, 1.0 / np.where(keep, s, 1.0) ** 2, 0.0)
+    cov_log = (Vt.T * inv) @ Vt * s2
+    std_log = np.sqrt(np.clip(np.diag(cov_log), 0, None))
+    # Parameters that load on an unresolved direction are not determined.
+    unresolved = np.zeros(n, bool)
+    for k in np.flatnonzero(~keep):
+        unresolved |= np.abs(Vt[k]) > 0.1
+    std_log[unresolved] = np.nan
+    with np.errstate(invalid="ignore", divide="ignore"):
+        corr = cov_log / np.outer(std_log, std_log)
+    corr[unresolved, :] = np.nan
+    corr[:, unresolved] = np.nan
+    std = np.abs(values) * std_log
+    weak: list[dict[str, object]] = []
+    for k in np.argsort(s)[:n_weak]:
+        v = Vt[k]
+        order = np.argsort(-np.abs(v))
+        combo = {names[i]: round(float(v[i]), 4) for i in order if abs(v[i]) > 0.1}
+        weak.append({"singular_value_relative": float(s[k] / s[0]) if s[0] else 0.0,
+                     "resolved": bool(keep[k]),
+                     # 1-sigma relative change along this direction
+                     "std_along": float(np.sqrt(s2) / s[k]) if s[k] > 0 else float("inf"),
+                     "combination": combo})
+    return std, corr, s, weak
+
+
+# --------------------------------------------------------------------------------------
+# The identification driver
+
+
+@dataclass(frozen=True)
+class Strategy:
+    """Global strategy of :func:`identify_frf`.
+
+    * ``max_starts``: least-squares runs at most (the first from the start values, the
+      next from random log-uniform perturbations of +-``spread``);
+    * ``screen_stride``: the screening runs use every n-th frequency (coarse grid, thesis
+      ch. 7 does the same); the best screen is then polished on the full grid;
+    * ``stop_rms``: stop early when a polished run reaches this rms residual (the noise
+      floor; for ``std`` residuals ~1, for noise-free data ~0);
+    * ``stages``: optional list of parameter-name prefixes optimised one group after the
+      other before the joint run (the thesis' "most influential first", ch. 6.2).
+    """
+
+    max_starts: int = 8
+    spread: float = 0.5
+    screen_stride: int = 1
+    stop_rms: float | None = None
+    polish_kind: str | None = None  # residual kind for the final polish; None = same
+    seed: int = 0
+    max_nfev: int = 200
+    tol: float = 1e-12
+
+
+def identify_frf(
+    problem: FrfProblem,
+    frequency_hz: np.ndarray,
+    H: np.ndarray,
+    H_std: np.ndarray | None = None,
+    *,
+    free: Sequence[str] | None = None,
+    start: np.ndarray | None = None,
+    version_b: bool = False,
+    start_freq_dep: tuple[float, float] = (0.0, 0.0),
+    residual: ResidualSpec | None = None,
+    strategy: Strategy | None = None,
+    bounds_factor: float = 10.0,
+    progress: Callable[[str], None] | None = None,
+) -> FitResult:
+    """Identify the ``free`` parameters (default: all) of ``problem`` from measured FRFs.
+
+    ``H`` (n_f, n_out, n_in) complex m/N with NaN where not measured; ``H_std`` optional.
+    Physical parameters are bounded to [start / bounds_factor, start * bounds_factor].
+    Returns a :class:`FitResult` with values, standard errors and identifiability.
+    """
+    t0 = time.perf_counter()
+    residual = residual or (ResidualSpec("std") if H_std is not None else ResidualSpec("log"))
+    strategy = strategy or Strategy()
+    names = list(problem.names)
+    free_names = list(free) if free is not None else names
+    unknown = [n for n in free_names if n not in names]
+    if unknown:
+        raise ValueError(f"unknown parameter(s) {unknown}; the model has {names}")
+    free_idx = np.array([names.index(n) for n in free_names], dtype=int)
+    base = np.asarray(problem.nominal if start is None else start, dtype=float).copy()
+    if np.any(base[free_idx] <= 0):
+        raise ValueError("start values of identified parameters must be positive")
+    mapping = _Mapping(free_idx, base, version_b, *start_freq_dep)
+    x0 = mapping.pack(base, *start_freq_dep)
+    lo = x0.copy()
+    hi = x0.copy()
+    nf = free_idx.size
+    lo[:nf] -= np.log(bounds_factor)
+    hi[:nf] += np.log(bounds_factor)
+    if version_b:
+        lo[nf:], hi[nf:] = 0.0, 5.0
+        x0[nf:] = np.clip(x0[nf:], 0.0, 5.0)
+    frequency_hz = np.asarray(frequency_hz, float)
+    full = _Evaluator(problem, _Target.build(frequency_hz, H, H_std, residual), mapping,
+                      frequency_hz)
+    stride = max(1, int(strategy.screen_stride))
+    if stride > 1:
+        sl = slice(None, None, stride)
+        screen = _Evaluator(problem, _Target.build(
+            frequency_hz[sl], H[sl], None if H_std is None else H_std[sl], residual),
+            mapping, frequency_hz[sl])
+    else:
+        screen = full
+    polish_spec = ResidualSpec(strategy.polish_kind, residual.a, residual.b) \
+        if strategy.polish_kind else residual
+    polish = full if polish_spec == residual else _Evaluator(
+        problem, _Target.build(frequency_hz, H, H_std, polish_spec), mapping, frequency_hz)
+
+    rng = np.random.default_rng(strategy.seed)
+    best: tuple[float, np.ndarray, object] | None = None
+    starts = 0
+    stop = strategy.stop_rms
+    for k in range(strategy.max_starts):
+        starts += 1
+        xs = x0.copy()
+        if k > 0:
+            xs[:nf] += rng.uniform(-1, 1, nf) * np.log1p(strategy.spread)
+            if version_b:
+                xs[nf:] = rng.uniform(0.0, 1.0, 2)
+            xs = np.clip(xs, lo + 1e-9, hi - 1e-9)
+        sol = least_squares(screen.residual, xs, jac=screen.jacobian, bounds=(lo, hi),
+                            method="trf", x_scale=1.0, ftol=strategy.tol, xtol=strategy.tol,
+                            gtol=strategy.tol, max_nfev=strategy.max_nfev)
+        if screen is not full or polish is not full:
+            sol = least_squares(full.residual, sol.x, jac=full.jacobian, bounds=(lo, hi),
+                                method="trf", ftol=strategy.tol, xtol=strategy.tol,
+                                gtol=strategy.tol, max_nfev=strategy.max_nfev)
+        if polish is not full:
+            sol = least_squares(polish.residual, sol.x, jac=polish.jacobian, bounds=(lo, hi),
+                                method="trf", ftol=strategy.tol, xtol=strategy.tol,
+                                gtol=strategy.tol, max_nfev=strategy.max_nfev)
+        ev = polish
+        r = ev.residual(sol.x)
+        rms = float(np.sqrt(np.mean(r**2)))
+        if progress:
+            progress(f"start {k + 1}/{strategy.max_starts}: rms residual {rms:.3g}")
+        if best is None or rms < best[0]:
+            best = (rms, sol.x, sol)
+        if stop is not None and rms <= stop:
+            break
+    assert best is not None
+    rms, x, sol = best
+    ev = polish
+    r = ev.residual(x)
+    J = ev.jacobian(x)
+    values, f_k, f_c = mapping.unpack(x)
+    out_names = free_names + (list(FREQ_DEP_NAMES) if version_b else [])
+    out_values = np.concatenate([values[free_idx], [f_k, f_c] if version_b else []])
+    # For linear parameters, std(log) must be read as absolute: pass 1.0 as "value".
+    scale_vals = np.concatenate([values[free_idx], [1.0, 1.0] if version_b else []])
+    std, corr, sv, weak = covariance_report(
+        J, r, out_names, scale_vals, absolute_sigma=polish_spec.kind == "std")
+    cost = 0.5 * float(r @ r)
+    at_bound = bool(np.any(np.isclose(x[:nf], lo[:nf], atol=1e-6)
+                           | np.isclose(x[:nf], hi[:nf], atol=1e-6)))
+    converged = bool(getattr(sol, "status", 0) > 0) and not at_bound
+    if stop is not None:
+        converged = converged and rms <= stop
+    msg = str(getattr(sol, "message", ""))
+    if at_bound:
+        msg += "; a parameter sits on its bound"
+    if stop is not None and rms > stop:
+        msg += f"; best rms residual {rms:.3g} above the target {stop:.3g} (local minimum?)"
+    return FitResult(
+        names=out_names, values=out_values, std=std, correlation=corr, cost=cost,
+        converged=converged,
+        evaluations=screen.evaluations + (full.evaluations if full is not screen else 0)
+        + (polish.evaluations if polish is not full else 0),
+        wall_time_s=time.perf_counter() - t0, residual_kind=polish_spec.kind,
+        singular_values=sv, weak_directions=weak, starts=starts, message=msg,
+        extra={"rms_residual": rms},
+    )

@@ -1,0 +1,86 @@
+"""Modal updating (thesis ch. 6.1, app. C) on a small chain fixture."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from pelvislab.model.identification import FrfProblem
+from pelvislab.model.identification_modal import (
+    ModalData,
+    eigen_sensitivities,
+    identify_modal,
+    mac,
+    modes_from_frf,
+    undamped_modes,
+)
+from pelvislab.tests.test_identification_frf import chain_problem, synth
+
+
+def full_observation(n: int = 4, seed: int = 0) -> FrfProblem:
+    p = chain_problem(n, seed=seed)
+    return FrfProblem(p.names, p.nominal, p.assemble, np.eye(n), p.inputs, p.omega_max_rad_s)
+
+
+def test_eigen_sensitivities_match_finite_differences() -> None:
+    p = full_observation()
+    x = p.nominal
+    m = p.assemble(x)
+    lam, Z = undamped_modes(m.M, m.K)
+    dl, dz = eigen_sensitivities(m.M, m.K, m.dM, m.dK, lam, Z, [0, 1, 2, 3])
+    for j in range(p.n_params - 1):
+        h = x[j] * 1e-6
+        xp = x.copy()
+        xp[j] += h
+        mp = p.assemble(xp)
+        lp, Zp = undamped_modes(mp.M, mp.K)
+        Zp = Zp * np.sign(np.sum(Zp * Z, axis=0))
+        np.testing.assert_allclose((lp - lam) / h, dl[:, j], rtol=1e-4,
+                                   atol=1e-6 * np.abs(dl).max())
+        np.testing.assert_allclose((Zp - Z) / h, dz[:, j].T, rtol=1e-3,
+                                   atol=1e-4 * np.abs(dz[:, j]).max())
+
+
+def test_modal_updating_recovers_stiffness_and_reports_scale_ambiguity() -> None:
+    p = full_observation()
+    rng = np.random.default_rng(3)
+    true = p.nominal * (1 + 0.3 * rng.uniform(-1, 1, p.n_params))
+    mt = p.assemble(true)
+    lt, Zt = undamped_modes(mt.M, mt.K)
+    data = ModalData(np.sqrt(lt) / (2 * np.pi), -2.5 * Zt)  # arbitrary scaling and sign
+    springs = [n for n in p.names if n.startswith("k")]
+    start = p.nominal.copy()
+    start[:4] = true[:4]  # masses known
+    res = identify_modal(p, data, free=springs, start=start, n_rigid=0)
+    assert res.converged
+    np.testing.assert_allclose(res.values, true[4:8], rtol=1e-8)
+    # everything free: frequencies and shapes cannot see a common scale of M and K
+    every = [n for n in p.names if n != "c"]
+    res = identify_modal(p, data, free=every, n_rigid=0)
+    weakest = res.weak_directions[0]
+    assert not weakest["resolved"]
+    assert set(weakest["combination"]) == set(every)
+    assert np.all(np.isnan(res.std))
+
+
+def test_mac_is_one_for_scaled_vectors() -> None:
+    a = np.array([[1.0, 0.0], [2.0, 1.0]])
+    np.testing.assert_allclose(np.diag(mac(a, -3 * a)), 1.0)
+
+
+def test_peak_picking_finds_chain_resonances() -> None:
+    p = chain_problem(3, seed=1, damping=1.0)
+    f = np.arange(1.0, 80.0, 0.05)
+    m = p.assemble(p.nominal)
+    lam, _ = undamped_modes(m.M, m.K)
+    data = modes_from_frf(f, synth(p, p.nominal, f))
+    expected = np.sqrt(lam) / (2 * np.pi)
+    expected = expected[expected < 80]
+    assert data.frequency_hz.size == expected.size
+    np.testing.assert_allclose(data.frequency_hz, expected, atol=0.1)
+
+
+def test_shape_mismatch_is_an_error() -> None:
+    p = full_observation()
+    with pytest.raises(ValueError, match="points"):
+        identify_modal(p, ModalData(np.array([10.0]), np.ones((2, 1))))
