@@ -1,0 +1,728 @@
+"""Measurement protocols: the versioned TOML schema, its validation and duration estimate.
+
+A protocol says what one session measures (``docs/protocols.md`` documents every key):
+a stepped-sine sweep (thesis ch. 6.2 / design section 2), the ultrasound acquisition
+settings (ch. 8), the setups (excitation point + the landmark each transducer looks at;
+the operator repositions the transducers between setups) and subject metadata.
+
+Validation refuses anything it does not understand: every problem is reported as
+``KEY: rule`` (all of them, on one line), e.g. ``sweep.stop_hz: must be < prf/2 = 2500 Hz``.
+Conditions that are legal but unwise (a sweep longer than a subject can keep still, 45 s in
+ch. 6.2; a settle time under 50 ms) are returned as warnings instead.
+
+Schema ``pelvislab-protocol`` version 1. Units are SI and in the key names.
+"""
+
+from __future__ import annotations
+
+import math
+import tomllib
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from importlib import resources
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+__all__ = [
+    "PROTOCOL_SCHEMA",
+    "PROTOCOL_SCHEMA_VERSION",
+    "BenchLimits",
+    "PlannedStep",
+    "Point",
+    "Protocol",
+    "ProtocolError",
+    "Setup",
+    "Subject",
+    "Sweep",
+    "Ultrasound",
+    "load_landmarks",
+    "load_protocol",
+    "parse_protocol",
+]
+
+PROTOCOL_SCHEMA = "pelvislab-protocol"
+PROTOCOL_SCHEMA_VERSION = 1
+
+MAX_STILL_S = 45.0
+"""Longest sweep a subject can be expected to keep perfectly still (thesis ch. 6.2), s."""
+MIN_SETTLE_S = 0.05
+"""Settle time between frequency steps used in ch. 6.2 (50 ms); less draws a warning."""
+MIN_PERIODS_PER_RECORD = 2.0
+"""A record must hold at least this many drive periods for a phasor estimate."""
+MAX_STEPS = 20_000
+"""Sanity bound on setups x frequencies."""
+CHANNEL_KEYS = {"ch1": 1, "ch2": 2, "ch3": 3, "ch4": 4}
+BONES = ("innominate_right", "innominate_left", "sacrum", "")
+SUBJECT_POSITIONS = ("face-up", "face-down", "side", "specimen", "phantom", "simulated", "")
+PULSE_ENERGIES = ("low", "high")
+
+
+class ProtocolError(ValueError):
+    """An invalid protocol; the one-line message names each offending key and the rule."""
+
+    def __init__(self, source: str, problems: list[str]) -> None:
+        self.source = source
+        self.problems = list(problems)
+        shown = "; ".join(problems[:6])
+        more = f" (and {len(problems) - 6} more)" if len(problems) > 6 else ""
+        super().__init__(f"{source}: {shown}{more}")
+
+
+# --------------------------------------------------------------------------- data classes
+@dataclass(frozen=True)
+class Point:
+    """A named measurement or excitation point: bone, position (m, model frame), direction.
+
+    ``direction`` is a unit vector; for a measurement it points from the bone surface toward
+    the transducer, for an excitation it is the direction of the applied force (design 4.1).
+    """
+
+    name: str
+    bone: str
+    position_m: tuple[float, float, float]
+    direction: tuple[float, float, float]
+
+
+@dataclass(frozen=True)
+class Subject:
+    """Subject metadata (pseudonymous: no names in protocol or session files)."""
+
+    id: str = ""
+    position: str = ""
+    notes: str = ""
+    extra: Mapping[str, Any] = field(default_factory=dict)
+
+
+@dataclass(frozen=True)
+class Sweep:
+    """Stepped-sine sweep: frequencies in acquisition order and the per-step timing."""
+
+    frequencies_hz: tuple[float, ...]
+    """Frequencies in acquisition order (after ``order``), Hz."""
+    order: str
+    drive_vpp: float
+    """Shaker-drive generator amplitude, V pk-pk."""
+    settle_s: float
+    """Wait after each frequency change before acquiring, s (at least)."""
+    settle_periods: float
+    """...and at least this many drive periods."""
+    periods_per_step: float | None
+    """Record length in drive periods (thesis: 10); None: ``ultrasound.pulses`` per record."""
+
+
+@dataclass(frozen=True)
+class Ultrasound:
+    """Pulse-echo acquisition settings (thesis ch. 8 defaults)."""
+
+    prf_hz: float = 5000.0
+    pulses: int = 2000
+    sample_rate_hz: float = 500e6
+    samples: int = 500
+    delay_s: float = 10e-6
+    speed_of_sound_m_s: float = 1540.0
+    full_scale_v: float = 1.0
+    offset_v: float = 0.0
+    trigger_width_s: float = 1e-6
+    trigger_high_v: float = 5.0
+    gain_db: float = 40.0
+    pulse_energy: str = "low"
+    damping_ohm: float = 50.0
+    high_pass_hz: float | None = None
+    low_pass_hz: float | None = None
+
+    @property
+    def record_end_s(self) -> float:
+        """Time after the trigger at which one echo record ends, s."""
+        return self.delay_s + self.samples / self.sample_rate_hz
+
+
+@dataclass(frozen=True)
+class Setup:
+    """One transducer placement: the excitation point and what each channel looks at."""
+
+    name: str
+    excitation: str
+    transducers: Mapping[int, str]
+    """Digitizer channel (1-based) -> point name."""
+    prompt: str = ""
+
+
+@dataclass(frozen=True)
+class PlannedStep:
+    """One frequency step of the plan."""
+
+    index: int
+    """Position in the plan (0-based, setups x frequencies)."""
+    setup_index: int
+    setup: str
+    frequency_hz: float
+    n_pulses: int
+    settle_s: float
+
+    @property
+    def key(self) -> tuple[str, float]:
+        """(setup name, frequency) identifies a step across resumed runs."""
+        return (self.setup, round(self.frequency_hz, 9))
+
+
+@dataclass(frozen=True)
+class BenchLimits:
+    """Bench limits a protocol is checked against (from the bench file when given)."""
+
+    max_drive_vpp: float = 2.0
+    n_channels: int = 2
+    max_sample_rate_hz: float = 500e6
+    name: str = "simulated bench"
+
+    @classmethod
+    def from_config(cls, config: Any) -> BenchLimits:
+        """Limits of a :class:`pelvislab.drivers.bench.BenchConfig`."""
+        return cls(max_drive_vpp=float(config.max_drive_vpp), name=str(config.name))
+
+
+@dataclass(frozen=True)
+class Protocol:
+    """A validated protocol."""
+
+    name: str
+    description: str
+    subject: Subject
+    sweep: Sweep
+    ultrasound: Ultrasound
+    setups: tuple[Setup, ...]
+    points: Mapping[str, Point]
+    """Every point the setups name, resolved (catalogue or the file's own ``[points]``)."""
+    text: str
+    """The TOML source (stored verbatim in the session's ``/protocol``)."""
+    source: str = "<string>"
+    warnings: tuple[str, ...] = ()
+
+    def n_pulses(self, frequency_hz: float) -> int:
+        """Pulses (echoes) per record at ``frequency_hz``."""
+        if self.sweep.periods_per_step is None:
+            return int(self.ultrasound.pulses)
+        return int(math.ceil(self.sweep.periods_per_step * self.ultrasound.prf_hz
+                             / frequency_hz - 1e-9))
+
+    def settle_s(self, frequency_hz: float) -> float:
+        """Settle time at ``frequency_hz``: max(settle_s, settle_periods / f), s."""
+        return max(self.sweep.settle_s, self.sweep.settle_periods / frequency_hz)
+
+    def step_duration_s(self, frequency_hz: float) -> float:
+        """Settle + record time of one step (no transfer/processing overhead), s."""
+        return self.settle_s(frequency_hz) + self.n_pulses(frequency_hz) / self.ultrasound.prf_hz
+
+    def sweep_duration_s(self) -> float:
+        """Duration of one setup's sweep (what the subject must keep still for), s."""
+        return float(sum(self.step_duration_s(f) for f in self.sweep.frequencies_hz))
+
+    def estimated_duration_s(self) -> float:
+        """Settle + record time of the whole protocol (operator repositioning excluded), s."""
+        return self.sweep_duration_s() * len(self.setups)
+
+    def steps(self) -> list[PlannedStep]:
+        """The plan: every setup in order, each swept over ``sweep.frequencies_hz``."""
+        out: list[PlannedStep] = []
+        for si, setup in enumerate(self.setups):
+            for f in self.sweep.frequencies_hz:
+                out.append(PlannedStep(len(out), si, setup.name, float(f), self.n_pulses(f),
+                                       self.settle_s(f)))
+        return out
+
+    @property
+    def channels(self) -> tuple[int, ...]:
+        """Every digitizer channel any setup uses, sorted."""
+        return tuple(sorted({ch for s in self.setups for ch in s.transducers}))
+
+    def summary(self) -> str:
+        """A few lines describing the plan, for ``pelvislab protocol check``."""
+        f = self.sweep.frequencies_hz
+        lo, hi = min(f), max(f)
+        pulses = [self.n_pulses(x) for x in f]
+        lines = [
+            f"protocol {self.name!r} ({self.source}), schema {PROTOCOL_SCHEMA} "
+            f"v{PROTOCOL_SCHEMA_VERSION}",
+            f"  sweep: {len(f)} steps {lo:g}-{hi:g} Hz ({self.sweep.order}), drive "
+            f"{self.sweep.drive_vpp:g} Vpp, {min(pulses)}-{max(pulses)} pulses per step at "
+            f"{self.ultrasound.prf_hz:g} Hz PRF",
+            f"  setups: {len(self.setups)} ("
+            + ", ".join(f"{s.name}: {s.excitation} -> "
+                        + "/".join(s.transducers[c] for c in sorted(s.transducers))
+                        for s in self.setups) + ")",
+            f"  estimated duration: {self.estimated_duration_s():.1f} s "
+            f"({self.sweep_duration_s():.1f} s per setup sweep; settle + record time, "
+            "transducer repositioning not included)",
+        ]
+        return "\n".join(lines)
+
+
+# --------------------------------------------------------------------------- landmarks
+def load_landmarks(path: Path | str | None = None) -> dict[str, Point]:
+    """The landmark catalogue (``protocols/landmarks.toml`` unless ``path`` is given).
+
+    Accepts ``[landmarks.NAME]`` (or top-level ``[NAME]``) tables with ``bone``,
+    ``position_m`` (or ``position_mm``) and ``direction``. A missing catalogue gives an
+    empty mapping: protocols may define their own ``[points]``.
+    """
+    if path is None:
+        resource = resources.files("pelvislab.protocols") / "landmarks.toml"
+        if not resource.is_file():
+            return {}
+        text = resource.read_text(encoding="utf-8")
+        where = "landmarks.toml"
+    else:
+        text = Path(path).read_text(encoding="utf-8")
+        where = str(path)
+    data = tomllib.loads(text)
+    table = data.get("landmarks", data)
+    if isinstance(table, list):  # [[landmarks]] array of tables with a name key
+        table = {str(t.get("name")): t for t in table if isinstance(t, Mapping)}
+    problems: list[str] = []
+    out: dict[str, Point] = {}
+    for name, entry in table.items():
+        if not isinstance(entry, Mapping) or not ({"position_m", "position_mm"} & set(entry)):
+            continue
+        point = _point(name, entry, f"{where}: {name}", problems, strict=False)
+        if point is not None:
+            out[name] = point
+    if problems:
+        raise ProtocolError(where, problems)
+    return out
+
+
+# --------------------------------------------------------------------------- parsing
+_TOP = {"schema", "schema_version", "name", "description", "subject", "sweep", "ultrasound",
+        "setups", "points"}
+_SWEEP = {"start_hz", "stop_hz", "step_hz", "frequencies_hz", "order", "drive_vpp", "settle_s",
+          "settle_periods", "periods_per_step"}
+_US_FLOAT = {"prf_hz", "sample_rate_hz", "delay_s", "speed_of_sound_m_s", "full_scale_v",
+             "offset_v", "trigger_width_s", "trigger_high_v", "gain_db", "damping_ohm",
+             "high_pass_hz", "low_pass_hz"}
+_US = _US_FLOAT | {"pulses", "samples", "pulse_energy"}
+_SETUP = {"name", "excitation", "transducers", "prompt"}
+_SUBJECT = {"id", "position", "notes", "age_years", "mass_kg", "height_m", "sex", "side"}
+_POINT = {"bone", "position_m", "position_mm", "direction", "description"}
+
+
+class _Problems:
+    """Collects ``key: rule`` problems."""
+
+    def __init__(self) -> None:
+        self.items: list[str] = []
+
+    def add(self, key: str, rule: str) -> None:
+        self.items.append(f"{key}: {rule}")
+
+
+def _unit_of(key: str) -> str:
+    for suffix, unit in (("_hz", "Hz"), ("_s", "s"), ("_vpp", "V pk-pk"), ("_v", "V"),
+                         ("_m_s", "m/s"), ("_db", "dB"), ("_ohm", "ohm"), ("_m", "m"),
+                         ("_mm", "mm"), ("_kg", "kg"), ("_years", "years")):
+        if key.endswith(suffix):
+            return unit
+    return ""
+
+
+def _number(table: Mapping[str, Any], key: str, where: str, p: _Problems,
+            default: float | None = None, *, minimum: float | None = None,
+            exclusive: bool = True, maximum: float | None = None) -> float | None:
+    """A finite number (int or float, not bool) with optional bounds, or ``default``."""
+    if key not in table:
+        return default
+    value = table[key]
+    full = f"{where}.{key}" if where else key
+    unit = _unit_of(key)
+    if isinstance(value, bool) or not isinstance(value, int | float):
+        hint = f" in {unit}" if unit else ""
+        if isinstance(value, str):
+            p.add(full, f"must be a number{hint} (the unit is in the key name), got the "
+                        f"string {value!r}")
+        else:
+            p.add(full, f"must be a number{hint}, got {type(value).__name__} {value!r}")
+        return None
+    v = float(value)
+    if not math.isfinite(v):
+        p.add(full, f"must be finite, got {value!r}")
+        return None
+    if minimum is not None and (v <= minimum if exclusive else v < minimum):
+        p.add(full, f"must be {'>' if exclusive else '>='} {minimum:g} {unit}".rstrip()
+              + f", got {value!r}")
+        return None
+    if maximum is not None and v > maximum:
+        p.add(full, f"must be <= {maximum:g} {unit}".rstrip() + f", got {value!r}")
+        return None
+    return v
+
+
+def _integer(table: Mapping[str, Any], key: str, where: str, p: _Problems, default: int,
+             minimum: int, maximum: int) -> int | None:
+    if key not in table:
+        return default
+    value = table[key]
+    full = f"{where}.{key}"
+    if isinstance(value, bool) or not isinstance(value, int):
+        p.add(full, f"must be an integer, got {type(value).__name__} {value!r}")
+        return None
+    if not minimum <= value <= maximum:
+        p.add(full, f"must be an integer in {minimum}..{maximum}, got {value}")
+        return None
+    return int(value)
+
+
+def _string(table: Mapping[str, Any], key: str, where: str, p: _Problems, default: str = "",
+            choices: tuple[str, ...] | None = None) -> str | None:
+    if key not in table:
+        return default
+    value = table[key]
+    full = f"{where}.{key}" if where else key
+    if not isinstance(value, str):
+        p.add(full, f"must be a string, got {type(value).__name__} {value!r}")
+        return None
+    if choices is not None and value not in choices:
+        p.add(full, f"must be one of {list(choices)}, got {value!r}")
+        return None
+    return value
+
+
+def _unknown(table: Mapping[str, Any], known: set[str], where: str, p: _Problems) -> None:
+    for key in table:
+        if key not in known:
+            full = f"{where}.{key}" if where else str(key)
+            p.add(full, f"unknown key (known: {', '.join(sorted(known))})")
+
+
+def _table(data: Mapping[str, Any], key: str, p: _Problems,
+           required: bool = False) -> Mapping[str, Any]:
+    if key not in data:
+        if required:
+            p.add(key, "missing table")
+        return {}
+    value = data[key]
+    if not isinstance(value, Mapping):
+        p.add(key, f"must be a table ([{key}]), got {type(value).__name__}")
+        return {}
+    return value
+
+
+def _vector(value: Any, key: str, p: _Problems) -> tuple[float, float, float] | None:
+    if (not isinstance(value, list) or len(value) != 3
+            or any(isinstance(v, bool) or not isinstance(v, int | float) for v in value)):
+        p.add(key, f"must be a list of 3 numbers, got {value!r}")
+        return None
+    vec = tuple(float(v) for v in value)
+    if not all(math.isfinite(v) for v in vec):
+        p.add(key, f"must be finite, got {value!r}")
+        return None
+    return vec  # type: ignore[return-value]
+
+
+def _point(name: str, entry: Mapping[str, Any], where: str, p: _Problems,
+           strict: bool = True) -> Point | None:
+    if strict:
+        _unknown(entry, _POINT, where, p)
+    n_before = len(p.items)
+    bone = _string(entry, "bone", where, p, default="", choices=BONES)
+    if "position_m" in entry and "position_mm" in entry:
+        p.add(where, "give position_m or position_mm, not both")
+    if "position_mm" in entry:
+        pos = _vector(entry["position_mm"], f"{where}.position_mm", p)
+        pos = None if pos is None else tuple(v / 1000.0 for v in pos)
+    elif "position_m" in entry:
+        pos = _vector(entry["position_m"], f"{where}.position_m", p)
+    else:
+        p.add(f"{where}.position_m", "missing")
+        pos = None
+    if "direction" not in entry:
+        p.add(f"{where}.direction", "missing (unit vector bone -> transducer)")
+        direction = None
+    else:
+        direction = _vector(entry["direction"], f"{where}.direction", p)
+        if direction is not None:
+            norm = math.sqrt(sum(v * v for v in direction))
+            if not 0.98 < norm < 1.02:
+                p.add(f"{where}.direction", f"must be a unit vector, norm is {norm:.3g}")
+                direction = None
+            else:
+                direction = tuple(v / norm for v in direction)
+    if len(p.items) > n_before or pos is None or direction is None or bone is None:
+        return None
+    return Point(name, bone, pos, direction)  # type: ignore[arg-type]
+
+
+def parse_protocol(text: str, source: str = "<string>", limits: BenchLimits | None = None,
+                   landmarks: Mapping[str, Point] | None = None) -> Protocol:
+    """Parse and validate protocol TOML ``text``; raise :class:`ProtocolError` if invalid.
+
+    ``limits``: the bench's limits (default: the simulated bench). ``landmarks``: the point
+    catalogue (default: the shipped ``protocols/landmarks.toml``).
+    """
+    limits = limits or BenchLimits()
+    try:
+        data = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as exc:
+        raise ProtocolError(source, [f"not valid TOML: {exc}"]) from None
+    p = _Problems()
+    _unknown(data, _TOP, "", p)
+
+    schema = data.get("schema")
+    if schema != PROTOCOL_SCHEMA:
+        p.add("schema", f"must be {PROTOCOL_SCHEMA!r}, got {schema!r}")
+    version = data.get("schema_version")
+    if isinstance(version, bool) or version != PROTOCOL_SCHEMA_VERSION:
+        p.add("schema_version",
+              f"this pelvislab reads version {PROTOCOL_SCHEMA_VERSION}, got {version!r}")
+        raise ProtocolError(source, p.items)  # other versions: nothing else is meaningful
+    name = _string(data, "name", "", p)
+    if name == "" and "name" not in data:
+        p.add("name", "missing (a short protocol name)")
+    description = _string(data, "description", "", p) or ""
+
+    # subject ---------------------------------------------------------------------
+    sub = _table(data, "subject", p)
+    _unknown(sub, _SUBJECT, "subject", p)
+    extra: dict[str, Any] = {}
+    for key in ("age_years", "mass_kg", "height_m"):
+        v = _number(sub, key, "subject", p, minimum=0.0)
+        if v is not None:
+            extra[key] = v
+    for key in ("sex", "side"):
+        v = _string(sub, key, "subject", p)
+        if v:
+            extra[key] = v
+    subject = Subject(
+        id=_string(sub, "id", "subject", p) or "",
+        position=_string(sub, "position", "subject", p, choices=SUBJECT_POSITIONS) or "",
+        notes=_string(sub, "notes", "subject", p) or "",
+        extra=extra,
+    )
+
+    # ultrasound -----------------------------------------------------------------
+    us = _table(data, "ultrasound", p)
+    _unknown(us, _US, "ultrasound", p)
+    d = Ultrasound()
+    prf = _number(us, "prf_hz", "ultrasound", p, d.prf_hz, minimum=0.0, maximum=100e3)
+    pulses = _integer(us, "pulses", "ultrasound", p, d.pulses, 2, 1_000_000)
+    fs = _number(us, "sample_rate_hz", "ultrasound", p, d.sample_rate_hz, minimum=0.0,
+                 maximum=limits.max_sample_rate_hz)
+    samples = _integer(us, "samples", "ultrasound", p, d.samples, 8, 1_000_000)
+    delay = _number(us, "delay_s", "ultrasound", p, d.delay_s, minimum=0.0, exclusive=False)
+    c = _number(us, "speed_of_sound_m_s", "ultrasound", p, d.speed_of_sound_m_s, minimum=100.0,
+                maximum=10_000.0)
+    fsv = _number(us, "full_scale_v", "ultrasound", p, d.full_scale_v, minimum=0.0)
+    offset = _number(us, "offset_v", "ultrasound", p, d.offset_v)
+    tw = _number(us, "trigger_width_s", "ultrasound", p, d.trigger_width_s, minimum=0.0)
+    th = _number(us, "trigger_high_v", "ultrasound", p, d.trigger_high_v, minimum=0.0,
+                 maximum=10.0)
+    gain = _number(us, "gain_db", "ultrasound", p, d.gain_db, minimum=-60.0, maximum=80.0)
+    energy = _string(us, "pulse_energy", "ultrasound", p, d.pulse_energy, PULSE_ENERGIES)
+    damping = _number(us, "damping_ohm", "ultrasound", p, d.damping_ohm, minimum=0.0)
+    hp = _number(us, "high_pass_hz", "ultrasound", p, None, minimum=0.0)
+    lp = _number(us, "low_pass_hz", "ultrasound", p, None, minimum=0.0)
+    ultrasound = None
+    if None not in (prf, pulses, fs, samples, delay, c, fsv, offset, tw, th, gain, energy,
+                    damping):
+        ultrasound = Ultrasound(prf, pulses, fs, samples, delay, c, fsv, offset, tw, th, gain,
+                                energy, damping, hp, lp)  # type: ignore[arg-type]
+        if ultrasound.record_end_s >= 1.0 / ultrasound.prf_hz:
+            p.add("ultrasound.samples",
+                  f"record (delay_s + samples/sample_rate_hz = "
+                  f"{ultrasound.record_end_s * 1e6:.4g} us) must end before the next pulse "
+                  f"(1/prf_hz = {1e6 / ultrasound.prf_hz:.4g} us)")
+        if tw is not None and tw >= 1.0 / prf:  # type: ignore[operator]
+            p.add("ultrasound.trigger_width_s", "must be shorter than the pulse period 1/prf_hz")
+        if hp is not None and lp is not None and hp >= lp:
+            p.add("ultrasound.high_pass_hz", "must be below ultrasound.low_pass_hz")
+        if hp is not None and hp >= fs / 2:  # type: ignore[operator]
+            p.add("ultrasound.high_pass_hz", "must be below sample_rate_hz/2")
+
+    # sweep ---------------------------------------------------------------------
+    sw = _table(data, "sweep", p, required=True)
+    _unknown(sw, _SWEEP, "sweep", p)
+    freqs: list[float] | None = None
+    has_range = any(k in sw for k in ("start_hz", "stop_hz", "step_hz"))
+    if "frequencies_hz" in sw and has_range:
+        p.add("sweep.frequencies_hz", "give either frequencies_hz or start_hz/stop_hz/step_hz")
+    elif "frequencies_hz" in sw:
+        raw = sw["frequencies_hz"]
+        if (not isinstance(raw, list) or not raw
+                or any(isinstance(v, bool) or not isinstance(v, int | float) for v in raw)):
+            p.add("sweep.frequencies_hz", f"must be a non-empty list of numbers (Hz), got {raw!r}")
+        elif not all(math.isfinite(v) and v > 0 for v in raw):
+            p.add("sweep.frequencies_hz", "every frequency must be finite and > 0 Hz")
+        elif len(set(raw)) != len(raw):
+            p.add("sweep.frequencies_hz", "frequencies must not repeat")
+        else:
+            freqs = sorted(float(v) for v in raw)
+    elif sw:
+        missing = [k for k in ("start_hz", "stop_hz", "step_hz") if k not in sw]
+        if missing:
+            for k in missing:
+                p.add(f"sweep.{k}", "missing (or give sweep.frequencies_hz)")
+        else:
+            start = _number(sw, "start_hz", "sweep", p, minimum=0.0)
+            stop = _number(sw, "stop_hz", "sweep", p, minimum=0.0)
+            step = _number(sw, "step_hz", "sweep", p, minimum=0.0)
+            if None not in (start, stop, step):
+                if stop < start:  # type: ignore[operator]
+                    p.add("sweep.stop_hz", f"must be >= start_hz ({start:g} Hz)")
+                else:
+                    n = int(math.floor((stop - start) / step + 1e-9)) + 1  # type: ignore[operator]
+                    if n > MAX_STEPS:
+                        p.add("sweep.step_hz", f"gives {n} steps, more than {MAX_STEPS}")
+                    else:
+                        freqs = [round(start + i * step, 9) for i in range(n)]  # type: ignore
+    order = _string(sw, "order", "sweep", p, "up", ("up", "down"))
+    drive = _number(sw, "drive_vpp", "sweep", p, minimum=0.0)
+    if "drive_vpp" not in sw and sw:
+        p.add("sweep.drive_vpp", "missing (shaker-drive amplitude, V pk-pk)")
+    elif drive is not None and drive > limits.max_drive_vpp:
+        p.add("sweep.drive_vpp", f"{drive:g} V pk-pk is above the bench limit "
+                                 f"{limits.max_drive_vpp:g} V pk-pk ({limits.name})")
+    settle = _number(sw, "settle_s", "sweep", p, MIN_SETTLE_S, minimum=0.0, exclusive=False,
+                     maximum=60.0)
+    settle_periods = _number(sw, "settle_periods", "sweep", p, 0.0, minimum=0.0,
+                             exclusive=False, maximum=1000.0)
+    periods = _number(sw, "periods_per_step", "sweep", p, None, minimum=0.0, maximum=10_000.0)
+    if periods is not None and "pulses" in us:
+        p.add("sweep.periods_per_step", "give either sweep.periods_per_step or "
+                                        "ultrasound.pulses, not both")
+
+    sweep = None
+    if freqs is not None and None not in (order, drive, settle, settle_periods):
+        ordered = tuple(freqs if order == "up" else reversed(freqs))
+        sweep = Sweep(ordered, order, drive, settle, settle_periods, periods)  # type: ignore
+        if ultrasound is not None:
+            nyquist = ultrasound.prf_hz / 2
+            if max(freqs) >= nyquist:
+                p.add("sweep.stop_hz" if "stop_hz" in sw else "sweep.frequencies_hz",
+                      f"highest frequency {max(freqs):g} Hz must be below prf_hz/2 = "
+                      f"{nyquist:g} Hz (displacement is sampled once per pulse)")
+            if periods is None:
+                worst = min(freqs) * ultrasound.pulses / ultrasound.prf_hz
+                if worst < MIN_PERIODS_PER_RECORD:
+                    p.add("ultrasound.pulses",
+                          f"a record of {ultrasound.pulses} pulses at {ultrasound.prf_hz:g} Hz "
+                          f"holds only {worst:.3g} periods of {min(freqs):g} Hz; at least "
+                          f"{MIN_PERIODS_PER_RECORD:g} are needed (or use "
+                          "sweep.periods_per_step)")
+            elif periods < MIN_PERIODS_PER_RECORD:
+                p.add("sweep.periods_per_step",
+                      f"must be >= {MIN_PERIODS_PER_RECORD:g} periods per record")
+
+    # points and setups ----------------------------------------------------------
+    own: dict[str, Point] = {}
+    pts = _table(data, "points", p)
+    for pname, entry in pts.items():
+        if not isinstance(entry, Mapping):
+            p.add(f"points.{pname}", "must be a table")
+            continue
+        point = _point(pname, entry, f"points.{pname}", p)
+        if point is not None:
+            own[pname] = point
+    catalogue = dict(load_landmarks() if landmarks is None else landmarks)
+    known_points = {**catalogue, **own}
+
+    setups: list[Setup] = []
+    raw_setups = data.get("setups")
+    if raw_setups is None:
+        p.add("setups", "missing: at least one [[setups]] table")
+        raw_setups = []
+    elif not isinstance(raw_setups, list) or not raw_setups:
+        p.add("setups", "must be a non-empty array of tables ([[setups]])")
+        raw_setups = []
+    used: dict[str, Point] = {}
+
+    def resolve(pname: Any, key: str) -> str | None:
+        if not isinstance(pname, str) or not pname:
+            p.add(key, f"must be a point name (string), got {pname!r}")
+            return None
+        if pname not in known_points:
+            close = sorted(k for k in known_points if k[:3].lower() == pname[:3].lower())[:5]
+            hint = f"; similar: {close}" if close else ""
+            p.add(key, f"unknown point {pname!r}: not in the landmark catalogue nor in "
+                       f"[points]{hint}")
+            return None
+        used[pname] = known_points[pname]
+        return pname
+
+    for i, raw in enumerate(raw_setups):
+        where = f"setups[{i}]"
+        if not isinstance(raw, Mapping):
+            p.add(where, "must be a table")
+            continue
+        _unknown(raw, _SETUP, where, p)
+        sname = _string(raw, "name", where, p, default=f"setup{i + 1}")
+        excitation = resolve(raw.get("excitation"), f"{where}.excitation")
+        prompt = _string(raw, "prompt", where, p) or ""
+        tr = raw.get("transducers")
+        channels: dict[int, str] = {}
+        if not isinstance(tr, Mapping) or not tr:
+            p.add(f"{where}.transducers", "must be a table like { ch1 = \"POINT\", ch2 = ... }")
+        else:
+            for key, value in tr.items():
+                if key not in CHANNEL_KEYS or CHANNEL_KEYS[key] > limits.n_channels:
+                    allowed = [k for k, v in CHANNEL_KEYS.items() if v <= limits.n_channels]
+                    p.add(f"{where}.transducers.{key}",
+                          f"unknown channel (this bench has {allowed})")
+                    continue
+                pname = resolve(value, f"{where}.transducers.{key}")
+                if pname is not None:
+                    channels[CHANNEL_KEYS[key]] = pname
+            if len(set(channels.values())) != len(channels):
+                p.add(f"{where}.transducers", "two channels look at the same point")
+        if sname is not None and excitation is not None and channels:
+            setups.append(Setup(sname, excitation, channels, prompt))
+    names = [s.name for s in setups]
+    for dup in sorted({n for n in names if names.count(n) > 1}):
+        p.add("setups", f"setup name {dup!r} is used twice")
+    if sweep is not None and len(setups) * len(sweep.frequencies_hz) > MAX_STEPS:
+        p.add("setups", f"setups x frequencies exceeds {MAX_STEPS} steps")
+
+    if p.items or sweep is None or ultrasound is None or name is None:
+        if not p.items:
+            p.add("sweep", "incomplete")
+        raise ProtocolError(source, p.items)
+
+    protocol = Protocol(name, description, subject, sweep, ultrasound, tuple(setups), used,
+                        text, source)
+    warnings: list[str] = []
+    if sweep.settle_s < MIN_SETTLE_S:
+        warnings.append(f"sweep.settle_s: {sweep.settle_s:g} s is under the "
+                        f"{MIN_SETTLE_S * 1e3:g} ms of ch. 6.2; responses may not have settled")
+    still = protocol.sweep_duration_s()
+    if still > MAX_STILL_S:
+        warnings.append(
+            f"sweep: each setup's sweep takes {still:.1f} s, longer than a subject can keep "
+            f"still ({MAX_STILL_S:g} s, thesis ch. 6.2); consider a coarser step_hz")
+    lowest = min(sweep.frequencies_hz)
+    if sweep.periods_per_step is not None and sweep.periods_per_step < 10:
+        warnings.append(f"sweep.periods_per_step: {sweep.periods_per_step:g} is below the "
+                        "10 periods per step of ch. 6.2")
+    elif sweep.periods_per_step is None and lowest * ultrasound.pulses / ultrasound.prf_hz < 10:
+        warnings.append(f"ultrasound.pulses: the {lowest:g} Hz record holds "
+                        f"{lowest * ultrasound.pulses / ultrasound.prf_hz:.3g} periods "
+                        "(ch. 6.2 uses 10)")
+    return Protocol(name, description, subject, sweep, ultrasound, tuple(setups), used, text,
+                    source, tuple(warnings))
+
+
+def load_protocol(path: Path | str, limits: BenchLimits | None = None,
+                  landmarks: Mapping[str, Point] | None = None) -> Protocol:
+    """Read and validate the protocol file ``path`` (see :func:`parse_protocol`)."""
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"protocol file not found: {path}")
+    try:
+        text = path.read_text(encoding="utf-8")
+    except UnicodeDecodeError:
+        raise ProtocolError(str(path), ["not a UTF-8 text file"]) from None
+    return parse_protocol(text, str(path), limits, landmarks)
+
+
+def points_array(points: list[Point]) -> tuple[np.ndarray, np.ndarray]:
+    """(position_m (n, 3), direction (n, 3)) arrays of ``points``."""
+    pos = np.array([pt.position_m for pt in points], dtype=float).reshape(-1, 3)
+    dirs = np.array([pt.direction for pt in points], dtype=float).reshape(-1, 3)
+    return pos, dirs

@@ -1,0 +1,636 @@
+"""HDF5 session files, schema ``pelvislab-session`` version 1 (design 4.2).
+
+Writer and reader of the one session file layout; ``docs/session-format.md`` documents every
+group and attribute. What makes a file survive ``kill -9`` at any moment:
+
+- one group per step under ``/steps``, written completely (raw echoes gzip-compressed,
+  displacement, phasors, ``status="complete"`` set last) and then the file is flushed: a
+  step is written once and never touched again;
+- ``/frf`` is laid out once for the whole plan (every frequency, output and input of the
+  protocol, NaN where not measured, via :func:`pelvislab.acquisition.frfset.write_frf`) and
+  each new line is then written in place, so no metadata of a finished step is rewritten;
+- the session log (``/log``) is a resizable string dataset, appended with each step;
+- nothing is ever written over an existing file: ``create`` refuses an existing path, and
+  resuming only appends.
+
+Readers skip any step group whose ``status`` is not ``complete`` (a step cut short) and
+report damaged groups instead of failing on them.
+"""
+
+from __future__ import annotations
+
+import datetime as _dt
+import os
+import time
+from collections.abc import Iterator, Mapping, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import h5py
+import numpy as np
+
+from pelvislab.acquisition.frfset import Channels, FrfSet, read_frf_group, write_frf
+from pelvislab.acquisition.protocol import Point, Protocol
+
+__all__ = [
+    "SESSION_SCHEMA",
+    "SESSION_SCHEMA_VERSION",
+    "ChannelData",
+    "SessionFileError",
+    "SessionReader",
+    "SessionWriter",
+    "StepData",
+    "frf_from_steps",
+    "plan_channels",
+]
+
+SESSION_SCHEMA = "pelvislab-session"
+SESSION_SCHEMA_VERSION = 1
+STATUS_COMPLETE = "complete"
+STATUS_FAILED = "failed"
+ECHO_COMPRESSION = {"compression": "gzip", "compression_opts": 4, "shuffle": True}
+
+
+class SessionFileError(ValueError):
+    """Not a usable session file; the one-line message says which file and why."""
+
+
+def _utc_now() -> str:
+    return _dt.datetime.now(_dt.UTC).isoformat(timespec="milliseconds")
+
+
+def _text(value: Any) -> str:
+    if isinstance(value, bytes):
+        return value.decode("utf-8", "replace")
+    if isinstance(value, np.ndarray) and value.shape == ():
+        return _text(value[()])
+    return str(value)
+
+
+# --------------------------------------------------------------------------- step data
+@dataclass
+class ChannelData:
+    """One transducer channel of one step: raw record, its tracking and phasor."""
+
+    name: str
+    """Channel name in the file, ``ch1``/``ch2``."""
+    codes: np.ndarray
+    """int8/int16 (n_pulses, n_samples) raw digitizer codes."""
+    trigger_offset_s: np.ndarray
+    sample_rate_hz: float
+    prf_hz: float
+    delay_s: float
+    volts_per_count: float
+    volts_offset: float
+    speed_of_sound_m_s: float
+    output: Point
+    displacement_m: np.ndarray | None = None
+    phasor_m: complex | None = None
+    """Displacement phasor (m, peak) at the step frequency, time of the first pulse."""
+    phasor_std_m: float | None = None
+    quality: dict[str, float | bool | str] = field(default_factory=dict)
+
+
+@dataclass
+class StepData:
+    """One acquired step (``/steps/<index>``)."""
+
+    setup: str
+    frequency_hz: float
+    input: Point
+    started_at_s: float
+    """Since the session was created, s."""
+    channels: list[ChannelData]
+    force_phasor_n: complex
+    drive_vpp: float = 0.0
+    status: str = STATUS_COMPLETE
+    index: int = -1
+    extra: dict[str, Any] = field(default_factory=dict)
+    """Further step attributes (plan index, quality summary, failure reason)."""
+
+    @property
+    def key(self) -> tuple[str, float]:
+        """(setup, frequency) as in :attr:`PlannedStep.key`."""
+        return (self.setup, round(float(self.frequency_hz), 9))
+
+
+def plan_channels(protocol: Protocol) -> tuple[list[float], Channels, Channels]:
+    """The /frf layout of a protocol: sorted frequencies, outputs, inputs (setup order)."""
+    frequencies = sorted(set(protocol.sweep.frequencies_hz))
+    out_names: list[str] = []
+    in_names: list[str] = []
+    for s in protocol.setups:
+        for ch in sorted(s.transducers):
+            if s.transducers[ch] not in out_names:
+                out_names.append(s.transducers[ch])
+        if s.excitation not in in_names:
+            in_names.append(s.excitation)
+    return frequencies, _channels([protocol.points[n] for n in out_names]), \
+        _channels([protocol.points[n] for n in in_names])
+
+
+def _channels(points: Sequence[Point]) -> Channels:
+    return Channels([p.name for p in points], [p.bone for p in points],
+                    np.array([p.position_m for p in points], dtype=float).reshape(-1, 3),
+                    np.array([p.direction for p in points], dtype=float).reshape(-1, 3))
+
+
+def frf_from_steps(steps: Sequence[StepData], frequencies_hz: Sequence[float] | None = None,
+                   outputs: Channels | None = None, inputs: Channels | None = None,
+                   started: float | None = None) -> FrfSet:
+    """The FRF set H = X / F (m/N) of ``steps``; later steps win for a repeated line.
+
+    Without a layout, frequencies/outputs/inputs are those the steps hold (sorted
+    frequencies, points in order of appearance). ``H_std`` = phasor std / |F| (the drive
+    calibration taken as exact).
+    """
+    if frequencies_hz is None:
+        frequencies_hz = sorted({float(s.frequency_hz) for s in steps})
+    if outputs is None or inputs is None:
+        outs: dict[str, Point] = {}
+        ins: dict[str, Point] = {}
+        for s in steps:
+            ins.setdefault(s.input.name, s.input)
+            for c in s.channels:
+                outs.setdefault(c.output.name, c.output)
+        outputs = outputs or _channels(list(outs.values()))
+        inputs = inputs or _channels(list(ins.values()))
+    f = np.asarray(frequencies_hz, dtype=float)
+    shape = (f.size, len(outputs), len(inputs))
+    H = np.full(shape, np.nan + 1j * np.nan)
+    H_std = np.full(shape, np.nan)
+    at = np.full(f.size, np.nan)
+    for s in steps:
+        if s.status != STATUS_COMPLETE or s.force_phasor_n == 0:
+            continue
+        i = int(np.argmin(np.abs(f - s.frequency_hz)))
+        if abs(f[i] - s.frequency_hz) > 1e-6 * max(1.0, s.frequency_hz):
+            continue
+        j = inputs.index(s.input.name)
+        for c in s.channels:
+            if c.phasor_m is None:
+                continue
+            o = outputs.index(c.output.name)
+            H[i, o, j] = c.phasor_m / s.force_phasor_n
+            if c.phasor_std_m is not None:
+                H_std[i, o, j] = c.phasor_std_m / abs(s.force_phasor_n)
+            at[i] = s.started_at_s
+    return FrfSet(f, H, outputs, inputs, H_std=H_std, acquired_at_s=at)
+
+
+# --------------------------------------------------------------------------- writer
+def _point_attrs(attrs: h5py.AttributeManager, prefix: str, point: Point) -> None:
+    attrs[prefix] = point.name
+    attrs[f"{prefix}_bone"] = point.bone
+    attrs[f"{prefix}_position_m"] = np.asarray(point.position_m, dtype=float)
+    attrs[f"{prefix}_direction"] = np.asarray(point.direction, dtype=float)
+
+
+def _attr_value(value: Any) -> Any:
+    if value is None:
+        return "none"
+    if isinstance(value, Mapping):
+        return str(dict(value))
+    return value
+
+
+class SessionWriter:
+    """Writes one session file step by step (create it, or open one to resume).
+
+    Not thread-safe: one writer, one thread (the runner's).
+    """
+
+    def __init__(self, handle: h5py.File, path: Path, started_monotonic: float,
+                 offset_s: float) -> None:
+        self._h5 = handle
+        self.path = path
+        self._t0 = started_monotonic
+        self._offset_s = offset_s
+        self._frf_index: tuple[np.ndarray, list[str], list[str]] | None = None
+        if "frf" in handle:
+            g = handle["frf"]
+            self._frf_index = (g["frequency_hz"][()],
+                               [_text(n) for n in g["outputs/name"][()]],
+                               [_text(n) for n in g["inputs/name"][()]])
+        self.run_group: h5py.Group | None = None
+
+    # -------------------------------------------------------------- open / create
+    @classmethod
+    def create(cls, path: Path | str, protocol: Protocol, bench: Mapping[str, Any],
+               software_version: str = "") -> SessionWriter:
+        """A new session file at ``path``; refuses to touch an existing file.
+
+        ``bench``: see :func:`bench_description` (identities, resources, calibration).
+        """
+        path = Path(path)
+        if path.exists():
+            raise FileExistsError(f"{path} exists; not overwriting it (use --resume to "
+                                  "continue that session, or choose another --out)")
+        if not path.parent.is_dir():
+            raise FileNotFoundError(f"folder {path.parent} does not exist")
+        try:
+            handle = h5py.File(path, "w-", libver=("earliest", "v110"))
+        except (OSError, FileExistsError) as exc:
+            raise SessionFileError(f"cannot create {path}: {exc}") from None
+        try:
+            handle.attrs["schema"] = SESSION_SCHEMA
+            handle.attrs["schema_version"] = SESSION_SCHEMA_VERSION
+            handle.attrs["created_utc"] = _utc_now()
+            handle.attrs["created_unix_s"] = time.time()
+            handle.attrs["software_version"] = software_version
+            handle.attrs["protocol_name"] = protocol.name
+            handle.attrs["subject_id"] = protocol.subject.id
+            handle.attrs["subject_position"] = protocol.subject.position
+            g = handle.create_group("protocol")
+            g.attrs["toml"] = protocol.text
+            g.attrs["source"] = protocol.source
+            _write_bench(handle.create_group("bench"), bench)
+            handle.create_group("steps")
+            handle.create_group("runs")
+            handle.create_dataset("log", shape=(0,), maxshape=(None,), chunks=(256,),
+                                  dtype=h5py.string_dtype())
+            frequencies, outputs, inputs = plan_channels(protocol)
+            shape = (len(frequencies), len(outputs), len(inputs))
+            write_frf(handle, FrfSet(frequencies, np.full(shape, np.nan + 1j * np.nan),
+                                     outputs, inputs, H_std=np.full(shape, np.nan),
+                                     acquired_at_s=np.full(len(frequencies), np.nan)))
+            handle.flush()
+        except BaseException:
+            handle.close()
+            path.unlink(missing_ok=True)  # ours, just created, holds nothing yet
+            raise
+        writer = cls(handle, path, time.monotonic(), 0.0)
+        return writer
+
+    @classmethod
+    def resume(cls, path: Path | str, protocol_text: str | None = None) -> SessionWriter:
+        """Open an existing session to append steps; checks schema (and protocol text)."""
+        path = Path(path)
+        SessionReader(path).close()  # schema/version/readability checks, clear errors
+        try:
+            handle = h5py.File(path, "r+")
+        except OSError as exc:
+            raise SessionFileError(f"{path}: cannot open for appending ({exc})") from None
+        if protocol_text is not None and _text(handle["protocol"].attrs["toml"]) != protocol_text:
+            handle.close()
+            raise SessionFileError(f"{path}: its /protocol differs from the protocol file "
+                                   "given; resume with the protocol the session started with")
+        created = float(handle.attrs.get("created_unix_s", time.time()))
+        return cls(handle, path, time.monotonic(), max(0.0, time.time() - created))
+
+    # -------------------------------------------------------------- writing
+    def elapsed_s(self) -> float:
+        """Seconds since the session was created (continues across resumed runs)."""
+        return self._offset_s + time.monotonic() - self._t0
+
+    @property
+    def handle(self) -> h5py.File:
+        """The open h5py file (read access for listeners; do not write through it)."""
+        return self._h5
+
+    def next_index(self) -> int:
+        """Index the next step group will get."""
+        names = [n for n in self._h5["steps"] if n.isdigit()]
+        return max((int(n) for n in names), default=-1) + 1
+
+    def start_run(self, bench: Mapping[str, Any], software_version: str = "") -> None:
+        """Record one run (invocation) under ``/runs/<k>`` with status ``running``."""
+        runs = self._h5.require_group("runs")
+        k = len(runs)
+        g = runs.create_group(f"{k:03d}")
+        g.attrs["started_utc"] = _utc_now()
+        g.attrs["status"] = "running"
+        g.attrs["reason"] = ""
+        g.attrs["software_version"] = software_version
+        _write_bench(g.create_group("bench"), bench)
+        self.run_group = g
+        self._h5.attrs["status"] = "running"
+        self._h5.attrs["status_reason"] = ""
+        self._h5.flush()
+
+    def finish_run(self, status: str, reason: str = "",
+                   command_logs: Mapping[str, Sequence[tuple[float, str]]] | None = None,
+                   ) -> None:
+        """Record how the run ended and the instruments' command logs; flush."""
+        if self.run_group is not None:
+            g = self.run_group
+            g.attrs["status"] = status
+            g.attrs["reason"] = reason
+            g.attrs["ended_utc"] = _utc_now()
+            for role, entries in (command_logs or {}).items():
+                lg = g.require_group("command_logs").create_group(role)
+                lg.create_dataset("time_s", data=np.array([t for t, _ in entries], dtype=float))
+                lg.create_dataset("text", data=np.array([s for _, s in entries], dtype=object),
+                                  dtype=h5py.string_dtype())
+        self._h5.attrs["status"] = status
+        self._h5.attrs["status_reason"] = reason
+        self._h5.flush()
+
+    def log(self, message: str, level: str = "INFO", flush: bool = False) -> None:
+        """Append one line to the session log (``/log``)."""
+        ds = self._h5["log"]
+        n = ds.shape[0]
+        ds.resize((n + 1,))
+        ds[n] = f"{self.elapsed_s():10.3f} {level} {' '.join(str(message).split())}"
+        if flush:
+            self._h5.flush()
+
+    def append_step(self, step: StepData) -> int:
+        """Write ``step`` as the next ``/steps/<index>`` group, its /frf lines, flush."""
+        index = self.next_index()
+        g = self._h5["steps"].create_group(f"{index:06d}")
+        step.index = index
+        g.attrs["setup"] = step.setup
+        g.attrs["frequency_hz"] = float(step.frequency_hz)
+        _point_attrs(g.attrs, "input", step.input)
+        g.attrs["started_at_s"] = float(step.started_at_s)
+        g.attrs["drive_vpp"] = float(step.drive_vpp)
+        for k, v in step.extra.items():
+            g.attrs[k] = _attr_value(v)
+        g.create_dataset("force_phasor_n", data=np.complex128(step.force_phasor_n))
+        echoes = g.create_group("echoes")
+        disp = g.create_group("displacement")
+        ph = g.create_group("phasor")
+        for c in step.channels:
+            codes = np.asarray(c.codes)
+            chunks = (min(codes.shape[0], max(1, 65536 // max(1, codes.shape[1]))),
+                      codes.shape[1]) if codes.size else None
+            ds = echoes.create_dataset(c.name, data=codes, chunks=chunks, **ECHO_COMPRESSION)
+            ds.attrs["sample_rate_hz"] = float(c.sample_rate_hz)
+            ds.attrs["prf_hz"] = float(c.prf_hz)
+            ds.attrs["delay_s"] = float(c.delay_s)
+            ds.attrs["volts_per_count"] = float(c.volts_per_count)
+            ds.attrs["volts_offset"] = float(c.volts_offset)
+            ds.attrs["speed_of_sound_m_s"] = float(c.speed_of_sound_m_s)
+            _point_attrs(ds.attrs, "output", c.output)
+            echoes.create_dataset(f"{c.name}_trigger_offset_s",
+                                  data=np.asarray(c.trigger_offset_s, dtype=np.float64))
+            if c.displacement_m is not None:
+                d = disp.create_dataset(c.name, data=np.asarray(c.displacement_m, dtype=float))
+                for k, v in c.quality.items():
+                    d.attrs[f"quality_{k}"] = _attr_value(v)
+            if c.phasor_m is not None:
+                p = ph.create_dataset(c.name, data=np.complex128(c.phasor_m))
+                p.attrs["std_m"] = float(np.nan if c.phasor_std_m is None else c.phasor_std_m)
+        g.attrs["status"] = step.status  # last: a group without it was cut short
+        if step.status == STATUS_COMPLETE:
+            self._write_frf_lines(step)
+        self._h5.flush()
+        return index
+
+    def _write_frf_lines(self, step: StepData) -> None:
+        if self._frf_index is None or step.force_phasor_n == 0:
+            return
+        freqs, outs, ins = self._frf_index
+        i = int(np.argmin(np.abs(freqs - step.frequency_hz)))
+        if abs(freqs[i] - step.frequency_hz) > 1e-6 * max(1.0, step.frequency_hz):
+            return
+        if step.input.name not in ins:
+            return
+        j = ins.index(step.input.name)
+        frf = self._h5["frf"]
+        for c in step.channels:
+            if c.phasor_m is None or c.output.name not in outs:
+                continue
+            o = outs.index(c.output.name)
+            frf["H"][i, o, j] = np.complex128(c.phasor_m / step.force_phasor_n)
+            if "H_std" in frf and c.phasor_std_m is not None:
+                frf["H_std"][i, o, j] = c.phasor_std_m / abs(step.force_phasor_n)
+        if "acquired_at_s" in frf:
+            frf["acquired_at_s"][i] = step.started_at_s
+
+    def flush(self) -> None:
+        """Flush everything written so far to disk."""
+        self._h5.flush()
+
+    def close(self) -> None:
+        """Flush and close (idempotent)."""
+        if self._h5.id.valid:
+            self._h5.flush()
+            self._h5.close()
+
+    def __enter__(self) -> SessionWriter:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+def _write_bench(g: h5py.Group, bench: Mapping[str, Any]) -> None:
+    for key, value in bench.items():
+        if isinstance(value, Mapping):
+            sub = g.create_group(str(key))
+            for k, v in value.items():
+                sub.attrs[str(k)] = _attr_value(v)
+        else:
+            g.attrs[str(key)] = _attr_value(value)
+
+
+def bench_description(bench: Any) -> dict[str, Any]:
+    """/bench content of an open :class:`pelvislab.drivers.bench.Bench`."""
+    cfg = bench.config
+    out: dict[str, Any] = {
+        "simulated": bool(bench.simulated),
+        "name": str(cfg.name),
+        "source": str(cfg.source) if cfg.source is not None else "",
+        "drive_newton_per_volt": np.complex128(cfg.drive_newton_per_volt),
+        "max_drive_vpp": float(cfg.max_drive_vpp),
+        "speed_of_sound_m_s": float(cfg.speed_of_sound_m_s),
+        "reference_clock_hz": float(cfg.reference_clock_hz),
+    }
+    for ch, c in dict(cfg.channel_speed_of_sound_m_s).items():
+        out[f"speed_of_sound_m_s_ch{ch}"] = float(c)
+    roles = [("trigger", bench.trigger), ("drive", bench.drive), ("digitizer", bench.digitizer)]
+    roles += [(f"pulser{i + 1}", p) for i, p in enumerate(bench.pulsers)]
+    for role, inst in roles:
+        out[role] = {"identity": str(getattr(inst, "identity", "")),
+                     "resource": str(getattr(inst, "resource", ""))}
+    return out
+
+
+# --------------------------------------------------------------------------- reader
+class SessionReader:
+    """Read access to a session file with clear one-line errors for anything else.
+
+    ``steps()`` yields complete steps; ``damaged`` lists groups that could not be read and
+    ``incomplete`` those whose status is not ``complete`` (cut short or failed).
+    """
+
+    def __init__(self, path: Path | str) -> None:
+        self.path = Path(path)
+        if not self.path.is_file():
+            raise FileNotFoundError(f"no such session file: {self.path}")
+        try:
+            self._h5 = h5py.File(self.path, "r")
+        except OSError as exc:
+            reason = " ".join(str(exc).split())[:160]
+            raise SessionFileError(f"{self.path} is not a readable HDF5 file (truncated or "
+                                   f"damaged?): {reason}") from None
+        try:
+            schema = _text(self._h5.attrs.get("schema", ""))
+            if schema != SESSION_SCHEMA:
+                hint = " (an FRF-only file?)" if schema == "pelvislab-frf" else ""
+                raise SessionFileError(f"{self.path} has schema {schema!r}, expected "
+                                       f"{SESSION_SCHEMA!r}{hint}")
+            version = self._h5.attrs.get("schema_version", None)
+            try:
+                version = int(version)  # type: ignore[arg-type]
+            except (TypeError, ValueError):
+                version = None
+            if version != SESSION_SCHEMA_VERSION:
+                raise SessionFileError(f"{self.path} has schema_version {version!r}; this "
+                                       f"pelvislab reads {SESSION_SCHEMA_VERSION}")
+            for required in ("protocol", "steps"):
+                if required not in self._h5:
+                    raise SessionFileError(f"{self.path} lacks the /{required} group")
+        except BaseException:
+            self._h5.close()
+            raise
+        self.damaged: list[str] = []
+        self.incomplete: list[str] = []
+
+    @property
+    def handle(self) -> h5py.File:
+        """The open h5py file (read-only)."""
+        return self._h5
+
+    @property
+    def attrs(self) -> dict[str, Any]:
+        """Root attributes."""
+        return {k: self._h5.attrs[k] for k in self._h5.attrs}
+
+    @property
+    def protocol_text(self) -> str:
+        """The protocol TOML the session was run with."""
+        return _text(self._h5["protocol"].attrs.get("toml", ""))
+
+    @property
+    def status(self) -> tuple[str, str]:
+        """(status, reason) of the last run: completed, aborted, failed or running (killed)."""
+        return (_text(self._h5.attrs.get("status", "unknown")),
+                _text(self._h5.attrs.get("status_reason", "")))
+
+    def log_lines(self) -> list[str]:
+        """The session log."""
+        if "log" not in self._h5:
+            return []
+        return [_text(v) for v in self._h5["log"][()]]
+
+    def bench(self) -> dict[str, Any]:
+        """/bench attributes, roles as nested dicts."""
+        out: dict[str, Any] = {}
+        g = self._h5.get("bench")
+        if g is None:
+            return out
+        out.update({k: g.attrs[k] for k in g.attrs})
+        for k, sub in g.items():
+            out[k] = {a: _text(sub.attrs[a]) for a in sub.attrs}
+        return out
+
+    def step_names(self) -> list[str]:
+        """Names of every step group, in acquisition order."""
+        return sorted(n for n in self._h5["steps"] if n.isdigit())
+
+    def steps(self, include_incomplete: bool = False, with_echoes: bool = True,
+              ) -> Iterator[StepData]:
+        """Readable steps in acquisition order (complete ones unless asked otherwise)."""
+        self.damaged = []
+        self.incomplete = []
+        for name in self.step_names():
+            try:
+                step = self.read_step(name, with_echoes)
+            except Exception as exc:  # a group cut short by a kill: report, go on
+                self.damaged.append(f"{name}: {' '.join(str(exc).split())[:120]}")
+                continue
+            if step.status != STATUS_COMPLETE:
+                self.incomplete.append(f"{name}: status {step.status!r}")
+                if not include_incomplete:
+                    continue
+            yield step
+
+    def read_step(self, name: str, with_echoes: bool = True) -> StepData:
+        """One step group (raises for a damaged one)."""
+        g = self._h5["steps"][name]
+        a = g.attrs
+        status = _text(a.get("status", "incomplete"))
+        echoes = g["echoes"] if "echoes" in g else {}
+        channels: list[ChannelData] = []
+        for ch in sorted(k for k in echoes if not k.endswith("_trigger_offset_s")):
+            ds = echoes[ch]
+            ea = ds.attrs
+            disp = g["displacement"][ch][()] if ch in g.get("displacement", {}) else None
+            quality = {}
+            if ch in g.get("displacement", {}):
+                dq = g["displacement"][ch].attrs
+                quality = {k[len("quality_"):]: dq[k] for k in dq if k.startswith("quality_")}
+            ph = g["phasor"][ch] if ch in g.get("phasor", {}) else None
+            channels.append(ChannelData(
+                name=ch,
+                codes=ds[()] if with_echoes else np.empty((0, 0), dtype=ds.dtype),
+                trigger_offset_s=echoes[f"{ch}_trigger_offset_s"][()] if with_echoes
+                else np.empty(0),
+                sample_rate_hz=float(ea["sample_rate_hz"]), prf_hz=float(ea["prf_hz"]),
+                delay_s=float(ea["delay_s"]), volts_per_count=float(ea["volts_per_count"]),
+                volts_offset=float(ea["volts_offset"]),
+                speed_of_sound_m_s=float(ea["speed_of_sound_m_s"]),
+                output=_read_point(ea, "output"),
+                displacement_m=disp,
+                phasor_m=complex(ph[()]) if ph is not None else None,
+                phasor_std_m=float(ph.attrs.get("std_m", np.nan)) if ph is not None else None,
+                quality=quality,
+            ))
+        known = {"setup", "frequency_hz", "started_at_s", "status", "drive_vpp", "input",
+                 "input_bone", "input_position_m", "input_direction"}
+        return StepData(
+            setup=_text(a["setup"]), frequency_hz=float(a["frequency_hz"]),
+            input=_read_point(a, "input"), started_at_s=float(a["started_at_s"]),
+            channels=channels,
+            force_phasor_n=complex(g["force_phasor_n"][()]) if "force_phasor_n" in g else 0j,
+            drive_vpp=float(a.get("drive_vpp", np.nan)), status=status, index=int(name),
+            extra={k: a[k] for k in a if k not in known},
+        )
+
+    def frf(self) -> FrfSet:
+        """The stored /frf set."""
+        if "frf" not in self._h5:
+            raise SessionFileError(f"{self.path} holds no /frf group")
+        return read_frf_group(self._h5["frf"])
+
+    def frf_layout(self) -> tuple[list[float], Channels, Channels] | None:
+        """(frequencies, outputs, inputs) of the stored /frf, or None."""
+        try:
+            frf = self.frf()
+        except Exception:
+            return None
+        return list(frf.frequency_hz), frf.outputs, frf.inputs
+
+    def close(self) -> None:
+        """Close the file (idempotent)."""
+        if self._h5.id.valid:
+            self._h5.close()
+
+    def __enter__(self) -> SessionReader:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+def _read_point(attrs: h5py.AttributeManager, prefix: str) -> Point:
+    pos = attrs.get(f"{prefix}_position_m")
+    direction = attrs.get(f"{prefix}_direction")
+    return Point(
+        _text(attrs.get(prefix, "")), _text(attrs.get(f"{prefix}_bone", "")),
+        tuple(float(v) for v in (pos if pos is not None else (np.nan,) * 3)),  # type: ignore
+        tuple(float(v) for v in (direction if direction is not None else (np.nan,) * 3)),
+    )
+
+
+def fsync_path(path: Path | str) -> None:
+    """fsync a closed file (used after closing a session at the end of a run)."""
+    fd = os.open(path, os.O_RDONLY)
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
