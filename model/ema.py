@@ -1,0 +1,656 @@
+"""Experimental modal analysis: poles, damping, complex shapes and residues from measured FRFs.
+
+What the thesis did with ME'scope and SDT (ch. 10-11, tables 10.1 and 11.1), done here with
+two standard frequency-domain steps:
+
+1. **Poles**: poly-reference least-squares complex frequency (p-LSCF, "PolyMAX"; Guillaume et
+   al., IMAC XXI 2003; Peeters et al., Shock Vib. 11, 2004). A right matrix-fraction model
+   ``H(z) = B(z) A(z)^-1`` with real matrix coefficients in the z-domain basis
+   ``z_k = exp(i omega_k dt)``, ``dt = 1 / (2 f_nyq)``. The normal equations are built line by
+   line, so the basis needs neither a uniform nor a fine grid (stepped sine: coarse,
+   non-uniform, missing lines); ``z`` stays on the unit circle, which keeps the Vandermonde
+   columns well conditioned where an s-domain monomial basis is not. The coefficients of
+   every order ``1..max_order`` come from one set of reduced normal matrices (their leading
+   blocks), giving the stabilisation diagram (frequency / damping / participation-vector
+   stability between consecutive orders).
+2. **Residues**: least-squares frequency-domain (LSFD) fit of complex residues with the poles
+   fixed, plus a lower residual (``-LR / omega^2``, modes below the band) and an upper residual
+   (constant ``UR``, modes above the band) per FRF, as ME'scope does (thesis ch. 11.3).
+
+Automatic pole selection uses a fixed, documented clustering rule on the fully stable poles
+(:func:`select_poles`); a list of frequencies overrides it (:func:`pick_poles`).
+
+Conventions (design 4.1): receptance in m/N, ``x(t) = Re(X e^{+i omega t})``; a pole is
+``lambda = -zeta omega_n + i omega_n sqrt(1 - zeta^2)`` in rad/s, reported as the undamped
+natural frequency ``|lambda| / 2 pi`` (Hz) and damping ratio ``-Re(lambda) / |lambda|``;
+``H(omega) = sum_r R_r / (i omega - lambda_r) + conj(R_r) / (i omega - conj(lambda_r))``.
+Pure numerics on arrays: no I/O.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+# Status codes of a pole in the stabilisation diagram (relative to the previous order).
+NEW = 0  # no matching pole at the previous order
+STABLE_FREQUENCY = 1  # frequency within tolerance
+STABLE_DAMPING = 2  # frequency and damping within tolerance
+STABLE_ALL = 3  # frequency, damping and participation vector within tolerance
+
+
+@dataclass(frozen=True)
+class StabilityCriteria:
+    """Tolerances between consecutive orders and the automatic selection rule.
+
+    ``frequency_tol`` and ``damping_tol`` are relative changes; ``vector_mac`` the minimum MAC
+    of participation vectors (only meaningful with more than one input). A mode is selected
+    when a cluster of fully stable poles (width ``frequency_tol`` between neighbours) holds
+    poles of at least ``max(min_count, ceil(min_fraction * n_orders))`` different orders and
+    its damping ratio is in ``(0, max_damping_ratio)`` and at least ``edge_lines`` measured
+    lines lie on each side of its frequency (a pole at the very edge of the data is not
+    resolved by it: e.g. the 1 Hz artefact of accelerance divided by omega^2).
+    """
+
+    frequency_tol: float = 0.01
+    damping_tol: float = 0.05
+    vector_mac: float = 0.98
+    max_damping_ratio: float = 0.5
+    min_count: int = 4
+    min_fraction: float = 0.2
+    edge_lines: int = 2
+
+
+@dataclass
+class StabilisationDiagram:
+    """Poles of every model order (positive-frequency, stable poles only), with their status."""
+
+    orders: np.ndarray  # (n_orders,) model orders (matrix-polynomial degree)
+    poles: list[np.ndarray]  # per order: complex poles, rad/s
+    participation: list[np.ndarray]  # per order: (n_poles, n_in) unit participation vectors
+    status: list[np.ndarray]  # per order: int status codes (NEW .. STABLE_ALL)
+    line_frequency_hz: np.ndarray = field(default_factory=lambda: np.zeros(0))  # lines fitted
+
+    def frequency_hz(self, index: int) -> np.ndarray:
+        """Undamped natural frequencies (Hz) of the poles at order ``orders[index]``."""
+        return np.abs(self.poles[index]) / (2 * np.pi)
+
+    def damping_ratio(self, index: int) -> np.ndarray:
+        """Damping ratios of the poles at order ``orders[index]``."""
+        return -self.poles[index].real / np.abs(self.poles[index])
+
+    def as_rows(self) -> list[dict[str, float | int]]:
+        """Flat list ``{order, frequency_hz, damping_ratio, status}`` for plots and JSON."""
+        rows: list[dict[str, float | int]] = []
+        for k, order in enumerate(self.orders):
+            for f, z, s in zip(self.frequency_hz(k), self.damping_ratio(k), self.status[k],
+                               strict=True):
+                rows.append({"order": int(order), "frequency_hz": float(f),
+                             "damping_ratio": float(z), "status": int(s)})
+        return rows
+
+
+@dataclass
+class EmaResult:
+    """Modal parameters identified from an FRF set; arrays are ordered by frequency."""
+
+    frequency_hz: np.ndarray  # (n_modes,) undamped natural frequency |lambda| / 2 pi
+    damping_ratio: np.ndarray  # (n_modes,)
+    poles: np.ndarray  # (n_modes,) complex, rad/s
+    shapes: np.ndarray  # (n_out, n_modes) complex, unit largest entry (real, positive)
+    participation: np.ndarray  # (n_modes, n_in) complex
+    residues: np.ndarray  # (n_modes, n_out, n_in) complex, m/N * rad/s
+    mpc: np.ndarray  # (n_modes,) modal phase collinearity, 1 = normal (real) mode
+    mpd_deg: np.ndarray  # (n_modes,) mean phase deviation, degrees
+    lower_residual: np.ndarray  # (n_out, n_in) real, N/m... coefficient of -1/omega^2 (m/N*s^-2)
+    upper_residual: np.ndarray  # (n_out, n_in) real, m/N
+    fit_frequency_hz: np.ndarray  # (n_f,) lines used for the fit
+    H_fit: np.ndarray  # (n_f, n_out, n_in) reconstructed receptance
+    H_measured: np.ndarray  # (n_f, n_out, n_in) the fitted data (NaN where not measured)
+    diagram: StabilisationDiagram | None = None
+    selection: str = "auto"
+    notes: list[str] = field(default_factory=list)
+
+    @property
+    def complexity(self) -> np.ndarray:
+        """Modal complexity ``1 - MPC`` in [0, 1]: 0 for a normal mode (thesis ch. 14.2)."""
+        return 1.0 - self.mpc
+
+    def fit_error(self) -> float:
+        """Relative RMS misfit ``||H_fit - H|| / ||H||`` over the measured lines."""
+        ok = np.isfinite(self.H_measured)
+        num = np.linalg.norm((self.H_fit - self.H_measured)[ok])
+        den = np.linalg.norm(self.H_measured[ok])
+        return float(num / den) if den > 0 else float("nan")
+
+
+def pole_frequency_damping(poles: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Undamped natural frequency (Hz) and damping ratio of complex poles (rad/s)."""
+    poles = np.asarray(poles, dtype=complex)
+    wn = np.abs(poles)
+    return wn / (2 * np.pi), -poles.real / np.where(wn > 0, wn, 1.0)
+
+
+def poles_from_modal(frequency_hz: np.ndarray, damping_ratio: np.ndarray) -> np.ndarray:
+    """Poles (rad/s, positive imaginary part) from natural frequency (Hz) and damping ratio."""
+    wn = 2 * np.pi * np.asarray(frequency_hz, dtype=float)
+    z = np.asarray(damping_ratio, dtype=float)
+    return -z * wn + 1j * wn * np.sqrt(np.clip(1 - z**2, 0.0, None))
+
+
+def _prepare(
+    frequency_hz: np.ndarray, H: np.ndarray, H_std: np.ndarray | None
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Validated arrays: frequencies (n_f,), H (n_f, n_out, n_in), weights (n_f, n_out, n_in).
+
+    Unmeasured lines (NaN) get weight 0. Without ``H_std`` each FRF is weighted by the inverse
+    of its RMS so that every output counts, whatever its amplitude; with ``H_std`` by
+    ``1 / H_std`` (maximum-likelihood weighting for independent complex noise).
+    """
+    f = np.asarray(frequency_hz, dtype=float).reshape(-1)
+    H = np.asarray(H, dtype=complex)
+    if H.ndim == 1:
+        H = H[:, None, None]
+    elif H.ndim == 2:
+        H = H[:, :, None]
+    if H.ndim != 3 or H.shape[0] != f.size:
+        raise ValueError(f"H must be (n_f, n_out, n_in) with n_f = {f.size}; got {H.shape}")
+    ok = np.isfinite(H) & (f[:, None, None] > 0)
+    if not ok.any():
+        raise ValueError("no measured FRF line (all NaN or at 0 Hz)")
+    if H_std is not None:
+        std = np.asarray(H_std, dtype=float)
+        if std.shape != H.shape:
+            raise ValueError(f"H_std has shape {std.shape}, expected {H.shape}")
+        good = ok & np.isfinite(std) & (std > 0)
+        floor = np.nanmedian(np.where(good, std, np.nan)) * 1e-3 if good.any() else 1.0
+        weights = np.where(ok, 1.0 / np.maximum(np.nan_to_num(std, nan=np.inf), floor), 0.0)
+    else:
+        power = np.where(ok, np.abs(np.nan_to_num(H)) ** 2, 0.0).sum(axis=0)
+        count = ok.sum(axis=0)
+        rms = np.sqrt(power / np.maximum(count, 1))
+        scale = np.where(rms > 0, 1.0 / np.where(rms > 0, rms, 1.0), 0.0)
+        weights = np.where(ok, scale[None, :, :], 0.0)
+    return f, np.where(ok, H, 0.0), weights
+
+
+def _reduced_blocks(
+    omega: np.ndarray, H: np.ndarray, weights: np.ndarray, max_order: int, dt: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """Per-output blocks G_o, T_o from which the reduced p-LSCF normal matrix of any order follows.
+
+    The unknowns are the numerator row ``beta_o`` ((p+1) x n_in) of each output and the shared
+    denominator ``alpha`` ((p+1) n_in x n_in); equation of line k, output o:
+    ``sum_j Omega_j(k) (beta_oj - H_o(k) alpha_j) = 0``, weighted by ``w_o(k)``. Stacking real
+    and imaginary parts imposes real coefficients (conjugate pole pairs). Eliminating
+    ``beta_o`` leaves ``M = sum_o Y_o^T (I - P_Xo) Y_o``; with the thin QR ``X_o = Q_o R_o``
+    (nested: the first p+1 columns of Q_o span the order-p basis) this is
+    ``T_o - G_o^T G_o`` restricted to the leading block, ``G_o = Q_o^T Y_o``. The QR avoids
+    inverting ``X^T X``, which is ill-conditioned on the short arc of a narrow band.
+    """
+    n_f, n_out, n_in = H.shape
+    P = max_order + 1
+    basis = np.exp(1j * np.outer(omega, dt * np.arange(P)))  # (n_f, P)
+    G = np.zeros((n_out, P, P * n_in))
+    T = np.zeros((n_out, P * n_in, P * n_in))
+    for o in range(n_out):
+        # one weight per line keeps the row structure (a line missing any input is dropped
+        # for this output)
+        w = weights[:, o, :]
+        w_line = np.where((w > 0).all(axis=1), np.sqrt(np.mean(w**2, axis=1)), 0.0)
+        rows = w_line > 0
+        if not rows.any():
+            continue
+        X = w_line[rows, None] * basis[rows]
+        Y = -(X[:, :, None] * H[rows, o, None, :]).reshape(-1, P * n_in)
+        Xr = np.concatenate([X.real, X.imag])
+        Yr = np.concatenate([Y.real, Y.imag])
+        Q, _ = np.linalg.qr(Xr, mode="reduced")
+        k = Q.shape[1]
+        G[o, :k] = Q.T @ Yr
+        T[o] = Yr.T @ Yr
+    return G, T
+
+
+def _denominator(G: np.ndarray, T: np.ndarray, order: int, n_in: int) -> np.ndarray | None:
+    """Denominator coefficients alpha_0..alpha_{p-1} (each n_in x n_in), alpha_p = I."""
+    p1 = order + 1
+    m = p1 * n_in
+    M = np.zeros((m, m))
+    for o in range(G.shape[0]):
+        Go = G[o, :p1, :m]
+        M += T[o, :m, :m] - Go.T @ Go
+    a = m - n_in
+    try:
+        alpha = -np.linalg.solve(M[:a, :a], M[:a, a:])
+    except np.linalg.LinAlgError:
+        alpha = -np.linalg.lstsq(M[:a, :a], M[:a, a:], rcond=None)[0]
+    if not np.all(np.isfinite(alpha)):
+        return None
+    return alpha.reshape(order, n_in, n_in)
+
+
+def _companion_poles(alpha: np.ndarray, dt: float) -> tuple[np.ndarray, np.ndarray]:
+    """Poles (rad/s) and participation vectors from the matrix polynomial sum_j alpha_j z^j.
+
+    Right fraction H = B A^-1: at a pole, ``l^T A(z) = 0`` (l: participation factor), i.e.
+    ``sum_j alpha_j^T z^j l = 0``; solved through the block companion matrix.
+    """
+    order, n_in, _ = alpha.shape
+    n = order * n_in
+    C = np.zeros((n, n))
+    if order > 1:
+        C[: n - n_in, n_in:] = np.eye(n - n_in)
+    C[n - n_in:, :] = -np.concatenate([alpha[j].T for j in range(order)], axis=1)
+    z, vectors = np.linalg.eig(C)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        s = np.log(z.astype(complex)) / dt
+    participation = vectors[:n_in, :].T
+    norms = np.linalg.norm(participation, axis=1, keepdims=True)
+    participation = participation / np.where(norms > 0, norms, 1.0)
+    return s, participation
+
+
+def _mac_vectors(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """MAC between rows of a (n, k) and rows of b (m, k) -> (n, m); thesis eq. (4.49)."""
+    num = np.abs(a.conj() @ b.T) ** 2
+    den = np.outer(np.sum(np.abs(a) ** 2, axis=1), np.sum(np.abs(b) ** 2, axis=1))
+    return num / np.where(den > 0, den, 1.0)
+
+
+def stabilisation_diagram(
+    frequency_hz: np.ndarray,
+    H: np.ndarray,
+    max_order: int | None = None,
+    H_std: np.ndarray | None = None,
+    nyquist_hz: float | None = None,
+    criteria: StabilityCriteria | None = None,
+) -> StabilisationDiagram:
+    """p-LSCF poles for model orders 1..max_order and their stability (see module docstring).
+
+    ``frequency_hz`` (n_f,) may be non-uniform; ``H`` (n_f, n_out, n_in) receptance (NaN where
+    not measured). ``nyquist_hz`` sets the z-domain sampling ``dt = 1 / (2 nyquist_hz)``;
+    default 1.1 x the highest line, so poles at the band edge do not alias. Only stable poles
+    with positive frequency are kept.
+    """
+    crit = criteria or StabilityCriteria()
+    f, Hc, w = _prepare(frequency_hz, H, H_std)
+    n_f, n_out, n_in = Hc.shape
+    used = (w > 0).any(axis=(1, 2))
+    f, Hc, w = f[used], Hc[used], w[used]
+    if max_order is None:
+        max_order = max(2, min(int(math.ceil(48 / n_in)), (2 * f.size) // 3))
+    if not 1 <= max_order < 2 * f.size - 1:
+        raise ValueError(
+            f"max_order must be between 1 and {2 * f.size - 2} for {f.size} lines, got {max_order}"
+        )
+    f_nyq = nyquist_hz if nyquist_hz is not None else 1.1 * float(f.max())
+    dt = 1.0 / (2.0 * f_nyq)
+    G, T = _reduced_blocks(2 * np.pi * f, Hc, w, max_order, dt)
+    orders = np.arange(1, max_order + 1)
+    poles: list[np.ndarray] = []
+    parts: list[np.ndarray] = []
+    status: list[np.ndarray] = []
+    for order in orders:
+        alpha = _denominator(G, T, int(order), n_in)
+        if alpha is None:
+            s = np.zeros(0, dtype=complex)
+            l = np.zeros((0, n_in), dtype=complex)
+        else:
+            s, l = _companion_poles(alpha, dt)
+            keep = np.isfinite(s) & (s.imag > 0) & (s.real < 0)
+            s, l = s[keep], l[keep]
+            idx = np.argsort(s.imag)
+            s, l = s[idx], l[idx]
+        st = np.full(s.size, NEW, dtype=int)
+        if poles and poles[-1].size and s.size:
+            prev, prev_l = poles[-1], parts[-1]
+            fn, zn = pole_frequency_damping(s)
+            fp, zp = pole_frequency_damping(prev)
+            df = np.abs(fn[:, None] - fp[None, :]) / fn[:, None]
+            j = np.argmin(df, axis=1)
+            close_f = df[np.arange(s.size), j] < crit.frequency_tol
+            close_z = np.abs(zn - zp[j]) / np.maximum(zn, 1e-12) < crit.damping_tol
+            mac = _mac_vectors(l, prev_l[j])[np.arange(s.size), np.arange(s.size)]
+            close_v = mac > crit.vector_mac if n_in > 1 else np.ones(s.size, dtype=bool)
+            st = np.where(close_f, STABLE_FREQUENCY, NEW)
+            st = np.where(close_f & close_z, STABLE_DAMPING, st)
+            st = np.where(close_f & close_z & close_v, STABLE_ALL, st)
+        poles.append(s)
+        parts.append(l)
+        status.append(st)
+    return StabilisationDiagram(orders=orders, poles=poles, participation=parts, status=status,
+                                line_frequency_hz=f)
+
+
+def select_poles(
+    diagram: StabilisationDiagram,
+    band_hz: tuple[float, float] | None = None,
+    criteria: StabilityCriteria | None = None,
+) -> np.ndarray:
+    """Automatic, reproducible pole choice from a stabilisation diagram.
+
+    Rule: take every fully stable pole (status ``STABLE_ALL``) with damping ratio in
+    ``(0, max_damping_ratio)`` and frequency in ``band_hz``; sort by frequency; split into
+    clusters where neighbours differ by more than ``frequency_tol`` (relative); keep a cluster
+    when it holds poles of at least ``max(min_count, ceil(min_fraction * n_orders))``
+    different orders (and has ``edge_lines`` lines on each side); represent it by its pole
+    of highest order (the median-frequency one if that order holds several).
+    Representatives closer than ``frequency_tol`` are merged (the larger cluster wins).
+    Returns poles (rad/s) sorted by frequency.
+    """
+    crit = criteria or StabilityCriteria()
+    recs = []
+    for k, order in enumerate(diagram.orders):
+        fk, zk = pole_frequency_damping(diagram.poles[k])
+        for i in np.flatnonzero(diagram.status[k] == STABLE_ALL):
+            if not 0 < zk[i] < crit.max_damping_ratio:
+                continue
+            if band_hz is not None and not band_hz[0] <= fk[i] <= band_hz[1]:
+                continue
+            lines = diagram.line_frequency_hz
+            if lines.size and min(np.sum(lines < fk[i]), np.sum(lines > fk[i])) < crit.edge_lines:
+                continue
+            recs.append((fk[i], int(order), diagram.poles[k][i]))
+    if not recs:
+        return np.zeros(0, dtype=complex)
+    recs.sort(key=lambda r: r[0])
+    clusters: list[list[tuple[float, int, complex]]] = [[recs[0]]]
+    for rec in recs[1:]:
+        if (rec[0] - clusters[-1][-1][0]) / rec[0] <= crit.frequency_tol:
+            clusters[-1].append(rec)
+        else:
+            clusters.append([rec])
+    need = max(crit.min_count, int(math.ceil(crit.min_fraction * len(diagram.orders))))
+    chosen: list[tuple[int, complex]] = []
+    for cluster in clusters:
+        n_orders = len({r[1] for r in cluster})
+        if n_orders < need:
+            continue
+        top = max(r[1] for r in cluster)
+        at_top = sorted((r for r in cluster if r[1] == top), key=lambda r: r[0])
+        rep = at_top[len(at_top) // 2][2]
+        if chosen:
+            f_last = abs(chosen[-1][1]) / (2 * np.pi)
+            if abs(abs(rep) / (2 * np.pi) - f_last) / f_last < crit.frequency_tol:
+                if n_orders > chosen[-1][0]:
+                    chosen[-1] = (n_orders, rep)
+                continue
+        chosen.append((n_orders, rep))
+    return np.array([c[1] for c in chosen], dtype=complex)
+
+
+def pick_poles(
+    diagram: StabilisationDiagram, frequencies_hz: list[float] | np.ndarray,
+    tolerance: float = 0.05,
+) -> np.ndarray:
+    """Manual override: for each requested frequency, the diagram's pole nearest to it.
+
+    Candidates are the poles stable at least in frequency (status >= ``STABLE_FREQUENCY``);
+    fully stable poles are preferred, then the highest order, then the nearest. A frequency
+    with no candidate within ``tolerance`` (relative) raises ``ValueError`` naming it.
+    """
+    out = []
+    for target in np.asarray(frequencies_hz, dtype=float).reshape(-1):
+        best: tuple[float, ...] | None = None
+        pole = 0j
+        for k, order in enumerate(diagram.orders):
+            fk, _ = pole_frequency_damping(diagram.poles[k])
+            for i in range(fk.size):
+                rel = abs(fk[i] - target) / target
+                if rel > tolerance or diagram.status[k][i] < STABLE_FREQUENCY:
+                    continue
+                key = (-int(diagram.status[k][i] == STABLE_ALL), -int(order), rel)
+                if best is None or key < best:
+                    best, pole = key, diagram.poles[k][i]
+        if best is None:
+            raise ValueError(
+                f"no pole stable in frequency within {tolerance:.0%} of {target:g} Hz"
+            )
+        out.append(pole)
+    poles = np.array(out, dtype=complex)
+    return poles[np.argsort(np.abs(poles))]
+
+
+def _lsfd_basis(omega: np.ndarray, poles: np.ndarray, lower: bool, upper: bool) -> np.ndarray:
+    """Complex basis (n_f, 2 n_modes [+1] [+1]) whose real coefficients give the FRF."""
+    s = 1j * omega[:, None]
+    a = 1.0 / (s - poles[None, :])
+    b = 1.0 / (s - poles.conj()[None, :])
+    cols = [a + b, 1j * (a - b)]
+    if lower:
+        cols.append((-1.0 / omega**2)[:, None])
+    if upper:
+        cols.append(np.ones((omega.size, 1)))
+    return np.concatenate(cols, axis=1)
+
+
+def lsfd(
+    frequency_hz: np.ndarray,
+    H: np.ndarray,
+    poles: np.ndarray,
+    H_std: np.ndarray | None = None,
+    lower_residual: bool = True,
+    upper_residual: bool = True,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Least-squares frequency-domain residues with fixed poles.
+
+    Model per FRF (o, i): ``sum_r R_r/(i w - l_r) + conj(R_r)/(i w - conj l_r) - LR/w^2 + UR``
+    with complex ``R_r`` and real ``LR``, ``UR``. Lines that are NaN are skipped; with
+    ``H_std`` each line is weighted by ``1 / H_std``.
+    Returns residues (n_modes, n_out, n_in), LR (n_out, n_in), UR (n_out, n_in) and the
+    reconstructed H (n_f, n_out, n_in) on ``frequency_hz``.
+    """
+    f = np.asarray(frequency_hz, dtype=float).reshape(-1)
+    H = np.asarray(H, dtype=complex)
+    poles = np.asarray(poles, dtype=complex).reshape(-1)
+    n_f, n_out, n_in = H.shape
+    n_m = poles.size
+    omega = 2 * np.pi * f
+    positive = omega > 0
+    basis = np.zeros((n_f, 2 * n_m + int(lower_residual) + int(upper_residual)), dtype=complex)
+    basis[positive] = _lsfd_basis(omega[positive], poles, lower_residual, upper_residual)
+    ok = np.isfinite(H) & positive[:, None, None]
+    if H_std is not None:
+        std = np.asarray(H_std, dtype=float)
+        ok &= np.isfinite(std) & (std > 0)
+    coef = np.zeros((basis.shape[1], n_out, n_in))
+    columns = [(o, i) for o in range(n_out) for i in range(n_in)]
+    # FRFs sharing the same measured lines (and no per-line weights) share one factorisation
+    groups: dict[bytes, list[tuple[int, int]]] = {}
+    for o, i in columns:
+        key = ok[:, o, i].tobytes() if H_std is None else bytes(f"{o},{i}", "ascii")
+        groups.setdefault(key, []).append((o, i))
+    for members in groups.values():
+        mask = ok[:, members[0][0], members[0][1]]
+        if mask.sum() * 2 < basis.shape[1]:
+            continue  # too few lines: leave this FRF unfitted (zeros)
+        A = basis[mask]
+        rhs = np.stack([H[mask, o, i] for o, i in members], axis=1)
+        if H_std is not None:
+            wline = 1.0 / np.asarray(H_std, dtype=float)[mask, members[0][0], members[0][1]]
+            A = A * wline[:, None]
+            rhs = rhs * wline[:, None]
+        Ar = np.concatenate([A.real, A.imag])
+        br = np.concatenate([rhs.real, rhs.imag])
+        scale = np.linalg.norm(Ar, axis=0)
+        scale = np.where(scale > 0, scale, 1.0)
+        sol = np.linalg.lstsq(Ar / scale, br, rcond=None)[0] / scale[:, None]
+        for c, (o, i) in enumerate(members):
+            coef[:, o, i] = sol[:, c]
+    residues = coef[:n_m] + 1j * coef[n_m: 2 * n_m]
+    k = 2 * n_m
+    LR = coef[k] if lower_residual else np.zeros((n_out, n_in))
+    k += int(lower_residual)
+    UR = coef[k] if upper_residual else np.zeros((n_out, n_in))
+    H_fit = np.einsum("fc,coi->foi", basis, coef.astype(complex))
+    H_fit[~positive] = np.nan
+    return residues, LR, UR, H_fit
+
+
+def refine_poles(
+    frequency_hz: np.ndarray,
+    H: np.ndarray,
+    poles: np.ndarray,
+    H_std: np.ndarray | None = None,
+    lower_residual: bool = True,
+    upper_residual: bool = True,
+) -> np.ndarray:
+    """Poles refined by nonlinear least squares on the FRFs themselves (pole/residue fit).
+
+    The residues and residual terms are linear given the poles, so they are eliminated by
+    solving the LSFD problem inside the cost (variable projection); only the poles are
+    iterated (``scipy.optimize.least_squares``, trust region). This is the pole/residue
+    optimisation of SDT (Balmes, IMAC XIV 1996) that the thesis used after ME'scope (ch. 11.3).
+    The LSCF poles are the start and the refinement is bounded around them; the start is kept
+    when the refinement does not lower the cost.
+    """
+    import scipy.optimize
+
+    poles = np.asarray(poles, dtype=complex).reshape(-1)
+    if poles.size == 0:
+        return poles
+    f = np.asarray(frequency_hz, dtype=float).reshape(-1)
+    Hc = np.asarray(H, dtype=complex)
+    _, _, w = _prepare(f, Hc, H_std)
+    ok = w > 0
+    f0, z0 = pole_frequency_damping(poles)
+
+    def residual(x: np.ndarray) -> np.ndarray:
+        trial = poles_from_modal(f0 * np.exp(x[: poles.size]), x[poles.size:])
+        _, _, _, H_fit = lsfd(f, Hc, trial, H_std, lower_residual, upper_residual)
+        e = np.where(ok, (H_fit - np.nan_to_num(Hc)) * w, 0.0)
+        return np.concatenate([e.real.ravel(), e.imag.ravel()])
+
+    # a local polish, not a new search: each pole stays within +/-2 % in frequency and a
+    # factor 2 in damping of its LSCF start (keeps a weak pole from drifting onto another)
+    x0 = np.concatenate([np.zeros(poles.size), z0])
+    lo = np.concatenate([np.full(poles.size, -0.02), z0 / 2])
+    hi = np.concatenate([np.full(poles.size, 0.02), np.minimum(2 * z0, 0.99)])
+    x0 = np.clip(x0, lo, hi)
+    sol = scipy.optimize.least_squares(residual, x0, bounds=(lo, hi), x_scale="jac",
+                                       method="trf", max_nfev=30)
+    if not np.all(np.isfinite(sol.x)) or sol.cost > 0.5 * np.sum(residual(x0) ** 2):
+        return poles
+    return poles_from_modal(f0 * np.exp(sol.x[: poles.size]), sol.x[poles.size:])
+
+
+def modal_phase_collinearity(shapes: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """MPC (0..1, 1 = real mode) and mean phase deviation (deg) of complex shapes (n_dof, n).
+
+    MPC: squared normalised eigenvalue spread of the covariance of real and imaginary parts
+    (Pappa et al., J. Guid. Control Dyn. 16, 1993); MPD: magnitude-weighted mean angle between
+    each entry and the best-fit straight line through the origin in the complex plane (the
+    thesis' complexity plots, fig. 14.2).
+    """
+    shapes = np.asarray(shapes, dtype=complex)
+    if shapes.ndim == 1:
+        shapes = shapes[:, None]
+    mpc = np.ones(shapes.shape[1])
+    mpd = np.zeros(shapes.shape[1])
+    for r in range(shapes.shape[1]):
+        v = shapes[:, r]
+        v = v[np.isfinite(v)]
+        xy = np.stack([v.real, v.imag], axis=1)
+        cov = xy.T @ xy
+        ev = np.linalg.eigvalsh(cov)
+        total = ev.sum()
+        if total <= 0:
+            continue
+        mpc[r] = ((ev[1] - ev[0]) / total) ** 2
+        direction = np.linalg.eigh(cov)[1][:, 1]
+        mag = np.abs(v)
+        proj = np.abs(xy @ direction)
+        ang = np.arccos(np.clip(proj / np.where(mag > 0, mag, 1.0), 0.0, 1.0))
+        mpd[r] = np.degrees(np.sum(mag * ang) / np.sum(mag))
+    return mpc, mpd
+
+
+def shapes_from_residues(residues: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Mode shapes (n_out, n_modes) and participation (n_modes, n_in) from residue matrices.
+
+    Each residue matrix is rank one in theory (``R_r = psi_r l_r^T``); its dominant singular
+    pair gives both. Shapes are normalised so their largest entry is 1 (real, positive).
+    """
+    n_m, n_out, n_in = residues.shape
+    shapes = np.zeros((n_out, n_m), dtype=complex)
+    part = np.zeros((n_m, n_in), dtype=complex)
+    for r in range(n_m):
+        u, s, vh = np.linalg.svd(residues[r], full_matrices=False)
+        psi = u[:, 0] * s[0]
+        l = vh[0]
+        big = psi[np.argmax(np.abs(psi))]
+        if big != 0:
+            psi, l = psi / big, l * big
+        shapes[:, r] = psi
+        part[r] = l
+    return shapes, part
+
+
+def ema(
+    frequency_hz: np.ndarray,
+    H: np.ndarray,
+    band_hz: tuple[float, float] | None = None,
+    H_std: np.ndarray | None = None,
+    max_order: int | None = None,
+    frequencies_hz: list[float] | np.ndarray | None = None,
+    criteria: StabilityCriteria | None = None,
+    lower_residual: bool = True,
+    upper_residual: bool = True,
+    refine: bool = False,
+) -> EmaResult:
+    """Experimental modal analysis of receptance FRFs (p-LSCF poles, then LSFD residues).
+
+    ``frequency_hz`` (n_f,) Hz, any spacing; ``H`` (n_f, n_out, n_in) m/N, NaN where not
+    measured; ``band_hz`` restricts the analysis (default: all lines above 0 Hz);
+    ``frequencies_hz`` replaces the automatic selection by the poles nearest those frequencies;
+    ``refine`` polishes the selected poles by a nonlinear pole/residue fit (:func:`refine_poles`).
+    Returns an :class:`EmaResult` (modes sorted by frequency, shapes, complexity, fit).
+    """
+    f = np.asarray(frequency_hz, dtype=float).reshape(-1)
+    Hc = np.asarray(H, dtype=complex)
+    if Hc.ndim == 1:
+        Hc = Hc[:, None, None]
+    elif Hc.ndim == 2:
+        Hc = Hc[:, :, None]
+    if Hc.ndim != 3 or Hc.shape[0] != f.size:
+        raise ValueError(f"H must be (n_f, n_out, n_in) with n_f = {f.size}; got {Hc.shape}")
+    std = None if H_std is None else np.asarray(H_std, dtype=float).reshape(Hc.shape)
+    sel = f > 0
+    if band_hz is not None:
+        lo, hi = float(band_hz[0]), float(band_hz[1])
+        if not 0 <= lo < hi:
+            raise ValueError(f"band must satisfy 0 <= LO < HI, got {lo:g} {hi:g}")
+        sel &= (f >= lo) & (f <= hi)
+    sel &= np.isfinite(Hc).any(axis=(1, 2))
+    if sel.sum() < 4:
+        raise ValueError(f"only {int(sel.sum())} measured lines in the band; need at least 4")
+    f, Hc = f[sel], Hc[sel]
+    std = None if std is None else std[sel]
+    crit = criteria or StabilityCriteria()
+    diagram = stabilisation_diagram(f, Hc, max_order=max_order, H_std=std, criteria=crit)
+    band = (float(f.min()), float(f.max()))
+    notes: list[str] = []
+    if frequencies_hz is not None and len(frequencies_hz) > 0:
+        poles = pick_poles(diagram, frequencies_hz)
+        selection = "manual"
+    else:
+        poles = select_poles(diagram, band, crit)
+        selection = "auto"
+        if poles.size == 0:
+            notes.append("no stable pole found in the band")
+    if refine and poles.size:
+        poles = refine_poles(f, Hc, poles, std, lower_residual, upper_residual)
+        poles = poles[np.argsort(np.abs(poles))]
+    residues, LR, UR, H_fit = lsfd(f, Hc, poles, std, lower_residual, upper_residual)
+    shapes, part = shapes_from_residues(residues)
+    mpc, mpd = modal_phase_collinearity(shapes)
+    fn, zeta = pole_frequency_damping(poles)
+    return EmaResult(
+        frequency_hz=fn, damping_ratio=zeta, poles=poles, shapes=shapes, participation=part,
+        residues=residues, mpc=mpc, mpd_deg=mpd, lower_residual=LR, upper_residual=UR,
+        fit_frequency_hz=f, H_fit=H_fit, H_measured=Hc, diagram=diagram,
+        selection=selection, notes=notes,
+    )

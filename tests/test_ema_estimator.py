@@ -1,0 +1,208 @@
+"""p-LSCF + LSFD experimental modal analysis on analytic multi-DOF systems (pure numpy).
+
+The reference modes come from the state-space eigenproblem of a known M, C, K with
+non-proportional damping, so complex modes and exact poles are known.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import scipy.linalg
+
+from pelvislab.model.ema import (
+    STABLE_ALL,
+    StabilityCriteria,
+    ema,
+    lsfd,
+    modal_phase_collinearity,
+    pole_frequency_damping,
+    poles_from_modal,
+    stabilisation_diagram,
+)
+
+
+def analytic_system(n: int = 6, seed: int = 0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """A spring-mass chain fixed at both ends, non-proportional damping, modes in 5-300 Hz."""
+    rng = np.random.default_rng(seed)
+    m = rng.uniform(0.5, 1.5, n)
+    k = rng.uniform(0.5, 1.5, n + 1) * 4e5
+    K = np.zeros((n, n))
+    for i in range(n):
+        K[i, i] += k[i] + k[i + 1]
+        if i + 1 < n:
+            K[i, i + 1] = K[i + 1, i] = -k[i + 1]
+    c = rng.uniform(0.5, 1.5, n + 1) * 30
+    C = np.diag([c[i] + (c[i + 1] if i % 2 else 0.2 * c[i + 1]) for i in range(n)]) + 2e-5 * K
+    return np.diag(m), K, C
+
+
+def reference_modes(M: np.ndarray, K: np.ndarray, C: np.ndarray
+                    ) -> tuple[np.ndarray, np.ndarray]:
+    """Poles (rad/s, positive imaginary) and complex displacement shapes of M, C, K."""
+    n = M.shape[0]
+    Z = np.zeros_like(M)
+    lam, V = scipy.linalg.eig(-np.block([[K, Z], [Z, -M]]), np.block([[C, M], [M, Z]]))
+    keep = lam.imag > 0
+    lam, V = lam[keep], V[:n, keep]
+    order = np.argsort(np.abs(lam))
+    return lam[order], V[:, order]
+
+
+def receptance(M: np.ndarray, K: np.ndarray, C: np.ndarray, frequency_hz: np.ndarray,
+               outputs: list[int], inputs: list[int]) -> np.ndarray:
+    """H = (-w^2 M + i w C + K)^-1 at the given outputs and inputs, (n_f, n_out, n_in)."""
+    w = 2 * np.pi * frequency_hz[:, None, None]
+    H = np.linalg.inv(-(w**2) * M + 1j * w * C + K)
+    return H[:, outputs][:, :, inputs]
+
+
+def add_noise(H: np.ndarray, level: float, seed: int) -> np.ndarray:
+    """Proportional complex Gaussian noise of RMS ``level`` x |H|."""
+    rng = np.random.default_rng(seed)
+    e = (rng.normal(size=H.shape) + 1j * rng.normal(size=H.shape)) / np.sqrt(2)
+    return H * (1 + level * e)
+
+
+def mac(a: np.ndarray, b: np.ndarray) -> float:
+    return float(abs(np.vdot(a, b)) ** 2 / (np.vdot(a, a).real * np.vdot(b, b).real))
+
+
+def check_identified(result, lam: np.ndarray, V: np.ndarray, band: tuple[float, float],
+                     f_tol: float = 0.003, z_tol: float = 0.10, mac_min: float = 0.98) -> None:
+    """Every reference mode in ``band`` found once, within tolerance; nothing else found."""
+    fn, zn = pole_frequency_damping(lam)
+    inband = (fn >= band[0]) & (fn <= band[1])
+    assert result.frequency_hz.size == inband.sum(), (result.frequency_hz, fn[inband])
+    for r in np.flatnonzero(inband):
+        j = int(np.argmin(np.abs(result.frequency_hz - fn[r])))
+        assert abs(result.frequency_hz[j] / fn[r] - 1) <= f_tol, (fn[r], result.frequency_hz[j])
+        assert abs(result.damping_ratio[j] / zn[r] - 1) <= z_tol, (zn[r], result.damping_ratio[j])
+        assert mac(V[:, r], result.shapes[:, j]) >= mac_min
+
+
+@pytest.fixture(scope="module")
+def system():
+    M, K, C = analytic_system()
+    lam, V = reference_modes(M, K, C)
+    return M, K, C, lam, V
+
+
+def test_one_input_one_percent_noise_stepped_sine_grid(system):
+    M, K, C, lam, V = system
+    f = np.arange(5.0, 300.01, 2.5)  # thesis default stepped sine
+    H = add_noise(receptance(M, K, C, f, list(range(6)), [0]), 0.01, seed=1)
+    result = ema(f, H)
+    check_identified(result, lam, V, (5, 300))
+    assert result.fit_error() < 0.02  # 1 % noise: the model explains the data to noise level
+    assert result.H_fit.shape == H.shape
+
+
+def test_two_inputs_non_uniform_coarse_grid_with_missing_lines(system):
+    M, K, C, lam, V = system
+    rng = np.random.default_rng(7)
+    f = np.sort(rng.uniform(5.0, 300.0, 110))  # non-uniform, ~2.7 Hz mean spacing
+    H = add_noise(receptance(M, K, C, f, list(range(6)), [0, 4]), 0.01, seed=2)
+    H[rng.integers(0, f.size, 15), rng.integers(0, 6, 15), rng.integers(0, 2, 15)] = np.nan
+    result = ema(f, H)
+    check_identified(result, lam, V, (5, 300))
+    assert result.participation.shape == (6, 2)
+
+
+def test_noise_free_is_essentially_exact(system):
+    M, K, C, lam, V = system
+    f = np.arange(5.0, 300.01, 2.5)
+    result = ema(f, receptance(M, K, C, f, list(range(6)), [1]))
+    check_identified(result, lam, V, (5, 300), f_tol=1e-4, z_tol=1e-3, mac_min=0.9999)
+
+
+def test_band_limits_the_modes_and_residuals_absorb_the_rest(system):
+    M, K, C, lam, V = system
+    f = np.arange(5.0, 300.01, 2.5)
+    H = add_noise(receptance(M, K, C, f, list(range(6)), [0]), 0.01, seed=3)
+    result = ema(f, H, band_hz=(80.0, 180.0))
+    check_identified(result, lam, V, (80, 180))
+    assert result.fit_frequency_hz.min() >= 80 and result.fit_frequency_hz.max() <= 180
+    # out-of-band modes below and above are represented by the residual terms
+    assert np.any(result.lower_residual != 0) and np.any(result.upper_residual != 0)
+    assert result.fit_error() < 0.04
+    f_band = result.fit_frequency_hz
+    *_, bare = lsfd(f_band, result.H_measured, result.poles, lower_residual=False,
+                    upper_residual=False)
+    bare_error = np.linalg.norm(bare - result.H_measured) / np.linalg.norm(result.H_measured)
+    assert bare_error > 3 * result.fit_error()
+
+
+def test_manual_override_and_unknown_frequency(system):
+    M, K, C, lam, _ = system
+    f = np.arange(5.0, 300.01, 2.5)
+    H = add_noise(receptance(M, K, C, f, list(range(6)), [0]), 0.01, seed=4)
+    fn, _ = pole_frequency_damping(lam)
+    result = ema(f, H, frequencies_hz=[fn[2] * 1.02, fn[0]])
+    assert result.selection == "manual"
+    np.testing.assert_allclose(result.frequency_hz, fn[[0, 2]], rtol=3e-3)
+    with pytest.raises(ValueError, match="no pole stable in frequency within"):
+        ema(f, H, frequencies_hz=[70.0])
+
+
+def test_stabilisation_diagram_marks_physical_poles_stable(system):
+    M, K, C, lam, _ = system
+    f = np.arange(5.0, 300.01, 2.5)
+    H = add_noise(receptance(M, K, C, f, list(range(6)), [0]), 0.01, seed=5)
+    diagram = stabilisation_diagram(f, H, max_order=30)
+    assert list(diagram.orders) == list(range(1, 31))
+    fn, _ = pole_frequency_damping(lam)
+    last = diagram.frequency_hz(len(diagram.orders) - 1)[diagram.status[-1] == STABLE_ALL]
+    for target in fn:
+        assert np.min(np.abs(last - target)) / target < 0.01
+    rows = diagram.as_rows()
+    assert {"order", "frequency_hz", "damping_ratio", "status"} <= set(rows[0])
+
+
+def test_band_without_resonance_gives_no_mode(system):
+    M, K, C, _, _ = system
+    f = np.arange(5.0, 40.01, 1.0)  # first mode is at 49 Hz
+    H = add_noise(receptance(M, K, C, f, list(range(6)), [0]), 0.01, seed=6)
+    assert ema(f, H).frequency_hz.size == 0
+
+
+def test_lsfd_recovers_known_residues():
+    f = np.linspace(10, 200, 150)
+    poles = poles_from_modal(np.array([50.0, 120.0]), np.array([0.02, 0.05]))
+    R = np.array([[[1.0 + 0.2j], [0.3 - 0.1j]], [[-0.5 + 0.0j], [2.0 + 0.5j]]])  # (2, 2, 1)
+    s = 2j * np.pi * f
+    H = sum(R[r][None] / (s - poles[r])[:, None, None]
+            + R[r].conj()[None] / (s - poles[r].conj())[:, None, None] for r in range(2))
+    H = H + 1e-4 - 3.0 / (2 * np.pi * f[:, None, None]) ** 2
+    residues, LR, UR, H_fit = lsfd(f, H, poles)
+    np.testing.assert_allclose(residues, R, rtol=1e-8, atol=1e-10)
+    np.testing.assert_allclose(LR, 3.0, rtol=1e-6)
+    np.testing.assert_allclose(UR, 1e-4, rtol=1e-6)
+    np.testing.assert_allclose(H_fit, H, rtol=1e-9)
+
+
+def test_complexity_indicators():
+    real = np.array([1.0, -0.5, 0.3, 2.0]) * np.exp(0.7j)  # collinear: a normal mode
+    mpc, mpd = modal_phase_collinearity(real)
+    assert mpc[0] == pytest.approx(1.0) and mpd[0] == pytest.approx(0.0, abs=1e-6)
+    spread = np.exp(1j * np.array([0.0, 0.5 * np.pi, np.pi / 4, 3 * np.pi / 4]))  # circle
+    mpc, mpd = modal_phase_collinearity(spread)
+    assert mpc[0] < 0.01 and mpd[0] > 20
+
+
+def test_bad_input_is_named():
+    with pytest.raises(ValueError, match="H must be"):
+        ema(np.arange(10.0), np.ones((9, 2, 1)))
+    with pytest.raises(ValueError, match="band"):
+        ema(np.arange(1.0, 11.0), np.ones((10, 2, 1)), band_hz=(50.0, 10.0))
+    with pytest.raises(ValueError, match="measured lines"):
+        ema(np.arange(1.0, 11.0), np.full((10, 2, 1), np.nan))
+
+
+def test_criteria_are_honoured(system):
+    M, K, C, _, _ = system
+    f = np.arange(5.0, 300.01, 2.5)
+    H = add_noise(receptance(M, K, C, f, list(range(6)), [0]), 0.01, seed=8)
+    strict = StabilityCriteria(max_damping_ratio=0.05)  # drops the 9.5 %-damped first mode
+    result = ema(f, H, criteria=strict)
+    assert result.frequency_hz.size == 5 and np.all(result.damping_ratio < 0.05)
