@@ -1,0 +1,329 @@
+"""Agilent 33220A driver: exact command strings, limits, error queue, safe state; and the
+same driver through pyvisa-sim with sim_instruments/agilent_33220a.yaml."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import pytest
+
+from pelvislab.drivers import agilent33220a as ag
+from pelvislab.drivers.agilent33220a import Agilent33220A, ReferenceUnlockedError
+from pelvislab.drivers.bench import Bench, BenchConfig
+from pelvislab.drivers.interfaces import (
+    DriverError,
+    Generator,
+    InstrumentConnectionError,
+    InstrumentError,
+    InstrumentTimeoutError,
+    LimitError,
+)
+from pelvislab.drivers.scpi import ScriptedTransport, VisaTransport
+
+OK = '+0,"No error"'
+IDN = "Agilent Technologies,33220A,MY44000001,2.02-2.02-22-2"
+YAML = Path(__file__).resolve().parents[1] / "sim_instruments" / "agilent_33220a.yaml"
+SIM = f"{YAML}@sim"
+RES1 = "USB0::0x0957::0x0407::MY44000001::INSTR"
+RES2 = "USB0::0x0957::0x0407::MY44000002::INSTR"
+
+
+def open_script(load="50", option001=True):
+    s = [("*IDN?", IDN), ("*RST", None), ("*CLS", None), ("SYST:ERR?", OK), ("*OPC?", "1"),
+         ("OUTP OFF", None), ("VOLT:UNIT VPP", None), (f"OUTP:LOAD {load}", None),
+         ("SYST:ERR?", OK), ("PHAS:UNL:ERR:STAT ON", None)]
+    if option001:
+        s += [("SYST:ERR?", OK)]
+    else:
+        s += [("SYST:ERR?", '-113,"Undefined header"'), ("SYST:ERR?", OK)]
+    return s
+
+
+def make(extra, load=50.0, max_vpp=None, option001=True):
+    load_tok = "INF" if math.isinf(load) else f"{load:g}"
+    t = ScriptedTransport(open_script(load_tok, option001) + extra)
+    g = Agilent33220A(t, "FAKE::INSTR", load_ohm=load, max_vpp=max_vpp)
+    return g, t
+
+
+# ---------------------------------------------------------------- exact protocol
+def test_open_sequence_and_identity():
+    g, t = make([])
+    t.assert_done()
+    assert g.identity == IDN
+    assert g.has_option_001 is True
+    # structural conformance (isinstance on a runtime Protocol would evaluate the
+    # output_enabled property, i.e. send OUTP?, on Python 3.11)
+    for name in Generator.__protocol_attrs__ if hasattr(Generator, "__protocol_attrs__") \
+            else ("configure_sine", "set_frequency", "set_amplitude", "configure_pulse_burst",
+                  "output_on", "output_off", "reference_locked", "safe_state", "close"):
+        assert hasattr(Agilent33220A, name) or name in ("identity", "resource"), name
+    t.assert_done()
+
+
+def test_open_refuses_other_instrument_without_sending_anything_else():
+    t = ScriptedTransport([("*IDN?", "Keysight,34461A,X,1")])
+    with pytest.raises(Exception, match="not an Agilent 33220A"):
+        Agilent33220A(t, "FAKE::INSTR")
+    assert t.sent == ["*IDN?"] and t.closed
+
+
+def test_configure_sine_exact_commands():
+    g, t = make([("FUNC SIN", None), ("BURS:STAT OFF", None), ("FREQ 80", None),
+                 ("VOLT 1.5", None), ("SYST:ERR?", OK),
+                 ("FREQ 82.5", None), ("SYST:ERR?", OK),
+                 ("VOLT 0.25", None), ("SYST:ERR?", OK),
+                 ("OUTP ON", None), ("SYST:ERR?", OK), ("OUTP?", "1")])
+    g.configure_sine(80.0, 1.5)
+    g.set_frequency(82.5)
+    g.set_amplitude(0.25)
+    g.output_on()
+    assert g.output_enabled is True
+    t.assert_done()
+
+
+def test_configure_pulse_burst_exact_commands():
+    g, t = make([("FUNC PULS", None), ("FUNC:PULS:WIDT 1E-06", None),
+                 ("PULS:PER 0.0002", None), ("FUNC:PULS:TRAN 5E-09", None),
+                 ("VOLT 5", None), ("VOLT:OFFS 2.5", None), ("TRIG:SOUR EXT", None),
+                 ("TRIG:SLOP POS", None), ("BURS:MODE TRIG", None),
+                 ("BURS:NCYC 2000", None), ("BURS:STAT ON", None), ("SYST:ERR?", OK)])
+    g.configure_pulse_burst(prf_hz=5000.0, n_pulses=2000, width_s=1e-6, high_v=5.0)
+    t.assert_done()
+
+
+def test_amplitude_offset_order_keeps_intermediate_states_valid():
+    # from 8 Vpp/0 V to 2 Vpp/+3.5 V into 50 ohm: offset first would give 3.5+4 > 5 V,
+    # so the amplitude goes first
+    g, t = make([("FUNC SIN", None), ("BURS:STAT OFF", None), ("FREQ 100", None),
+                 ("VOLT 8", None), ("SYST:ERR?", OK),
+                 ("FUNC SIN", None), ("BURS:STAT OFF", None), ("FREQ 100", None),
+                 ("VOLT 2", None), ("VOLT:OFFS 3.5", None), ("SYST:ERR?", OK),
+                 ("FUNC SIN", None), ("BURS:STAT OFF", None), ("FREQ 100", None),
+                 ("VOLT:OFFS -1", None), ("VOLT 8", None), ("SYST:ERR?", OK)])
+    g.configure_sine(100, 8.0)
+    g.configure_sine(100, 2.0, 3.5)
+    g.configure_sine(100, 8.0, -1.0)  # 3.5 + 4 > 5: offset must move first
+    t.assert_done()
+
+
+def test_high_z_load_doubles_the_limits():
+    g, t = make([("FUNC SIN", None), ("BURS:STAT OFF", None), ("FREQ 10", None),
+                 ("VOLT 16", None), ("SYST:ERR?", OK)], load=math.inf)
+    g.configure_sine(10.0, 16.0)  # > 10 Vpp: only valid into high-Z
+    t.assert_done()
+    g50, t50 = make([])
+    with pytest.raises(LimitError, match="for a 50 ohm load"):
+        g50.configure_sine(10.0, 16.0)
+    assert t50.script == []  # nothing sent
+
+
+def test_instrument_error_raises_with_its_text_and_output_goes_off():
+    g, t = make([("FUNC SIN", None), ("BURS:STAT OFF", None), ("FREQ 80", None),
+                 ("VOLT 1", None), ("SYST:ERR?", '-222,"Data out of range"'),
+                 ("SYST:ERR?", '+221,"Settings conflict"'), ("SYST:ERR?", OK),
+                 ("OUTP OFF", None)])
+    with pytest.raises(InstrumentError, match=r'-222,"Data out of range"; \+221'):
+        g.configure_sine(80, 1.0)
+    t.assert_done()
+
+
+def test_timeout_is_clear_and_output_goes_off():
+    timeout = InstrumentTimeoutError("FAKE::INSTR: no answer to 'SYST:ERR?' within 5 s")
+    g, t = make([("FREQ 12", None), ("SYST:ERR?", timeout), ("OUTP OFF", None)])
+    with pytest.raises(InstrumentTimeoutError, match="no answer"):
+        g.set_frequency(12.0)
+    t.assert_done()
+
+
+def test_keyboard_interrupt_mid_block_turns_output_off():
+    g, t = make([("FREQ 12", KeyboardInterrupt()), ("OUTP OFF", None)])
+    with pytest.raises(KeyboardInterrupt):
+        g.set_frequency(12.0)
+    t.assert_done()
+
+
+def test_context_manager_close_turns_output_off_once_and_never_raises():
+    g, t = make([("OUTP OFF", ConnectionResetError("link down"))])
+    with g:
+        pass
+    assert t.closed and any("link down" in m for m in g.safe_state_errors)
+    g.close()  # idempotent, nothing more sent
+    with pytest.raises(Exception, match="closed"):
+        g.output_on()
+
+
+@pytest.mark.parametrize(
+    "call, match",
+    [
+        (lambda g: g.configure_sine(25e6, 1.0), "sine range"),
+        (lambda g: g.configure_sine(100, 0.005), "outside"),
+        (lambda g: g.configure_sine(100, 4.0, 3.5), "exceeds 5 V"),
+        (lambda g: g.configure_sine(float("nan"), 1.0), "frequency"),
+        (lambda g: g.configure_pulse_burst(5000, 2000, 10e-9, 5.0), "below the minimum"),
+        (lambda g: g.configure_pulse_burst(5000, 2000, 199.99e-6, 5.0), "period -"),
+        (lambda g: g.configure_pulse_burst(5000, 2000, 50e-9, 5.0, edge_s=40e-9), "0.625"),
+        (lambda g: g.configure_pulse_burst(5000, 60000, 1e-6, 5.0), "n_pulses"),
+        (lambda g: g.configure_pulse_burst(6e6, 10, 20e-9, 5.0), "pulse range"),
+        (lambda g: g.configure_pulse_burst(5000, 10, 1e-6, 0.0, 1.0), "high_v"),
+    ],
+)
+def test_limits_checked_before_sending(call, match):
+    g, t = make([])
+    with pytest.raises(LimitError, match=match):
+        call(g)
+    assert t.sent[-1] == "SYST:ERR?"  # nothing after the open sequence
+
+
+def test_bench_drive_limit_enforced_in_driver():
+    g, t = make([("FUNC SIN", None), ("BURS:STAT OFF", None), ("FREQ 50", None),
+                 ("VOLT 2", None), ("SYST:ERR?", OK)], max_vpp=2.0)
+    g.configure_sine(50.0, 2.0)
+    with pytest.raises(LimitError, match="bench limit"):
+        g.set_amplitude(2.1)
+    with pytest.raises(LimitError, match="bench limit"):
+        g.configure_sine(50.0, 1.0, offset_v=0.6)
+    t.assert_done()
+
+
+def test_pulse_rules_pure():
+    assert ag.min_pulse_width_s(1e-3) == 20e-9
+    assert ag.min_pulse_width_s(50.0) == 200e-9
+    assert ag.min_pulse_width_s(500.0) == 2e-6
+    assert ag.min_pulse_width_s(1500.0) == 20e-6
+    ag.check_pulse(200e-6, 1e-6, 100e-9)
+    with pytest.raises(LimitError):
+        ag.check_pulse(100e-9, 20e-9, 5e-9)
+    assert ag.load_factor(50.0) == 1.0 and ag.load_factor(math.inf) == 2.0
+    assert ag.amplitude_limits_vpp(math.inf) == pytest.approx((0.02, 20.0))
+
+
+def test_reference_lock_reporting():
+    g, t = make([("PHAS:UNL:ERR:STAT?", "1"), ("SYST:ERR?", OK),
+                 ("PHAS:UNL:ERR:STAT?", "1"),
+                 ("SYST:ERR?", '+580,"Reference phase-locked loop is unlocked"'),
+                 ("SYST:ERR?", OK)])
+    assert g.reference_locked() is True
+    assert g.reference_locked() is False
+    t.assert_done()
+    g2, _ = make([], option001=False)
+    assert g2.has_option_001 is False and g2.reference_locked() is None
+
+
+def test_unlock_during_configuration_raises_reference_error():
+    g, t = make([("FREQ 20", None),
+                 ("SYST:ERR?", '+580,"Reference phase-locked loop is unlocked"'),
+                 ("SYST:ERR?", OK), ("OUTP OFF", None)])
+    with pytest.raises(ReferenceUnlockedError):
+        g.set_frequency(20.0)
+
+
+def test_command_table_is_declared_and_cited():
+    table = Agilent33220A.command_table()
+    gets = {c.get_cmd for c in table}
+    for cmd in ["FUNC?", "FREQ?", "VOLT?", "VOLT:OFFS?", "VOLT:UNIT?", "OUTP?", "OUTP:LOAD?",
+                "OUTP:SYNC?", "PULS:PER?", "FUNC:PULS:WIDT?", "FUNC:PULS:TRAN?",
+                "BURS:STAT?", "BURS:MODE?", "BURS:NCYC?", "BURS:INT:PER?", "BURS:PHAS?",
+                "TRIG:SOUR?", "TRIG:SLOP?", "PHAS?", "PHAS:UNL:ERR:STAT?"]:
+        assert cmd in gets
+    assert all(c.spec for c in table)
+
+
+# ---------------------------------------------------------------- through pyvisa-sim
+def sim_gen(resource=RES1, **kw):
+    return Agilent33220A.open(resource, visa_library=SIM, timeout_s=0.2, **kw)
+
+
+def test_sim_open_configure_and_read_back():
+    with sim_gen(load_ohm="inf") as g:
+        assert "33220A" in g.identity and g.has_option_001
+        g.configure_sine(152.5, 1.25, 0.1)
+        assert g.frequency_hz == 152.5
+        assert g.amplitude == 1.25 and g.offset_v == pytest.approx(0.1)
+        assert math.isinf(g.output_load)
+        assert g.function == "sine"
+        g.output_on()
+        assert g.output_enabled
+        g.configure_pulse_burst(5000, 2000, 1e-6, 5.0)
+        assert g.burst_cycles == 2000 and g.burst_enabled
+        assert g.trigger_source == "external" and g.pulse_period_s == pytest.approx(2e-4)
+        assert g.reference_locked() is True
+    assert g.command_log[-1][1] == "OUTP OFF"
+
+
+def test_sim_every_declared_query_answers_and_parses():
+    with sim_gen() as g:
+        for control in Agilent33220A.command_table():
+            control.__get__(g)  # raises on a missing/unparseable answer
+        g.check_errors()
+
+
+def test_sim_error_queue_reaches_the_driver():
+    with sim_gen() as g:
+        g.write("FREQ 3E7")  # bypasses the driver's checks on purpose
+        with pytest.raises(InstrumentError, match="Command error"):
+            g.check_errors()
+        g.check_errors()  # queue drained
+
+
+@pytest.mark.filterwarnings("ignore:read string doesn't end with termination")
+def test_sim_timeout_and_lost_connection_are_clear():
+    with sim_gen() as g:
+        with pytest.raises(InstrumentTimeoutError, match="within 0.2 s"):
+            g.ask("NOSUCH?")
+        g.transport._res.close()  # the connection goes away under the driver
+        with pytest.raises(InstrumentConnectionError):
+            g.set_frequency(10.0)
+    # pyvisa-sim "opens" unknown resources; what matters is a clear refusal
+    with pytest.raises(DriverError, match="NOPE"):
+        Agilent33220A.open("USB0::1::2::NOPE::INSTR", visa_library=SIM, timeout_s=0.1)
+
+
+class _KeepOpen(VisaTransport):
+    """A VISA transport whose close() keeps the session, so the test can look after."""
+
+    def close(self):
+        self.closed_by_driver = True
+
+
+class _NullDigitizer:
+    identity = resource = "none"
+
+    def abort(self):
+        pass
+
+    def close(self):
+        pass
+
+
+@pytest.mark.parametrize("failure", [RuntimeError("tracking failed"), KeyboardInterrupt()])
+def test_exception_mid_sweep_leaves_both_generators_off(failure):
+    t1 = _KeepOpen(RES1, visa_library=SIM, timeout_s=0.5)
+    t2 = _KeepOpen(RES2, visa_library=SIM, timeout_s=0.5)
+    trig = Agilent33220A(t1, RES1)
+    drive = Agilent33220A(t2, RES2, load_ohm=math.inf, max_vpp=2.0)
+    bench = Bench(trigger=trig, drive=drive, digitizer=_NullDigitizer(), pulsers=[],
+                  config=BenchConfig.default(), simulated=False)
+    steps = []
+    with pytest.raises(type(failure)):
+        with bench:
+            trig.configure_pulse_burst(5000, 2000, 1e-6, 5.0)
+            drive.configure_sine(5.0, 1.0)
+            trig.output_on()
+            drive.output_on()
+            for f in (5.0, 7.5, 10.0, 12.5):
+                drive.set_frequency(f)
+                steps.append(f)
+                assert t1.query("OUTP?") in ("1", "ON") and t2.query("OUTP?") in ("1", "ON")
+                if f == 10.0:
+                    raise failure
+    assert steps == [5.0, 7.5, 10.0]
+    # the simulated instruments themselves say the outputs are off
+    assert t1.query("OUTP?") in ("0", "OFF")
+    assert t2.query("OUTP?") in ("0", "OFF")
+    assert t1.closed_by_driver and t2.closed_by_driver
+    for g in (trig, drive):
+        assert g.command_log[-1][1] == "OUTP OFF"
+    VisaTransport.close(t1)
+    VisaTransport.close(t2)
