@@ -1,0 +1,412 @@
+"""Universal File Format (UFF) interchange of FRF sets with other modal tools, through pyuff.
+
+Export (:func:`write_uff`): dataset 164 (SI units), the measurement points as nodes in dataset
+2411 (double precision; or 15), one dataset 58 per measured FRF (function type 4, receptance:
+ordinate displacement over force), and optionally identified modes as dataset 55 (complex
+modes, one per mode, node vectors in the global frame).
+
+Import (:func:`read_uff`): every dataset 58 of FRF type (function type 4; also 0 "general"
+with complex data), whatever its response quantity: displacement (receptance), velocity
+(mobility) or acceleration (accelerance) over force; mobility and accelerance are converted to
+receptance (``X = V / (i w) = -A / w^2``; the 0 Hz line becomes NaN). Records on different
+abscissae are merged on the union grid, NaN where a record has no line. Node coordinates from
+2411 or 15 (converted to metres with dataset 164's length factor); nodes are named and mapped to
+bones by an optional points file (:func:`read_points_file`), else ``node<N>`` with bone ``""``.
+
+Exact round trip. pelvislab writes binary 58 ("58b", IEEE doubles, uneven abscissa) and 2411
+(``%25.16e``), so frequencies, FRF values and positions come back bit for bit. UFF can only
+name a measurement direction as +/-X, Y, Z: an axis direction is written that way, any other
+as 0 (scalar), and the exact unit vector, channel name and bone ride in the ID lines of each 58
+record (``id2``/``id3`` "out|in <bone> <name>", ``id4``/``id5`` "do|di <dx> <dy> <dz>"), which
+pelvislab reads back. Not carried: ``H_std``, ``acquired_at_s``, and frequency lines where no
+FRF was measured (UFF readers turn NaN into 0, so unmeasured lines are left out of each record).
+"""
+
+from __future__ import annotations
+
+import tomllib
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from pelvislab.acquisition.frfset import BONES, Channels, FrfSet
+
+MARKER = "pelvislab FRF receptance m/N"
+FUNC_GENERAL = 0
+FUNC_FRF = 4
+# dataset 58 "specific data type" codes (UFF 58 record 8-11)
+SPEC_FREQUENCY = 18
+SPEC_DISPLACEMENT = 8
+SPEC_VELOCITY = 11
+SPEC_ACCELERATION = 12
+SPEC_FORCE = 13
+AXES = np.eye(3)
+
+
+@dataclass
+class UffModes:
+    """Modes to export as dataset 55: per mode a frequency, damping and complex channel shape."""
+
+    frequency_hz: np.ndarray  # (n_modes,) undamped natural frequency
+    damping_ratio: np.ndarray  # (n_modes,)
+    shapes: np.ndarray  # (n_out, n_modes) complex, at the FRF set's outputs
+
+
+@dataclass
+class PointInfo:
+    """What a points file says about one UFF node."""
+
+    name: str
+    bone: str = ""
+    position_m: np.ndarray | None = None
+
+
+def read_points_file(path: str | Path) -> dict[int, PointInfo]:
+    """Read a points file mapping UFF node numbers to landmark names and bones.
+
+    TOML, one table per node::
+
+        [[point]]
+        node = 12
+        name = "SIAS_R"              # landmark / channel base name
+        bone = "innominate_right"    # one of the design-4.1 bones, or "" (default)
+        position_m = [0.0, -0.12, 0.0]   # optional: overrides the UFF coordinates
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"no such points file: {path}")
+    try:
+        data = tomllib.loads(path.read_text(encoding="utf-8"))
+    except tomllib.TOMLDecodeError as exc:
+        raise ValueError(f"{path} is not valid TOML: {exc}") from None
+    points: dict[int, PointInfo] = {}
+    for k, entry in enumerate(data.get("point", [])):
+        where = f"{path} point {k + 1}"
+        if "node" not in entry or "name" not in entry:
+            raise ValueError(f"{where}: needs 'node' and 'name'")
+        bone = str(entry.get("bone", ""))
+        if bone not in BONES:
+            raise ValueError(f"{where}: unknown bone {bone!r}; expected one of {list(BONES)}")
+        pos = entry.get("position_m")
+        if pos is not None:
+            pos = np.asarray(pos, dtype=float)
+            if pos.shape != (3,):
+                raise ValueError(f"{where}: position_m must have 3 numbers")
+        node = int(entry["node"])
+        if node in points:
+            raise ValueError(f"{where}: node {node} listed twice")
+        points[node] = PointInfo(str(entry["name"]), bone, pos)
+    if not points:
+        raise ValueError(f"{path} lists no [[point]] tables")
+    return points
+
+
+def direction_code(direction: np.ndarray) -> int:
+    """UFF direction code of a unit vector: +/-1, 2, 3 for the global axes, 0 otherwise."""
+    for axis in range(3):
+        if np.array_equal(direction, AXES[axis]):
+            return axis + 1
+        if np.array_equal(direction, -AXES[axis]):
+            return -(axis + 1)
+    return 0
+
+
+def _line(text: str, what: str) -> str:
+    if len(text) > 80:
+        raise ValueError(f"{what} does not fit a UFF ID line (80 characters): {text!r}")
+    return text
+
+
+def _channel_lines(prefix: str, dprefix: str, channels: Channels, k: int) -> tuple[str, str]:
+    bone = channels.bone[k] or "-"
+    d = channels.direction[k]
+    return (
+        _line(f"{prefix} {bone} {channels.name[k]}", f"channel name {channels.name[k]!r}"),
+        _line(f"{dprefix} {float(d[0])!r} {float(d[1])!r} {float(d[2])!r}", "direction"),
+    )
+
+
+def uff_datasets(frf: FrfSet, modes: UffModes | None = None, binary: bool = True,
+                 geometry: int = 2411) -> list[dict]:
+    """The pyuff dataset dictionaries (164, geometry, 58 per FRF, 55 per mode) of ``frf``."""
+    import pyuff
+
+    if geometry not in (15, 2411):
+        raise ValueError(f"geometry dataset must be 15 or 2411, got {geometry}")
+    nodes: dict[tuple, int] = {}
+    coords: list[np.ndarray] = []
+
+    def node_of(channels: Channels, k: int) -> int:
+        key = (channels.name[k], channels.bone[k], tuple(channels.position_m[k]))
+        if key not in nodes:
+            nodes[key] = len(nodes) + 1
+            coords.append(channels.position_m[k])
+        return nodes[key]
+
+    out_nodes = [node_of(frf.outputs, o) for o in range(len(frf.outputs))]
+    in_nodes = [node_of(frf.inputs, i) for i in range(len(frf.inputs))]
+    xyz = np.array(coords, dtype=float).reshape(-1, 3)
+    n = xyz.shape[0]
+    sets: list[dict] = [pyuff.prepare_164(
+        units_code=1, units_description="SI: meter (newton)", temp_mode=1,
+        length=1.0, force=1.0, temp=1.0, temp_offset=273.15)]
+    prepare_geometry = pyuff.prepare_2411 if geometry == 2411 else pyuff.prepare_15
+    sets.append(prepare_geometry(
+        node_nums=np.arange(1, n + 1), def_cs=np.zeros(n, dtype=int),
+        disp_cs=np.zeros(n, dtype=int), color=np.ones(n, dtype=int),
+        x=xyz[:, 0].copy(), y=xyz[:, 1].copy(), z=xyz[:, 2].copy()))
+    for o in range(len(frf.outputs)):
+        for i in range(len(frf.inputs)):
+            ok = np.isfinite(frf.H[:, o, i])
+            if not ok.any():
+                continue
+            id2, id4 = _channel_lines("out", "do", frf.outputs, o)
+            id3, id5 = _channel_lines("in", "di", frf.inputs, i)
+            sets.append(pyuff.prepare_58(
+                binary=1 if binary else 0, id1=MARKER, id2=id2, id3=id3, id4=id4, id5=id5,
+                func_type=FUNC_FRF, rsp_ent_name="pelvislab", rsp_node=out_nodes[o],
+                rsp_dir=direction_code(frf.outputs.direction[o]), ref_ent_name="pelvislab",
+                ref_node=in_nodes[i], ref_dir=direction_code(frf.inputs.direction[i]),
+                abscissa_spacing=0, abscissa_spec_data_type=SPEC_FREQUENCY,
+                abscissa_axis_units_lab="Hz", ordinate_spec_data_type=SPEC_DISPLACEMENT,
+                ordinate_len_unit_exp=1, ordinate_axis_units_lab="m",
+                orddenom_spec_data_type=SPEC_FORCE, orddenom_force_unit_exp=1,
+                orddenom_axis_units_lab="N",
+                x=frf.frequency_hz[ok].copy(), data=frf.H[ok, o, i].astype(complex)))
+    if modes is not None:
+        sets.extend(_mode_datasets(frf, modes, out_nodes))
+    return sets
+
+
+def _mode_datasets(frf: FrfSet, modes: UffModes, out_nodes: list[int]) -> list[dict]:
+    """Dataset 55 per mode: the node displacement vector that best explains the channels.
+
+    A node measured along several directions gets the least-squares vector ``u`` with
+    ``d_c . u = psi_c`` (exact for orthogonal directions); a node measured along one
+    direction gets ``psi d``.
+    """
+    import pyuff
+
+    shapes = np.asarray(modes.shapes, dtype=complex)
+    if shapes.shape[0] != len(frf.outputs):
+        raise ValueError(
+            f"mode shapes have {shapes.shape[0]} entries, the FRF set {len(frf.outputs)} outputs"
+        )
+    node_ids = sorted(set(out_nodes))
+    sets = []
+    for r in range(shapes.shape[1]):
+        vec = np.zeros((len(node_ids), 3), dtype=complex)
+        for k, node in enumerate(node_ids):
+            rows = [o for o, n in enumerate(out_nodes) if n == node]
+            D = frf.outputs.direction[rows]
+            vec[k] = np.linalg.lstsq(D, shapes[rows, r], rcond=None)[0]
+        fn = float(modes.frequency_hz[r])
+        zeta = float(modes.damping_ratio[r])
+        wn = 2 * np.pi * fn
+        eig = complex(-zeta * wn, wn * np.sqrt(max(1 - zeta**2, 0.0)))
+        sets.append(pyuff.prepare_55(
+            id1="pelvislab EMA mode", id2=f"mode {r + 1} {fn:.6g} Hz zeta {zeta:.4g}",
+            id3="NONE", id4="NONE", id5="NONE", model_type=1, analysis_type=3, data_ch=2,
+            spec_data_type=8, data_type=5, n_data_per_node=3, load_case=1, mode_n=r + 1,
+            eig=eig, modal_a=0j, modal_b=0j, node_nums=np.array(node_ids),
+            r1=vec[:, 0].copy(), r2=vec[:, 1].copy(), r3=vec[:, 2].copy()))
+    return sets
+
+
+def write_uff(path: str | Path, frf: FrfSet, modes: UffModes | None = None,
+              binary: bool = True, geometry: int = 2411) -> int:
+    """Write ``frf`` (and ``modes``) as a new UFF file; returns the number of datasets.
+
+    ``binary=False`` writes ASCII 58 (12 significant digits: not an exact round trip).
+    Refuses to overwrite an existing file.
+    """
+    import pyuff
+
+    path = Path(path)
+    if path.exists():
+        raise FileExistsError(f"{path} exists; not overwriting")
+    sets = uff_datasets(frf, modes, binary, geometry)
+    tmp = path.with_name(path.name + ".part")
+    if tmp.exists():
+        tmp.unlink()
+    try:
+        uff = pyuff.UFF(str(tmp))
+        # one dataset per call, always appending to the fresh file: pyuff's binary-58 writer
+        # reopens the file ("wb" in overwrite mode truncates what it just wrote)
+        for dset in sets:
+            uff.write_sets(dset, mode="add")
+        tmp.replace(path)
+    finally:
+        if tmp.exists():
+            tmp.unlink()
+    return len(sets)
+
+
+def _direction_from_code(code: int, where: str) -> np.ndarray:
+    code = int(code)
+    if code == 0:
+        return np.array([0.0, 0.0, 1.0])
+    if abs(code) > 3:
+        raise ValueError(f"{where}: rotational direction code {code} is not supported")
+    return float(np.sign(code)) * AXES[abs(code) - 1]
+
+
+def _parse_channel(id_name: str, id_dir: str, prefix: str, dprefix: str
+                   ) -> tuple[str, str, np.ndarray] | None:
+    parts = id_name.strip().split(" ", 2)
+    dparts = id_dir.strip().split()
+    if len(parts) != 3 or parts[0] != prefix or len(dparts) != 4 or dparts[0] != dprefix:
+        return None
+    try:
+        d = np.array([float(v) for v in dparts[1:]])
+    except ValueError:
+        return None
+    bone = "" if parts[1] == "-" else parts[1]
+    return parts[2], bone, d
+
+
+def to_receptance(frequency_hz: np.ndarray, values: np.ndarray, quantity: int) -> np.ndarray:
+    """Receptance from an FRF whose response is displacement, velocity or acceleration.
+
+    ``quantity`` is the UFF specific data type of the ordinate (8, 11, 12; 0 "unknown" is taken
+    as displacement). Mobility ``V = i w X``, accelerance ``A = -w^2 X``; 0 Hz gives NaN.
+    """
+    w = 2 * np.pi * np.asarray(frequency_hz, dtype=float)
+    values = np.asarray(values, dtype=complex)
+    if quantity in (0, SPEC_DISPLACEMENT):
+        return values.copy()
+    with np.errstate(divide="ignore", invalid="ignore"):
+        if quantity == SPEC_VELOCITY:
+            out = values / (1j * w)
+        elif quantity == SPEC_ACCELERATION:
+            out = -values / w**2
+        else:
+            raise ValueError(f"ordinate type {quantity} is not displacement, velocity or "
+                             "acceleration")
+    return np.where(w > 0, out, np.nan + 0j)
+
+
+def read_uff(path: str | Path, points: dict[int, PointInfo] | None = None
+             ) -> tuple[FrfSet, list[str]]:
+    """Read the FRFs of a UFF file as a receptance :class:`FrfSet`; also returns notes.
+
+    Notes name what was skipped or assumed (non-FRF records, scalar directions, unit factors).
+    """
+    import pyuff
+
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"no such file: {path}")
+    try:
+        uff = pyuff.UFF(str(path))
+        types = list(uff.get_set_types())
+        sets = uff.read_sets() if types else []
+    except Exception as exc:  # pyuff raises bare Exceptions on malformed files
+        raise ValueError(f"{path} is not a readable UFF file ({exc})") from None
+    if isinstance(sets, dict):
+        sets = [sets]
+    notes: list[str] = []
+    length_factor = force_factor = 1.0
+    coords: dict[int, np.ndarray] = {}
+    records = []
+    for dset in sets:
+        kind = int(dset.get("type", -1))
+        if kind == 164:
+            length_factor = float(dset.get("length", 1.0)) or 1.0
+            force_factor = float(dset.get("force", 1.0)) or 1.0
+            if (length_factor, force_factor) != (1.0, 1.0):
+                notes.append(f"units: length factor {length_factor:g}, force factor "
+                             f"{force_factor:g} (converted to SI)")
+        elif kind in (15, 2411):
+            for n, x, y, z in zip(dset["node_nums"], dset["x"], dset["y"], dset["z"],
+                                  strict=True):
+                coords[int(n)] = np.array([x, y, z], dtype=float)
+        elif kind == 58:
+            func = int(dset.get("func_type", -1))
+            data = np.asarray(dset.get("data", []))
+            if func == FUNC_FRF or (func == FUNC_GENERAL and np.iscomplexobj(data)):
+                records.append(dset)
+            else:
+                notes.append(f"skipped a dataset 58 of function type {func} (not an FRF)")
+    if not records:
+        raise ValueError(f"{path} holds no dataset 58 FRF (set types: {sorted(set(types))})")
+    for n in coords:
+        coords[n] = coords[n] / length_factor
+    points = points or {}
+
+    outputs: dict[object, tuple[str, str, np.ndarray, np.ndarray]] = {}
+    inputs: dict[object, tuple[str, str, np.ndarray, np.ndarray]] = {}
+    entries = []
+    scalar_warned = False
+
+    def channel(dset: dict, role: str) -> tuple[object, tuple[str, str, np.ndarray, np.ndarray]]:
+        nonlocal scalar_warned
+        node = int(dset["rsp_node" if role == "out" else "ref_node"])
+        code = int(dset["rsp_dir" if role == "out" else "ref_dir"])
+        where = f"{path} node {node}"
+        ours = str(dset.get("id1", "")).strip() == MARKER
+        parsed = None
+        if ours:
+            if role == "out":
+                parsed = _parse_channel(dset["id2"], dset["id4"], "out", "do")
+            else:
+                parsed = _parse_channel(dset["id3"], dset["id5"], "in", "di")
+        position = coords.get(node)
+        info = points.get(node)
+        if info is not None and info.position_m is not None:
+            position = info.position_m
+        if position is None:
+            position = np.zeros(3)
+            notes.append(f"node {node} has no coordinates; placed at the origin")
+        if parsed is not None:
+            name, bone, direction = parsed
+            key: object = name
+        else:
+            direction = _direction_from_code(code, where)
+            if code == 0 and not scalar_warned:
+                notes.append("scalar (direction 0) records taken as +Z")
+                scalar_warned = True
+            label = {0: "", 1: "+X", -1: "-X", 2: "+Y", -2: "-Y", 3: "+Z", -3: "-Z"}[code]
+            name = f"{info.name if info is not None else f'node{node}'}{label}"
+            bone = ""
+            key = (node, code)
+        if info is not None:
+            bone = info.bone
+        return key, (name, bone, np.asarray(position, dtype=float), direction)
+
+    for dset in records:
+        ko, out = channel(dset, "out")
+        ki, inp = channel(dset, "in")
+        outputs.setdefault(ko, out)
+        inputs.setdefault(ki, inp)
+        x = np.asarray(dset["x"], dtype=float)
+        values = np.asarray(dset["data"]).astype(complex)
+        if x.size != values.size:
+            raise ValueError(f"{path}: a dataset 58 has {x.size} abscissae, {values.size} values")
+        quantity = int(dset.get("ordinate_spec_data_type", 0))
+        denom = int(dset.get("orddenom_spec_data_type", SPEC_FORCE))
+        if denom not in (0, SPEC_FORCE):
+            notes.append(f"record {out[0]}/{inp[0]} has denominator type {denom}, taken as force")
+        values = to_receptance(x, values, quantity) * (force_factor / length_factor)
+        entries.append((ko, ki, x, values))
+
+    out_keys = list(outputs)
+    in_keys = list(inputs)
+    grid = np.unique(np.concatenate([e[2] for e in entries]))
+    H = np.full((grid.size, len(out_keys), len(in_keys)), np.nan + 0j)
+    for ko, ki, x, values in entries:
+        idx = np.searchsorted(grid, x)
+        H[idx, out_keys.index(ko), in_keys.index(ki)] = values
+
+    def channels(table: dict) -> Channels:
+        rows = list(table.values())
+        names = [r[0] for r in rows]
+        if len(set(names)) != len(names):  # two nodes mapped to one name: keep them apart
+            names = [f"{r[0]}#{k + 1}" for k, r in enumerate(rows)]
+        return Channels(names, [r[1] for r in rows], np.array([r[2] for r in rows]),
+                        np.array([r[3] for r in rows]))
+
+    frf = FrfSet(grid, H, channels(outputs), channels(inputs),
+                 attrs={"source": f"UFF import of {path.name}"})
+    return frf, notes

@@ -1,0 +1,183 @@
+"""UFF interchange (acquisition/uff.py): exact round trip, foreign files, conversions, modes."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+import pyuff
+
+from pelvislab.acquisition.frfset import Channels, FrfSet
+from pelvislab.acquisition.uff import (
+    UffModes,
+    direction_code,
+    read_points_file,
+    read_uff,
+    to_receptance,
+    write_uff,
+)
+
+BEAM = Path(__file__).resolve().parents[1] / ".." / "shared" / "data" / "real" / "pyuff_beam"
+
+
+def sample_frfset(seed: int = 0) -> FrfSet:
+    rng = np.random.default_rng(seed)
+    d = rng.normal(size=(3, 3))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    d[1] = [0.0, -1.0, 0.0]  # an axis direction: written as UFF code -2
+    outputs = Channels(["SIAS_R", "PSIS L 2", "S3"], ["innominate_right", "innominate_left", ""],
+                       rng.normal(size=(3, 3)) / 7, d)
+    inputs = Channels(["SIAS_R", "shaker"], ["innominate_right", "sacrum"],
+                      np.vstack([outputs.position_m[0], rng.normal(size=3)]),
+                      np.array([d[0], [0.0, 0.0, 1.0]]))
+    f = np.sort(rng.uniform(5, 300, 40))  # non-uniform stepped sine
+    H = (rng.normal(size=(40, 3, 2)) + 1j * rng.normal(size=(40, 3, 2))) * 1e-6 / 3
+    H[3, 1, 0] = H[7, 2, 1] = np.nan
+    H[:, 2, 0] = np.nan  # one FRF never measured
+    return FrfSet(f, H, outputs, inputs)
+
+
+def test_round_trip_through_pyuff_is_exact(tmp_path):
+    frf = sample_frfset()
+    n_sets = write_uff(tmp_path / "s.uff", frf)
+    types = list(pyuff.UFF(str(tmp_path / "s.uff")).get_set_types())
+    assert types.count(58) == 5 and 2411 in types and 164 in types and n_sets == len(types)
+    back, notes = read_uff(tmp_path / "s.uff")
+    assert notes == []
+    np.testing.assert_array_equal(back.frequency_hz, frf.frequency_hz)
+    np.testing.assert_array_equal(back.H, frf.H)  # NaN in the same places, values bit-exact
+    for a, b in ((back.outputs, frf.outputs), (back.inputs, frf.inputs)):
+        assert a.name == b.name and a.bone == b.bone
+        np.testing.assert_array_equal(a.position_m, b.position_m)
+        np.testing.assert_array_equal(a.direction, b.direction)
+
+
+def test_ascii_and_dataset_15_are_close_not_exact(tmp_path):
+    frf = sample_frfset(1)
+    write_uff(tmp_path / "a.uff", frf, binary=False, geometry=15)
+    assert 15 in list(pyuff.UFF(str(tmp_path / "a.uff")).get_set_types())
+    back, _ = read_uff(tmp_path / "a.uff")
+    np.testing.assert_allclose(back.H, frf.H, rtol=1e-10)
+    np.testing.assert_allclose(back.outputs.position_m, frf.outputs.position_m, rtol=1e-4)
+
+
+def test_refuses_overwrite_and_bad_geometry(tmp_path):
+    (tmp_path / "x.uff").write_text("")
+    with pytest.raises(FileExistsError):
+        write_uff(tmp_path / "x.uff", sample_frfset())
+    with pytest.raises(ValueError, match="15 or 2411"):
+        write_uff(tmp_path / "y.uff", sample_frfset(), geometry=18)
+    assert not (tmp_path / "y.uff").exists()
+
+
+def test_direction_codes():
+    assert direction_code(np.array([0.0, 0.0, -1.0])) == -3
+    assert direction_code(np.array([1.0, 0.0, 0.0])) == 1
+    assert direction_code(np.array([0.6, 0.8, 0.0])) == 0
+
+
+def _foreign_uff(path: Path, quantity: int, values: np.ndarray, f: np.ndarray,
+                 length_factor: float = 1000.0) -> None:
+    """A UFF as another tool writes it: ASCII, even spacing, mm units, axis directions."""
+    uff = pyuff.UFF(str(path))
+    uff.write_sets(pyuff.prepare_164(units_code=5, units_description="mm (milli newton)",
+                                     temp_mode=1, length=length_factor, force=1.0, temp=1.0,
+                                     temp_offset=273.15), mode="overwrite")
+    uff.write_sets(pyuff.prepare_2411(
+        node_nums=np.array([1, 2, 7]), def_cs=np.zeros(3, int), disp_cs=np.zeros(3, int),
+        color=np.ones(3, int), x=np.array([10.0, 20.0, 0.0]), y=np.array([0.0, 5.0, 0.0]),
+        z=np.zeros(3)), mode="add")
+    for k, node in enumerate((1, 2)):
+        for direction in (3, -1):
+            uff.write_sets(pyuff.prepare_58(
+                func_type=4, rsp_node=node, rsp_dir=direction, ref_node=7, ref_dir=3,
+                abscissa_spacing=1, abscissa_spec_data_type=18, ordinate_spec_data_type=quantity,
+                orddenom_spec_data_type=13, x=f, data=values * (k + 1) * direction,
+                id1="other tool"), mode="add")
+    uff.write_sets(pyuff.prepare_58(func_type=6, rsp_node=1, rsp_dir=3, ref_node=7, ref_dir=3,
+                                    abscissa_spacing=1, x=f, data=np.ones(f.size),
+                                    abscissa_spec_data_type=18, ordinate_spec_data_type=0,
+                                    orddenom_spec_data_type=0), mode="add")
+
+
+def test_foreign_accelerance_in_mm_with_points_file(tmp_path):
+    f = np.arange(0.0, 50.0, 0.5)
+    A = np.exp(1j * f / 7) * (1 + f / 10)  # accelerance in (mm/s^2)/N
+    _foreign_uff(tmp_path / "f.uff", 12, A, f)
+    (tmp_path / "p.toml").write_text(
+        '[[point]]\nnode = 1\nname = "SIAS_R"\nbone = "innominate_right"\n'
+        '[[point]]\nnode = 7\nname = "drive"\nbone = "sacrum"\nposition_m = [0.5, 0.0, 0.1]\n'
+    )
+    frf, notes = read_uff(tmp_path / "f.uff", read_points_file(tmp_path / "p.toml"))
+    assert any("function type 6" in n for n in notes)  # the coherence record is skipped
+    assert frf.outputs.name == ["SIAS_R+Z", "SIAS_R-X", "node2+Z", "node2-X"]
+    assert frf.outputs.bone == ["innominate_right", "innominate_right", "", ""]
+    assert frf.inputs.name == ["drive+Z"] and frf.inputs.bone == ["sacrum"]
+    np.testing.assert_allclose(frf.inputs.position_m[0], [0.5, 0.0, 0.1])
+    np.testing.assert_allclose(frf.outputs.position_m[2], [0.020, 0.005, 0.0])  # mm -> m
+    np.testing.assert_array_equal(frf.outputs.direction[1], [-1.0, 0.0, 0.0])
+    w = 2 * np.pi * f[1:]
+    expected = -(A[1:] * 2 * -1) / w**2 / 1000.0  # node 2, direction -1, mm -> m
+    np.testing.assert_allclose(frf.H[1:, 3, 0], expected, rtol=1e-9)
+    assert np.isnan(frf.H[0]).all()  # 0 Hz has no receptance from accelerance
+
+
+def test_mobility_conversion():
+    f = np.array([0.0, 1.0, 2.0])
+    X = np.array([1.0, 2.0 + 1j, -1j])
+    V = 1j * 2 * np.pi * f * X
+    back = to_receptance(f, V, 11)
+    assert np.isnan(back[0])
+    np.testing.assert_allclose(back[1:], X[1:])
+    with pytest.raises(ValueError, match="ordinate type"):
+        to_receptance(f, V, 13)
+
+
+def test_modes_written_as_dataset_55(tmp_path):
+    frf = sample_frfset(2)
+    shapes = np.array([[1.0, 0.2j], [0.5, 1.0], [-0.3 + 0.1j, 0.4]])
+    write_uff(tmp_path / "m.uff", frf, UffModes(np.array([40.0, 120.0]), np.array([0.02, 0.1]),
+                                                shapes))
+    sets = pyuff.UFF(str(tmp_path / "m.uff")).read_sets()
+    modes = [s for s in sets if s["type"] == 55]
+    assert len(modes) == 2
+    eig = modes[1]["eig"]
+    assert abs(eig) == pytest.approx(2 * np.pi * 120.0, rel=1e-4)
+    assert -eig.real / abs(eig) == pytest.approx(0.1, rel=1e-3)
+    # node 1 (SIAS_R) is measured along one direction: vector = psi * d
+    d = frf.outputs.direction[0]
+    vec = np.array([modes[0]["r1"][0], modes[0]["r2"][0], modes[0]["r3"][0]])
+    np.testing.assert_allclose(vec, shapes[0, 0] * d, atol=1e-4)
+
+
+def test_errors_are_named(tmp_path):
+    with pytest.raises(FileNotFoundError):
+        read_uff(tmp_path / "none.uff")
+    uff = pyuff.UFF(str(tmp_path / "g.uff"))
+    uff.write_sets(pyuff.prepare_2411(node_nums=np.array([1]), def_cs=np.zeros(1, int),
+                                      disp_cs=np.zeros(1, int), color=np.ones(1, int),
+                                      x=np.zeros(1), y=np.zeros(1), z=np.zeros(1)),
+                   mode="overwrite")
+    with pytest.raises(ValueError, match="no dataset 58"):
+        read_uff(tmp_path / "g.uff")
+    (tmp_path / "p.toml").write_text('[[point]]\nnode = 1\nname = "a"\nbone = "femur"\n')
+    with pytest.raises(ValueError, match="unknown bone"):
+        read_points_file(tmp_path / "p.toml")
+
+
+@pytest.mark.skipif(not BEAM.is_dir(), reason=f"real beam data not found at {BEAM}")
+def test_real_beam_accelerance_imports_as_receptance(tmp_path):
+    A = np.stack([np.loadtxt(BEAM / f"meas_point_{k}.txt", dtype=complex) for k in (1, 2, 3)])
+    f = np.arange(A.shape[1], dtype=float)
+    uff = pyuff.UFF(str(tmp_path / "beam.uff"))
+    for k in range(3):
+        uff.write_sets(pyuff.prepare_58(
+            binary=1, func_type=4, rsp_node=k + 1, rsp_dir=3, ref_node=1, ref_dir=3,
+            abscissa_spacing=0, abscissa_spec_data_type=18, ordinate_spec_data_type=12,
+            orddenom_spec_data_type=13, x=f, data=A[k]), mode="add")  # binary 58: never overwrite
+    frf, notes = read_uff(tmp_path / "beam.uff")
+    assert frf.H.shape == (1001, 3, 1)
+    assert any("no coordinates" in n for n in notes)
+    w = 2 * np.pi * f[1:]
+    np.testing.assert_allclose(frf.H[1:, :, 0], (-A[:, 1:] / w**2).T, rtol=1e-12)
