@@ -67,6 +67,7 @@ _GENERATOR_OPTIONS: dict[str, tuple[type, ...]] = {
     "timeout_s": (int, float),
     "external_reference": (bool,),
     "max_vpp": (int, float),
+    "visa_library": (str,),
 }
 _DRIVER_OPTIONS: dict[str, dict[str, dict[str, tuple[type, ...]]]] = {
     "trigger": {"agilent33220a": _GENERATOR_OPTIONS},

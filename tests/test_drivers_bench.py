@@ -189,3 +189,38 @@ def test_segmented_record_checks_and_conversions():
     np.testing.assert_allclose(rec.time_s()[0], [1e-6 + 1e-10, 1e-6 + 2e-9 + 1e-10])
     with pytest.raises(ValueError, match="trigger_offset_s"):
         SegmentedRecord(codes, np.zeros(3), 5e8, 0.0, 0.01, 0.0)
+
+
+def test_open_bench_real_path_opens_in_order_and_cleans_up_on_failure(tmp_path, monkeypatch):
+    """Generators through pyvisa-sim; the digitizer's vendor library is missing, so the
+    open fails: the generators opened so far must have been put in safe state and closed."""
+    from pelvislab.drivers.interfaces import InstrumentConnectionError
+
+    yaml = Path(__file__).resolve().parents[1] / "sim_instruments" / "agilent_33220a.yaml"
+    text = GOOD.replace('resource = "USB0::1::2::A::INSTR"',
+                        'resource = "USB0::0x0957::0x0407::MY44000001::INSTR"\n'
+                        f'visa_library = "{yaml}@sim"')
+    text = text.replace('resource = "USB0::1::2::B::INSTR"',
+                        'resource = "USB0::0x0957::0x0407::MY44000002::INSTR"\n'
+                        f'visa_library = "{yaml}@sim"')
+    text = text.replace('resource = "PCI::INSTR0"',
+                        f'resource = "PCI::INSTR0"\nlibrary = "{tmp_path / "libAqDrv4.so"}"')
+    opened = []
+    from pelvislab.drivers import agilent33220a
+
+    real_open = agilent33220a.Agilent33220A.open.__func__
+
+    def spy(cls, *a, **k):
+        g = real_open(cls, *a, **k)
+        opened.append((g, k))
+        return g
+
+    monkeypatch.setattr(agilent33220a.Agilent33220A, "open", classmethod(spy))
+    with pytest.raises(InstrumentConnectionError, match="Acqiris D1 library"):
+        open_bench(write(tmp_path, text))
+    assert len(opened) == 2
+    (trig, ktrig), (drive, kdrive) = opened
+    assert kdrive["max_vpp"] == 2.5 and ktrig["max_vpp"] is None  # drive limit applied
+    assert drive.load_ohm == math.inf and trig.load_ohm == 50
+    for g in (trig, drive):
+        assert g._closed and g.command_log[-1][1] == "OUTP OFF"
