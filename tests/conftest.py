@@ -2,6 +2,7 @@
 
 import os
 
+import pytest
 from hypothesis import HealthCheck, settings
 
 os.environ.setdefault("QT_QPA_PLATFORM", "offscreen")
@@ -10,3 +11,26 @@ settings.register_profile(
     "ci", max_examples=50, deadline=None, suppress_health_check=[HealthCheck.too_slow]
 )
 settings.load_profile("ci")
+
+
+@pytest.fixture
+def operator_window(qtbot):
+    """A fresh operator window, deleted while Qt still runs (PySide6 crashes at interpreter
+    exit when the window is left to the final garbage collection)."""
+    from PySide6 import QtWidgets
+
+    from pelvislab.app.gui_main import OperatorWindow
+
+    windows = []
+
+    def make(*args, **kwargs):
+        window = OperatorWindow(*args, **kwargs)
+        window.show()
+        windows.append(window)
+        return window
+
+    yield make
+    for window in windows:
+        window.close()
+        window.deleteLater()
+    QtWidgets.QApplication.processEvents()

@@ -3,8 +3,7 @@
 from __future__ import annotations
 
 import argparse
-
-from pelvislab.app.commands._common import not_implemented
+from pathlib import Path
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -14,7 +13,21 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         description="Open the operator window, or replay a recorded session.",
     )
     p.add_argument("session", nargs="?", metavar="S.h5", help="session file to replay")
+    p.add_argument("--bench", metavar="BENCH.toml", help="bench file; default: simulated bench")
     p.add_argument("--screenshot", metavar="OUT.png", help="render offscreen to a PNG and exit")
     p.add_argument("--after", type=float, default=0.0, metavar="SECONDS",
                    help="with --screenshot: wait this long before rendering")
-    p.set_defaults(handler=not_implemented("gui"))
+    p.set_defaults(handler=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    """Open the window (or render it to --screenshot)."""
+    session = Path(args.session) if args.session else None
+    if session is not None and not session.is_file():
+        raise FileNotFoundError(f"no such session file: {session}")
+    if args.after < 0:
+        raise ValueError("--after must be >= 0 seconds")
+    from pelvislab.app.gui_main import run_gui
+
+    return run_gui(session, Path(args.screenshot) if args.screenshot else None, args.after,
+                   Path(args.bench) if args.bench else None)

@@ -1,0 +1,554 @@
+"""The operator window at the exam bed (issue 11), and the entry point of ``pelvislab gui``.
+
+A thin view over the runner and the session API: the runner executes in its own thread and
+its events go through a thread-safe queue; a 20 Hz timer drains the queue and refreshes the
+plots, so the UI thread never waits for an instrument. STOP (button or Esc) calls
+``Runner.abort`` directly, which turns every output off at once.
+"""
+
+from __future__ import annotations
+
+import queue
+import re
+import threading
+import time
+from importlib import resources
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from PySide6 import QtCore, QtGui, QtWidgets
+
+from pelvislab.app.gui_plots import AScanPanel, DisplacementPanel, FrfPanel, QualityTable
+
+REFRESH_MS = 50  # 20 frames per second at most; the issue asks for >= 10
+SUBJECT_ID_PATTERN = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,31}$")
+LARGE_BUTTON_CSS = "font-size: 16pt; font-weight: bold; padding: 10px;"
+STOP_CSS = LARGE_BUTTON_CSS + "background: #c62828; color: white;"
+
+
+def shipped_protocols() -> dict[str, Path]:
+    """Protocol files shipped in ``pelvislab.protocols`` (name -> path), demo first."""
+    folder = resources.files("pelvislab.protocols")
+    found = {}
+    for entry in folder.iterdir():
+        name = entry.name
+        if name.endswith(".toml") and name != "landmarks.toml":
+            found[name[:-5]] = Path(str(entry))
+    return dict(sorted(found.items(), key=lambda kv: (kv[0] != "demo", kv[0])))
+
+
+def subject_id_problem(text: str) -> str | None:
+    """Why ``text`` is not acceptable as a subject ID (IDs only: no names), or None."""
+    if not text:
+        return "enter a subject ID"
+    if not SUBJECT_ID_PATTERN.match(text):
+        return "subject ID: letters, digits, '-', '_' or '.', no spaces (an ID, not a name)"
+    return None
+
+
+class SessionControl:
+    """One measurement session seen from the GUI: bench, protocol, writer, runner thread."""
+
+    def __init__(self, protocol_path: Path, out_path: Path, subject_id: str,
+                 bench_path: Path | None = None) -> None:
+        from pelvislab.acquisition import runner as runner_module
+
+        self.events: queue.Queue = queue.Queue()
+        self.prepared = runner_module.prepare_session(
+            protocol_path, out_path, bench_path=bench_path, auto_continue=False,
+            subject_id=subject_id,
+        )
+        self.runner = self.prepared.runner
+        self.runner.subscribe(self.events.put)
+        self.thread = threading.Thread(target=self._run, name="pelvislab-runner", daemon=True)
+        self.finished = threading.Event()
+
+    def _run(self) -> None:
+        try:
+            self.runner.run()
+        finally:
+            self.prepared.close()
+            self.finished.set()
+
+    def start(self) -> None:
+        """Start the run in its own thread."""
+        self.thread.start()
+
+    def stop(self, reason: str = "STOP pressed by the operator") -> None:
+        """Abort: every output off now (this thread), the runner ends after the current call."""
+        self.runner.abort(reason)
+
+
+class OperatorWindow(QtWidgets.QMainWindow):
+    """Set-up, run control, live plots and replay, in one window."""
+
+    def __init__(self, session_file: Path | None = None, bench_path: Path | None = None) -> None:
+        super().__init__()
+        self.setWindowTitle("pelvislab — operator")
+        self.bench_path = bench_path
+        self.control: SessionControl | None = None
+        self._latest_step: Any = None
+        self._frf_lines: dict[tuple[str, str], dict[float, complex]] = {}
+        self._channel_labels: list[str] = []
+        self._build()
+        self.timer = QtCore.QTimer(self)
+        self.timer.setInterval(REFRESH_MS)
+        self.timer.timeout.connect(self.refresh)
+        self.timer.start()
+        self.frames_drawn = 0
+        self.max_refresh_s = 0.0
+        self._refresh_bench_status()
+        self._validate_protocol()
+        if session_file is not None:
+            self.open_replay(session_file)
+
+    # ------------------------------------------------------------------ layout
+    def _build(self) -> None:
+        central = QtWidgets.QWidget()
+        self.setCentralWidget(central)
+        outer = QtWidgets.QHBoxLayout(central)
+        outer.setContentsMargins(6, 6, 6, 6)
+
+        side = QtWidgets.QWidget()
+        side.setFixedWidth(360)
+        side_layout = QtWidgets.QVBoxLayout(side)
+        side_layout.setContentsMargins(0, 0, 0, 0)
+        outer.addWidget(side)
+
+        setup_box = QtWidgets.QGroupBox("Session set-up")
+        form = QtWidgets.QFormLayout(setup_box)
+        self.subject_edit = QtWidgets.QLineEdit()
+        self.subject_edit.setPlaceholderText("e.g. S017 (an ID, never a name)")
+        form.addRow("Subject ID", self.subject_edit)
+        proto_row = QtWidgets.QHBoxLayout()
+        self.protocol_combo = QtWidgets.QComboBox()
+        for name, path in shipped_protocols().items():
+            self.protocol_combo.addItem(name, str(path))
+        self.protocol_combo.currentIndexChanged.connect(self._validate_protocol)
+        browse = QtWidgets.QPushButton("…")
+        browse.setFixedWidth(28)
+        browse.setToolTip("choose another protocol file")
+        browse.clicked.connect(self._browse_protocol)
+        proto_row.addWidget(self.protocol_combo, 1)
+        proto_row.addWidget(browse)
+        form.addRow("Protocol", proto_row)
+        self.protocol_info = QtWidgets.QLabel()
+        self.protocol_info.setWordWrap(True)
+        form.addRow(self.protocol_info)
+        out_row = QtWidgets.QHBoxLayout()
+        self.out_edit = QtWidgets.QLineEdit(str(Path.cwd() / "session.h5"))
+        out_browse = QtWidgets.QPushButton("…")
+        out_browse.setFixedWidth(28)
+        out_browse.clicked.connect(self._browse_output)
+        out_row.addWidget(self.out_edit, 1)
+        out_row.addWidget(out_browse)
+        form.addRow("Output file", out_row)
+        side_layout.addWidget(setup_box)
+
+        bench_box = QtWidgets.QGroupBox("Bench")
+        bench_layout = QtWidgets.QVBoxLayout(bench_box)
+        self.simulated_badge = QtWidgets.QLabel("SIMULATED BENCH")
+        self.simulated_badge.setAlignment(QtCore.Qt.AlignmentFlag.AlignCenter)
+        self.simulated_badge.setStyleSheet(
+            "background: #ff9800; color: black; font-weight: bold; padding: 4px;")
+        bench_layout.addWidget(self.simulated_badge)
+        self.bench_table = QtWidgets.QTableWidget(0, 3)
+        self.bench_table.setHorizontalHeaderLabels(("role", "identity", "resource"))
+        self.bench_table.verticalHeader().setVisible(False)
+        self.bench_table.horizontalHeader().setStretchLastSection(True)
+        self.bench_table.setEditTriggers(QtWidgets.QAbstractItemView.EditTrigger.NoEditTriggers)
+        self.bench_table.setMaximumHeight(150)
+        self.bench_table.verticalHeader().setDefaultSectionSize(22)
+        self.bench_table.setWordWrap(False)
+        bench_layout.addWidget(self.bench_table)
+        side_layout.addWidget(bench_box)
+
+        run_box = QtWidgets.QGroupBox("Run")
+        run_layout = QtWidgets.QVBoxLayout(run_box)
+        buttons = QtWidgets.QHBoxLayout()
+        self.start_button = QtWidgets.QPushButton("Start")
+        self.start_button.setStyleSheet(LARGE_BUTTON_CSS)
+        self.start_button.clicked.connect(self.start_run)
+        self.pause_button = QtWidgets.QPushButton("Pause")
+        self.pause_button.setStyleSheet(LARGE_BUTTON_CSS)
+        self.pause_button.setEnabled(False)
+        self.pause_button.clicked.connect(self.toggle_pause)
+        buttons.addWidget(self.start_button)
+        buttons.addWidget(self.pause_button)
+        run_layout.addLayout(buttons)
+        self.stop_button = QtWidgets.QPushButton("STOP  (Esc)")
+        self.stop_button.setStyleSheet(STOP_CSS)
+        self.stop_button.setMinimumHeight(56)
+        self.stop_button.clicked.connect(self.stop_run)
+        run_layout.addWidget(self.stop_button)
+        for key in ("Esc", "Ctrl+."):
+            shortcut = QtGui.QShortcut(QtGui.QKeySequence(key), self)
+            shortcut.setContext(QtCore.Qt.ShortcutContext.ApplicationShortcut)
+            shortcut.activated.connect(self.stop_run)
+        self.progress = QtWidgets.QProgressBar()
+        self.progress.setFormat("%p %")
+        run_layout.addWidget(self.progress)
+        self.eta_label = QtWidgets.QLabel("idle")
+        run_layout.addWidget(self.eta_label)
+        self.prompt_label = QtWidgets.QLabel()
+        self.prompt_label.setWordWrap(True)
+        self.prompt_label.setStyleSheet(
+            "background: #fff59d; padding: 6px; font-size: 11pt; font-weight: bold;")
+        self.prompt_label.setVisible(False)
+        run_layout.addWidget(self.prompt_label)
+        self.confirm_button = QtWidgets.QPushButton("Transducers in place — continue")
+        self.confirm_button.setVisible(False)
+        self.confirm_button.clicked.connect(self.confirm_prompt)
+        run_layout.addWidget(self.confirm_button)
+        side_layout.addWidget(run_box)
+
+        notes_box = QtWidgets.QGroupBox("Notes (saved into the session)")
+        notes_layout = QtWidgets.QHBoxLayout(notes_box)
+        self.note_edit = QtWidgets.QLineEdit()
+        self.note_edit.setPlaceholderText("free text, e.g. subject moved at 120 Hz")
+        self.note_edit.returnPressed.connect(self.add_note)
+        add = QtWidgets.QPushButton("Add")
+        add.clicked.connect(self.add_note)
+        notes_layout.addWidget(self.note_edit, 1)
+        notes_layout.addWidget(add)
+        side_layout.addWidget(notes_box)
+        self.message_log = QtWidgets.QPlainTextEdit()
+        self.message_log.setReadOnly(True)
+        self.message_log.setMaximumBlockCount(500)
+        side_layout.addWidget(self.message_log, 1)
+
+        self.tabs = QtWidgets.QTabWidget()
+        outer.addWidget(self.tabs, 1)
+        live = QtWidgets.QWidget()
+        grid = QtWidgets.QGridLayout(live)
+        grid.setContentsMargins(2, 2, 2, 2)
+        self.ascan = AScanPanel()
+        self.displacement = DisplacementPanel()
+        self.frf = FrfPanel()
+        self.quality = QualityTable()
+        self.ascan.set_channels(["ch1", "ch2"])
+        self.displacement.set_channels(["ch1", "ch2"])
+        grid.addWidget(self.ascan, 0, 0)
+        grid.addWidget(self.displacement, 0, 1)
+        grid.addWidget(self.frf, 1, 0, 1, 2)
+        grid.addWidget(self.quality, 2, 0, 1, 2)
+        grid.setRowStretch(0, 2)
+        grid.setRowStretch(1, 3)
+        self.tabs.addTab(live, "Live")
+
+        from pelvislab.app.gui_replay import ReplayView
+
+        self.replay = ReplayView()
+        self.tabs.addTab(self.replay, "Replay")
+        self.statusBar().showMessage("ready")
+
+    # ------------------------------------------------------------------ set-up
+    def _browse_protocol(self) -> None:
+        path, _ = QtWidgets.QFileDialog.getOpenFileName(
+            self, "Protocol file", "", "Protocol (*.toml)")
+        if path:
+            self.protocol_combo.addItem(Path(path).stem, path)
+            self.protocol_combo.setCurrentIndex(self.protocol_combo.count() - 1)
+
+    def _browse_output(self) -> None:
+        path, _ = QtWidgets.QFileDialog.getSaveFileName(
+            self, "Session file", self.out_edit.text(), "Session (*.h5)")
+        if path:
+            self.out_edit.setText(path)
+
+    def protocol_path(self) -> Path | None:
+        """The chosen protocol file."""
+        data = self.protocol_combo.currentData()
+        return Path(data) if data else None
+
+    def _validate_protocol(self) -> None:
+        from pelvislab.acquisition.protocol import load_protocol
+
+        path = self.protocol_path()
+        if path is None:
+            self.protocol_info.setText("no protocol shipped or chosen")
+            return
+        try:
+            protocol = load_protocol(path)
+        except Exception as exc:
+            self.protocol_info.setText(f"<span style='color:#c62828'>invalid: {exc}</span>")
+            return
+        minutes, seconds = divmod(int(round(protocol.estimated_duration_s)), 60)
+        warnings = getattr(protocol, "warnings", []) or []
+        text = (f"{len(protocol.setups)} setup(s), {len(protocol.steps())} steps, "
+                f"about {minutes} min {seconds:02d} s")
+        for warning in warnings:
+            text += f"<br><span style='color:#e65100'>warning: {warning}</span>"
+        self.protocol_info.setText(text)
+
+    def _refresh_bench_status(self) -> None:
+        """Show which instruments play which role (simulated unless a bench file is given)."""
+        simulated = self.bench_path is None
+        self.simulated_badge.setVisible(simulated)
+        rows: list[tuple[str, str, str]] = []
+        if simulated:
+            rows = [("trigger", "simulated 33220A", "sim"), ("drive", "simulated 33220A", "sim"),
+                    ("digitizer", "simulated DP235", "sim"), ("pulsers", "simulated 5077PR", "sim")]
+        else:
+            try:
+                from pelvislab.drivers.bench import BenchConfig
+
+                config = BenchConfig.load(self.bench_path)
+                rows = [(role, "not connected yet", str(res))
+                        for role, res in getattr(config, "resources", {}).items()]
+            except Exception as exc:
+                rows = [("bench file", f"invalid: {exc}", str(self.bench_path))]
+        self._set_bench_rows(rows)
+
+    def _set_bench_rows(self, rows: list[tuple[str, str, str]]) -> None:
+        self.bench_table.setRowCount(len(rows))
+        for r, values in enumerate(rows):
+            for c, text in enumerate(values):
+                self.bench_table.setItem(r, c, QtWidgets.QTableWidgetItem(text))
+
+    # ------------------------------------------------------------------ run control
+    def _say(self, text: str) -> None:
+        stamp = time.strftime("%H:%M:%S")
+        self.message_log.appendPlainText(f"{stamp}  {text}")
+
+    def start_run(self) -> None:
+        """Validate the set-up, open the session and start the runner thread."""
+        if self.control is not None and not self.control.finished.is_set():
+            return
+        problem = subject_id_problem(self.subject_edit.text().strip())
+        protocol = self.protocol_path()
+        out = Path(self.out_edit.text().strip())
+        if problem is None and protocol is None:
+            problem = "choose a protocol"
+        if problem is None and out.exists():
+            problem = f"{out} exists: choose another output file (sessions are never overwritten)"
+        if problem is not None:
+            QtWidgets.QMessageBox.warning(self, "Cannot start", problem)
+            return
+        try:
+            self.control = SessionControl(protocol, out, self.subject_edit.text().strip(),
+                                          self.bench_path)
+        except Exception as exc:
+            QtWidgets.QMessageBox.critical(self, "Cannot start", " ".join(str(exc).split()))
+            return
+        self._frf_lines.clear()
+        self.frf.clear_curves()
+        self._show_bench(self.control.prepared.bench)
+        self.start_button.setEnabled(False)
+        self.pause_button.setEnabled(True)
+        self.tabs.setCurrentIndex(0)
+        self.control.start()
+        self._say(f"started {protocol.name} -> {out}")
+
+    def _show_bench(self, bench: Any) -> None:
+        rows = []
+        for role in ("trigger", "drive", "digitizer"):
+            inst = getattr(bench, role, None)
+            if inst is not None:
+                rows.append((role, str(getattr(inst, "identity", "?")),
+                             str(getattr(inst, "resource", ""))))
+        for i, pulser in enumerate(getattr(bench, "pulsers", []) or []):
+            rows.append((f"pulser {i + 1}", str(getattr(pulser, "identity", "?")),
+                         str(getattr(pulser, "resource", ""))))
+        self._set_bench_rows(rows)
+        self.simulated_badge.setVisible(bool(getattr(bench, "simulated", False)))
+
+    def stop_run(self) -> None:
+        """STOP: outputs off immediately, then the runner ends the run as aborted."""
+        if self.control is None or self.control.finished.is_set():
+            self.statusBar().showMessage("STOP: nothing is running")
+            return
+        self.control.stop()
+        self._say("STOP pressed: outputs off")
+        self.statusBar().showMessage("STOPPED: outputs off")
+
+    def toggle_pause(self) -> None:
+        """Pause between steps (outputs off) or resume."""
+        if self.control is None:
+            return
+        runner = self.control.runner
+        if self.pause_button.text() == "Pause":
+            runner.pause()
+            self.pause_button.setText("Resume")
+        else:
+            runner.resume()
+            self.pause_button.setText("Pause")
+
+    def confirm_prompt(self) -> None:
+        """The operator placed the transducers as prompted."""
+        if self.control is not None:
+            self.control.runner.confirm()
+        self.prompt_label.setVisible(False)
+        self.confirm_button.setVisible(False)
+
+    def add_note(self) -> None:
+        """Save the note into the running session (or say that none runs)."""
+        text = self.note_edit.text().strip()
+        if not text:
+            return
+        if self.control is None or self.control.finished.is_set():
+            self.statusBar().showMessage("no session is running: the note was not saved")
+            return
+        self.control.runner.add_note(text)
+        self.note_edit.clear()
+        self._say(f"note: {text}")
+
+    # ------------------------------------------------------------------ events -> view
+    def refresh(self) -> None:
+        """Drain the runner's events and redraw (timer, UI thread)."""
+        if self.control is None:
+            return
+        started = time.perf_counter()
+        from pelvislab.acquisition import runner as r
+
+        latest_step = None
+        while True:
+            try:
+                event = self.control.events.get_nowait()
+            except queue.Empty:
+                break
+            if isinstance(event, r.Progress):
+                self.progress.setValue(int(round(100 * event.fraction)))
+                self.eta_label.setText(
+                    f"{event.n_done}/{event.n_steps} steps, {event.elapsed_s:.0f} s elapsed, "
+                    f"about {event.eta_s:.0f} s left")
+            elif isinstance(event, r.StepStarted):
+                self.statusBar().showMessage(
+                    f"setup {event.step.setup}: {event.step.frequency_hz:g} Hz")
+            elif isinstance(event, r.StepFinished):
+                latest_step = event.data
+                self._add_frf_lines(event.data)
+            elif isinstance(event, r.OperatorPrompt):
+                self.prompt_label.setText(event.message)
+                self.prompt_label.setVisible(True)
+                self.confirm_button.setVisible(not event.auto_continue)
+                self._say(f"PROMPT: {event.message}")
+            elif isinstance(event, r.SetupStarted):
+                self._channel_labels = [
+                    f"ch{c} → {p}" for c, p in sorted(event.transducers.items())]
+                self.ascan.set_channels(self._channel_labels)
+                self.displacement.set_channels(self._channel_labels)
+            elif isinstance(event, r.Quality):
+                if not event.ok:
+                    self._say(f"QUALITY {event.channel}: {event.message}")
+            elif isinstance(event, r.Paused):
+                self._say("paused: outputs off")
+            elif isinstance(event, r.Resumed):
+                self._say("resumed")
+            elif isinstance(event, r.LogMessage):
+                if event.level in ("WARNING", "ERROR"):
+                    self._say(f"{event.level}: {event.text}")
+            elif isinstance(event, r.Fault):
+                self._say(f"FAULT: {event.reason}")
+            elif isinstance(event, r.RunFinished):
+                self._run_finished(event)
+        if latest_step is not None:
+            self._show_step(latest_step)
+        self.frames_drawn += 1
+        self.max_refresh_s = max(self.max_refresh_s, time.perf_counter() - started)
+
+    def _run_finished(self, event: Any) -> None:
+        self.start_button.setEnabled(True)
+        self.pause_button.setEnabled(False)
+        self.pause_button.setText("Pause")
+        self.prompt_label.setVisible(False)
+        self.confirm_button.setVisible(False)
+        text = f"run {event.status}: {event.n_done}/{event.n_steps} steps"
+        if event.reason:
+            text += f" — {event.reason}"
+        self._say(text)
+        self.statusBar().showMessage(text)
+        if event.status != "completed":
+            QtWidgets.QMessageBox.information(self, "Run ended", text)
+
+    def _add_frf_lines(self, step: Any) -> None:
+        force = complex(step.force_phasor_n)
+        for ch in step.channels:
+            if ch.phasor_m is None or force == 0:
+                continue
+            key = (ch.output.name, step.input.name)
+            self._frf_lines.setdefault(key, {})[float(step.frequency_hz)] = ch.phasor_m / force
+        for i, (key, lines) in enumerate(sorted(self._frf_lines.items())):
+            freq = np.array(sorted(lines))
+            self.frf.show_measured(f"{key[0]} / {key[1]}", i, freq,
+                                   np.array([lines[f] for f in freq]))
+
+    def _show_step(self, step: Any) -> None:
+        rows = []
+        for i, ch in enumerate(step.channels):
+            n_samples = ch.codes.shape[1]
+            t = ch.delay_s + np.arange(n_samples) / ch.sample_rate_hz
+            volts = ch.codes[-1].astype(float) * ch.volts_per_count + ch.volts_offset
+            gate = ch.quality.get("gate_s") if isinstance(ch.quality, dict) else None
+            gate_s = None
+            if isinstance(gate, (tuple, list, np.ndarray)) and len(gate) == 2:
+                gate_s = (float(gate[0]), float(gate[1]))
+            self.ascan.show_echo(i, t, volts, gate_s)
+            if ch.displacement_m is not None:
+                pulse_t = np.arange(ch.displacement_m.size) / ch.prf_hz
+                self.displacement.show_trace(i, pulse_t, ch.displacement_m)
+            row = {"channel": ch.name, "landmark": ch.output.name}
+            row.update(ch.quality)
+            rows.append(row)
+        for warning in self.quality.show_quality(rows):
+            self.statusBar().showMessage(f"check channel {warning}")
+
+    # ------------------------------------------------------------------ replay
+    def open_replay(self, path: Path) -> bool:
+        """Open a recorded session in the Replay tab; a bad file gives a dialog."""
+        try:
+            self.replay.open_session(path)
+        except Exception as exc:
+            QtWidgets.QMessageBox.critical(self, "Cannot open session",
+                                           " ".join(str(exc).split()))
+            return False
+        self.tabs.setCurrentWidget(self.replay)
+        self.setWindowTitle(f"pelvislab — replay {path.name}")
+        return True
+
+    def closeEvent(self, event: QtGui.QCloseEvent) -> None:
+        """Closing the window ends a running session safely (outputs off, file closed)."""
+        if self.control is not None and not self.control.finished.is_set():
+            self.control.stop("window closed by the operator")
+            self.control.finished.wait(5.0)
+        self.replay.close_session()
+        super().closeEvent(event)
+
+
+def run_gui(session_file: Path | None = None, screenshot: Path | None = None,
+            after_s: float = 0.0, bench_path: Path | None = None,
+            size: tuple[int, int] = (1366, 768)) -> int:
+    """Open the operator window; with ``screenshot`` render it to a PNG and exit."""
+    import os
+
+    if screenshot is not None:
+        os.environ.setdefault("QT_QPA_PLATFORM", "offscreen")
+    app = QtWidgets.QApplication.instance() or QtWidgets.QApplication(["pelvislab"])
+    window = OperatorWindow(session_file, bench_path=bench_path)
+    window.resize(*size)
+    window.show()
+    if screenshot is None:
+        code = app.exec()
+        _dispose(app, window)
+        return code
+    deadline = time.monotonic() + max(0.0, after_s)
+    while True:
+        app.processEvents(QtCore.QEventLoop.ProcessEventsFlag.AllEvents, 50)
+        if time.monotonic() >= deadline:
+            break
+        time.sleep(0.01)
+    app.processEvents()
+    ok = window.grab().save(str(screenshot))
+    _dispose(app, window)
+    if not ok:
+        raise OSError(f"could not write the screenshot {screenshot}")
+    return 0
+
+
+def _dispose(app: QtWidgets.QApplication, window: QtWidgets.QWidget) -> None:
+    """Close and delete the window while Qt still runs: leaving it to the interpreter's
+    final garbage collection crashes PySide6/pyqtgraph at exit."""
+    window.close()
+    window.deleteLater()
+    app.processEvents()

@@ -1,0 +1,199 @@
+"""Plot panels of the operator GUI (pyqtgraph): A-scans, displacement, FRF, quality.
+
+Views only: each panel takes arrays already computed by ``pelvislab.acquisition`` or
+``pelvislab.model`` and draws them. No numerics beyond unit scaling for display.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import numpy as np
+import pyqtgraph as pg
+from PySide6 import QtCore, QtGui, QtWidgets
+
+CHANNEL_PENS = ("#1f77b4", "#d62728", "#2ca02c", "#9467bd")
+MODEL_PEN = pg.mkPen("#444444", width=1.5, style=QtCore.Qt.PenStyle.DashLine)
+
+pg.setConfigOptions(antialias=True, background="w", foreground="k")
+
+
+def channel_pen(index: int, width: float = 1.5) -> QtGui.QPen:
+    """The pen of channel ``index`` (0-based), the same colour in every panel."""
+    return pg.mkPen(CHANNEL_PENS[index % len(CHANNEL_PENS)], width=width)
+
+
+class AScanPanel(pg.GraphicsLayoutWidget):
+    """The latest echo of each channel (volts against depth-time in µs) with its gate."""
+
+    def __init__(self, parent: QtWidgets.QWidget | None = None) -> None:
+        super().__init__(parent)
+        self._plots: list[pg.PlotItem] = []
+        self._curves: list[pg.PlotDataItem] = []
+        self._gates: list[pg.LinearRegionItem] = []
+
+    def set_channels(self, names: Sequence[str]) -> None:
+        """One row per channel, titled by its name (e.g. ``ch1 → PSIS_R``)."""
+        self.clear()
+        self._plots, self._curves, self._gates = [], [], []
+        for i, name in enumerate(names):
+            plot = self.addPlot(row=i, col=0, title=f"A-scan {name}")
+            plot.setLabel("bottom", "time after trigger", units="s")
+            plot.setLabel("left", "echo", units="V")
+            plot.showGrid(x=True, y=True, alpha=0.2)
+            curve = plot.plot(pen=channel_pen(i, 1.0))
+            gate = pg.LinearRegionItem(movable=False, brush=pg.mkBrush(255, 200, 0, 50))
+            gate.setVisible(False)
+            plot.addItem(gate)
+            self._plots.append(plot)
+            self._curves.append(curve)
+            self._gates.append(gate)
+
+    def show_echo(self, index: int, time_s: np.ndarray, volts: np.ndarray,
+                  gate_s: tuple[float, float] | None) -> None:
+        """Draw one echo of channel ``index``; ``gate_s`` is the tracking gate (start, stop)."""
+        if index >= len(self._curves):
+            return
+        self._curves[index].setData(time_s, volts)
+        gate = self._gates[index]
+        if gate_s is None:
+            gate.setVisible(False)
+        else:
+            gate.setRegion(gate_s)
+            gate.setVisible(True)
+
+
+class DisplacementPanel(pg.PlotWidget):
+    """Displacement (µm) of each channel over the pulses of the current step."""
+
+    def __init__(self, parent: QtWidgets.QWidget | None = None) -> None:
+        super().__init__(parent, title="Displacement, current step")
+        self.setLabel("bottom", "time", units="s")
+        self.setLabel("left", "displacement", units="m")
+        self.showGrid(x=True, y=True, alpha=0.2)
+        self.addLegend(offset=(10, 10))
+        self._curves: list[pg.PlotDataItem] = []
+
+    def set_channels(self, names: Sequence[str]) -> None:
+        """One curve per channel."""
+        for curve in self._curves:
+            self.removeItem(curve)
+        self._curves = [self.plot(pen=channel_pen(i), name=n) for i, n in enumerate(names)]
+
+    def show_trace(self, index: int, time_s: np.ndarray, displacement_m: np.ndarray) -> None:
+        """Draw channel ``index``'s displacement trace (metres; pyqtgraph scales the units)."""
+        if index < len(self._curves):
+            self._curves[index].setData(time_s, displacement_m)
+
+
+class FrfPanel(pg.GraphicsLayoutWidget):
+    """Receptance magnitude (log) and phase, measured lines building up, model curves dashed."""
+
+    def __init__(self, parent: QtWidgets.QWidget | None = None) -> None:
+        super().__init__(parent)
+        self.magnitude = self.addPlot(row=0, col=0, title="FRF magnitude")
+        self.magnitude.setLogMode(x=False, y=True)
+        self.magnitude.setLabel("left", "|H|", units="m/N")
+        self.magnitude.showGrid(x=True, y=True, alpha=0.2)
+        self.magnitude.addLegend(offset=(10, 10))
+        self.phase = self.addPlot(row=1, col=0, title="FRF phase")
+        self.phase.setLabel("left", "phase", units="deg")
+        self.phase.setLabel("bottom", "frequency", units="Hz")
+        self.phase.setXLink(self.magnitude)
+        self.phase.setYRange(-180, 180)
+        self.phase.showGrid(x=True, y=True, alpha=0.2)
+        self._measured: dict[str, tuple[pg.PlotDataItem, pg.PlotDataItem]] = {}
+        self._model: dict[str, tuple[pg.PlotDataItem, pg.PlotDataItem]] = {}
+
+    def clear_curves(self) -> None:
+        """Remove every curve (a new session or a new file)."""
+        for store in (self._measured, self._model):
+            for mag, ph in store.values():
+                self.magnitude.removeItem(mag)
+                self.phase.removeItem(ph)
+            store.clear()
+        legend = self.magnitude.legend
+        if legend is not None:
+            legend.clear()
+
+    def _curve_pair(self, store: dict, label: str, pen: QtGui.QPen, symbol: str | None,
+                    legend: bool) -> tuple[pg.PlotDataItem, pg.PlotDataItem]:
+        if label not in store:
+            kwargs = {"pen": pen}
+            if symbol:
+                kwargs.update(symbol=symbol, symbolSize=5, symbolBrush=pen.color())
+            mag = self.magnitude.plot(name=label if legend else None, **kwargs)
+            ph = self.phase.plot(**kwargs)
+            store[label] = (mag, ph)
+        return store[label]
+
+    def show_measured(self, label: str, index: int, frequency_hz: np.ndarray,
+                      H: np.ndarray) -> None:
+        """Draw measured lines of one FRF (NaN lines are skipped)."""
+        ok = np.isfinite(H) & (np.abs(H) > 0)
+        mag, ph = self._curve_pair(self._measured, label, channel_pen(index), "o", True)
+        mag.setData(frequency_hz[ok], np.abs(H[ok]))
+        ph.setData(frequency_hz[ok], np.degrees(np.angle(H[ok])))
+
+    def show_model(self, label: str, frequency_hz: np.ndarray, H: np.ndarray) -> None:
+        """Draw a model FRF as a dashed line."""
+        ok = np.isfinite(H) & (np.abs(H) > 0)
+        mag, ph = self._curve_pair(self._model, label, MODEL_PEN, None, False)
+        mag.setData(frequency_hz[ok], np.abs(H[ok]))
+        ph.setData(frequency_hz[ok], np.degrees(np.angle(H[ok])))
+
+
+class QualityTable(QtWidgets.QTableWidget):
+    """Per-channel tracking quality of the latest step, with warnings highlighted."""
+
+    COLUMNS = ("channel", "landmark", "correlation", "SNR (dB)", "peak hops", "lost", "status")
+    MIN_CORRELATION = 0.9
+    MIN_SNR_DB = 15.0
+
+    def __init__(self, parent: QtWidgets.QWidget | None = None) -> None:
+        super().__init__(0, len(self.COLUMNS), parent)
+        self.setHorizontalHeaderLabels(self.COLUMNS)
+        self.verticalHeader().setVisible(False)
+        self.horizontalHeader().setSectionResizeMode(QtWidgets.QHeaderView.ResizeMode.Stretch)
+        self.setEditTriggers(QtWidgets.QAbstractItemView.EditTrigger.NoEditTriggers)
+        self.setMaximumHeight(110)
+
+    def show_quality(self, rows: Sequence[dict[str, object]]) -> list[str]:
+        """Fill the table; returns warning texts for channels that degraded."""
+        self.setRowCount(len(rows))
+        warnings: list[str] = []
+        for r, row in enumerate(rows):
+            corr = _as_float(row.get("correlation"))
+            snr = _as_float(row.get("snr_db"))
+            hops = int(_as_float(row.get("peak_hops")) or 0)
+            lost = int(_as_float(row.get("lost")) or 0)
+            problems = []
+            if corr is not None and corr < self.MIN_CORRELATION:
+                problems.append(f"correlation {corr:.2f}")
+            if snr is not None and snr < self.MIN_SNR_DB:
+                problems.append(f"SNR {snr:.0f} dB")
+            if hops:
+                problems.append(f"{hops} peak hops")
+            if lost:
+                problems.append(f"{lost} echoes lost")
+            status = "OK" if not problems else "CHECK: " + ", ".join(problems)
+            if problems:
+                warnings.append(f"{row.get('channel', '?')}: {', '.join(problems)}")
+            values = (
+                str(row.get("channel", "")), str(row.get("landmark", "")),
+                "" if corr is None else f"{corr:.3f}", "" if snr is None else f"{snr:.1f}",
+                str(hops), str(lost), status,
+            )
+            for c, text in enumerate(values):
+                item = QtWidgets.QTableWidgetItem(text)
+                if problems:
+                    item.setBackground(QtGui.QColor("#ffe0b2"))
+                self.setItem(r, c, item)
+        return warnings
+
+
+def _as_float(value: object) -> float | None:
+    try:
+        return None if value is None else float(value)  # type: ignore[arg-type]
+    except (TypeError, ValueError):
+        return None

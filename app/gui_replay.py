@@ -1,0 +1,395 @@
+"""Replay of a recorded session (``pelvislab gui S.h5``): steps, echoes, traces, re-tracking,
+identification and gap diagnosis results.
+
+Views only: tracking, identification and the gap diagnosis are the acquisition/model
+packages' functions, run in a worker thread so the window stays responsive.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from concurrent.futures import Future, ThreadPoolExecutor
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pyqtgraph as pg
+from PySide6 import QtCore, QtWidgets
+
+from pelvislab.app.gui_plots import AScanPanel, DisplacementPanel, FrfPanel, QualityTable
+
+
+class ReplayView(QtWidgets.QWidget):
+    """Browse a session file; re-track a step with other settings; show analysis results."""
+
+    def __init__(self, parent: QtWidgets.QWidget | None = None) -> None:
+        super().__init__(parent)
+        self.reader: Any = None
+        self.path: Path | None = None
+        self.steps: list[Any] = []
+        self._executor = ThreadPoolExecutor(max_workers=1, thread_name_prefix="pelvislab-replay")
+        self._pending: list[tuple[Future, Callable[[Any], None], str]] = []
+        self._build()
+        self._poll = QtCore.QTimer(self)
+        self._poll.setInterval(100)
+        self._poll.timeout.connect(self._collect)
+        self._poll.start()
+
+    # ------------------------------------------------------------------ layout
+    def _build(self) -> None:
+        layout = QtWidgets.QHBoxLayout(self)
+        layout.setContentsMargins(2, 2, 2, 2)
+        left = QtWidgets.QVBoxLayout()
+        self.file_label = QtWidgets.QLabel("no session open")
+        self.file_label.setWordWrap(True)
+        left.addWidget(self.file_label)
+        open_button = QtWidgets.QPushButton("Open session…")
+        open_button.clicked.connect(self._browse)
+        left.addWidget(open_button)
+        self.step_list = QtWidgets.QListWidget()
+        self.step_list.currentRowChanged.connect(self.show_step)
+        left.addWidget(self.step_list, 1)
+
+        retrack = QtWidgets.QGroupBox("Re-track selected step")
+        form = QtWidgets.QFormLayout(retrack)
+        from pelvislab.acquisition.tracking import ESTIMATORS
+
+        self.estimator_combo = QtWidgets.QComboBox()
+        self.estimator_combo.addItems(list(ESTIMATORS))
+        form.addRow("estimator", self.estimator_combo)
+        self.gate_start = QtWidgets.QSpinBox()
+        self.gate_stop = QtWidgets.QSpinBox()
+        for box in (self.gate_start, self.gate_stop):
+            box.setRange(0, 100_000)
+            box.setSpecialValueText("auto")
+        form.addRow("gate start (sample)", self.gate_start)
+        form.addRow("gate stop (sample)", self.gate_stop)
+        self.retrack_button = QtWidgets.QPushButton("Re-track")
+        self.retrack_button.clicked.connect(self.retrack_step)
+        form.addRow(self.retrack_button)
+        left.addWidget(retrack)
+
+        analysis = QtWidgets.QGroupBox("Analysis")
+        analysis_layout = QtWidgets.QVBoxLayout(analysis)
+        self.identify_button = QtWidgets.QPushButton("Identify parameters")
+        self.identify_button.clicked.connect(self.run_identification)
+        self.gap_button = QtWidgets.QPushButton("Diagnose sim-to-real gap")
+        self.gap_button.clicked.connect(self.run_gap)
+        analysis_layout.addWidget(self.identify_button)
+        analysis_layout.addWidget(self.gap_button)
+        left.addWidget(analysis)
+        left_widget = QtWidgets.QWidget()
+        left_widget.setLayout(left)
+        left_widget.setFixedWidth(250)
+        layout.addWidget(left_widget)
+
+        self.tabs = QtWidgets.QTabWidget()
+        layout.addWidget(self.tabs, 1)
+        step_page = QtWidgets.QWidget()
+        grid = QtWidgets.QGridLayout(step_page)
+        grid.setContentsMargins(2, 2, 2, 2)
+        self.ascan = AScanPanel()
+        self.displacement = DisplacementPanel()
+        self.quality = QualityTable()
+        self.step_info = QtWidgets.QLabel()
+        grid.addWidget(self.step_info, 0, 0, 1, 2)
+        grid.addWidget(self.ascan, 1, 0)
+        grid.addWidget(self.displacement, 1, 1)
+        grid.addWidget(self.quality, 2, 0, 1, 2)
+        self.tabs.addTab(step_page, "Step")
+        self.frf = FrfPanel()
+        self.tabs.addTab(self.frf, "FRFs")
+
+        ident_page = QtWidgets.QWidget()
+        ident_layout = QtWidgets.QHBoxLayout(ident_page)
+        self.param_table = QtWidgets.QTableWidget(0, 3)
+        self.param_table.setHorizontalHeaderLabels(("parameter", "value", "std"))
+        self.param_table.verticalHeader().setVisible(False)
+        self.param_table.setFixedWidth(320)
+        self.ident_frf = FrfPanel()
+        ident_layout.addWidget(self.param_table)
+        ident_layout.addWidget(self.ident_frf, 1)
+        self.tabs.addTab(ident_page, "Identification")
+
+        gap_page = QtWidgets.QWidget()
+        gap_layout = QtWidgets.QVBoxLayout(gap_page)
+        self.gap_summary = QtWidgets.QLabel("run the diagnosis to see where model and data differ")
+        self.gap_summary.setWordWrap(True)
+        gap_layout.addWidget(self.gap_summary)
+        self.residual_plot = pg.PlotWidget(title="Normalised residual: channel x frequency")
+        self.residual_plot.setLabel("bottom", "frequency", units="Hz")
+        self.residual_plot.setLabel("left", "channel (output/input)")
+        self.residual_image = pg.ImageItem()
+        self.residual_image.setColorMap(pg.colormap.get("viridis"))
+        self.residual_plot.addItem(self.residual_image)
+        gap_layout.addWidget(self.residual_plot, 2)
+        self.candidate_table = QtWidgets.QTableWidget(0, 4)
+        self.candidate_table.setHorizontalHeaderLabels(
+            ("effect", "gap after", "shrink", "evidence"))
+        self.candidate_table.horizontalHeader().setStretchLastSection(True)
+        self.candidate_table.verticalHeader().setVisible(False)
+        gap_layout.addWidget(self.candidate_table, 1)
+        self.tabs.addTab(gap_page, "Gap diagnosis")
+
+    # ------------------------------------------------------------------ file
+    def _browse(self) -> None:
+        path, _ = QtWidgets.QFileDialog.getOpenFileName(self, "Session file", "",
+                                                        "Session (*.h5)")
+        if not path:
+            return
+        try:
+            self.open_session(Path(path))
+        except Exception as exc:
+            QtWidgets.QMessageBox.critical(self, "Cannot open session",
+                                           " ".join(str(exc).split()))
+
+    def open_session(self, path: Path) -> None:
+        """Open ``path`` (raises with a one-line reason for a bad file)."""
+        from pelvislab.acquisition.session import SessionReader
+
+        reader = SessionReader(path)
+        try:
+            steps = list(reader.steps(include_incomplete=True, with_echoes=False))
+        except Exception:
+            reader.close()
+            raise
+        self.close_session()
+        self.reader, self.path, self.steps = reader, Path(path), steps
+        status, reason = reader.status
+        text = f"{Path(path).name}: {len(steps)} steps, run {status}"
+        if reason:
+            text += f" ({reason})"
+        if reader.damaged:
+            text += f"; {len(reader.damaged)} damaged step(s) skipped"
+        self.file_label.setText(text)
+        self.step_list.clear()
+        for step in steps:
+            self.step_list.addItem(
+                f"{step.index:06d}  {step.setup}  {step.frequency_hz:7.2f} Hz  {step.status}")
+        self._show_frf()
+        if steps:
+            self.step_list.setCurrentRow(0)
+
+    def close_session(self) -> None:
+        """Close the open file, if any."""
+        if self.reader is not None:
+            self.reader.close()
+        self.reader, self.path, self.steps = None, None, []
+
+    def _show_frf(self) -> None:
+        self.frf.clear_curves()
+        try:
+            frf = self.reader.frf()
+        except Exception as exc:
+            self.file_label.setText(self.file_label.text() + f"; no FRFs ({exc})")
+            return
+        k = 0
+        for i, out in enumerate(frf.outputs.name):
+            for j, inp in enumerate(frf.inputs.name):
+                column = frf.H[:, i, j]
+                if np.isfinite(column).any():
+                    self.frf.show_measured(f"{out} / {inp}", k, frf.frequency_hz, column)
+                    k += 1
+
+    # ------------------------------------------------------------------ steps
+    def current_step(self, with_echoes: bool = True) -> Any:
+        """The selected step, read from the file (with its raw echoes)."""
+        row = self.step_list.currentRow()
+        if self.reader is None or not 0 <= row < len(self.steps):
+            return None
+        name = f"{self.steps[row].index:06d}"
+        return self.reader.read_step(name, with_echoes=with_echoes)
+
+    def show_step(self, row: int) -> None:
+        """Draw the selected step's last echo, displacement trace and quality."""
+        try:
+            step = self.current_step()
+        except Exception as exc:
+            self.step_info.setText(f"step unreadable: {exc}")
+            return
+        if step is None:
+            return
+        labels = [f"{ch.name} → {ch.output.name}" for ch in step.channels]
+        self.ascan.set_channels(labels)
+        self.displacement.set_channels(labels)
+        self.step_info.setText(
+            f"step {step.index}: setup {step.setup}, {step.frequency_hz:g} Hz, input "
+            f"{step.input.name}, status {step.status}, force phasor "
+            f"{abs(step.force_phasor_n):.3g} N")
+        rows = []
+        for i, ch in enumerate(step.channels):
+            n_samples = ch.codes.shape[1]
+            t = ch.delay_s + np.arange(n_samples) / ch.sample_rate_hz
+            volts = ch.codes[0].astype(float) * ch.volts_per_count + ch.volts_offset
+            self.ascan.show_echo(i, t, volts, _gate_s(ch))
+            if ch.displacement_m is not None:
+                self.displacement.show_trace(
+                    i, np.arange(ch.displacement_m.size) / ch.prf_hz, ch.displacement_m)
+            row_values = {"channel": ch.name, "landmark": ch.output.name}
+            row_values.update(ch.quality)
+            rows.append(row_values)
+        self.quality.show_quality(rows)
+
+    def tracking_options(self) -> Any:
+        """Tracking options from the re-track controls."""
+        from pelvislab.acquisition.tracking import TrackingOptions
+
+        gate = None
+        if self.gate_start.value() and self.gate_stop.value() > self.gate_start.value():
+            gate = (self.gate_start.value(), self.gate_stop.value())
+        return TrackingOptions(gate=gate, estimator=self.estimator_combo.currentText())
+
+    def retrack_step(self) -> None:
+        """Re-run echo tracking on the selected step with the chosen options (worker thread)."""
+        step = self.current_step()
+        if step is None:
+            return
+        options = self.tracking_options()
+
+        def work() -> list[Any]:
+            from pelvislab.acquisition.tracking import track_echoes
+
+            return [track_echoes(ch.codes, ch.trigger_offset_s, ch.sample_rate_hz,
+                                 ch.speed_of_sound_m_s, ch.volts_per_count, options)
+                    for ch in step.channels]
+
+        def done(results: list[Any]) -> None:
+            rows = []
+            for i, (ch, res) in enumerate(zip(step.channels, results, strict=True)):
+                self.displacement.show_trace(
+                    i, np.arange(res.displacement_m.size) / ch.prf_hz, res.displacement_m)
+                gate = (ch.delay_s + res.gate[0] / ch.sample_rate_hz,
+                        ch.delay_s + res.gate[1] / ch.sample_rate_hz)
+                t = ch.delay_s + np.arange(ch.codes.shape[1]) / ch.sample_rate_hz
+                self.ascan.show_echo(
+                    i, t, ch.codes[0].astype(float) * ch.volts_per_count + ch.volts_offset, gate)
+                rows.append({
+                    "channel": ch.name, "landmark": ch.output.name,
+                    "correlation": float(np.median(res.correlation)),
+                    "snr_db": float(np.median(res.snr_db)),
+                    "peak_hops": int(np.sum(res.peak_hops)), "lost": int(np.sum(res.lost)),
+                })
+            self.quality.show_quality(rows)
+            base = self.step_info.text().split(" [re-tracked")[0]
+            self.step_info.setText(
+                f"{base} [re-tracked: {options.estimator}, gate {options.gate or 'auto'}]")
+
+        self.submit(work, done, "re-tracking")
+
+    # ------------------------------------------------------------------ analysis
+    def run_identification(self) -> None:
+        """Identify the model parameters from the session's /frf (worker thread)."""
+        if self.path is None:
+            return
+        path = self.path
+
+        def work() -> Any:
+            from pelvislab.app.commands.identify import identify_file
+
+            return identify_file(path)
+
+        self.submit(work, self.show_identification, "identification")
+
+    def show_identification(self, report: Any) -> None:
+        """Parameters with their standard errors; measured vs model FRFs."""
+        params = report.to_json().get("parameters", {})
+        self.param_table.setRowCount(len(params))
+        for r, (name, entry) in enumerate(sorted(params.items())):
+            self.param_table.setItem(r, 0, QtWidgets.QTableWidgetItem(name))
+            self.param_table.setItem(r, 1, QtWidgets.QTableWidgetItem(f"{entry['value']:.4g}"))
+            std = entry.get("std")
+            self.param_table.setItem(r, 2, QtWidgets.QTableWidgetItem(
+                "" if std is None else f"{std:.2g}"))
+        self.ident_frf.clear_curves()
+        frf = getattr(report, "frf", None)
+        model_H = getattr(report, "model_H", None)
+        if frf is not None and model_H is not None:
+            k = 0
+            for i, out in enumerate(frf.outputs.name):
+                for j, inp in enumerate(frf.inputs.name):
+                    if np.isfinite(frf.H[:, i, j]).any():
+                        self.ident_frf.show_measured(f"{out} / {inp}", k, frf.frequency_hz,
+                                                     frf.H[:, i, j])
+                        self.ident_frf.show_model(f"model {out} / {inp}", frf.frequency_hz,
+                                                  model_H[:, i, j])
+                        k += 1
+        self.tabs.setCurrentIndex(2)
+
+    def run_gap(self) -> None:
+        """Run the sim-to-real gap diagnosis on the session's /frf (worker thread)."""
+        if self.path is None:
+            return
+        path = self.path
+
+        def work() -> Any:
+            from pelvislab.app.commands.gap import diagnose_file
+
+            return diagnose_file(path)
+
+        self.submit(work, self.show_gap, "gap diagnosis")
+
+    def show_gap(self, result: Any) -> None:
+        """Residual map, verdict and candidate effects ranked by shrink (design 4.4)."""
+        report = result.to_json()
+        verdict = report.get("verdict", "?")
+        where = report.get("where", {})
+        bands = ", ".join(f"{b['lo_hz']:g}–{b['hi_hz']:g} Hz ({100 * b['share']:.0f} %)"
+                          for b in where.get("bands", [])[:3])
+        outputs = ", ".join(f"{o['name']} ({100 * o['share']:.0f} %)"
+                            for o in where.get("outputs", [])[:3])
+        self.gap_summary.setText(
+            f"<b>verdict: {verdict}</b> — gap before {report.get('gap_before', float('nan')):.3g}."
+            f" Largest residual in {bands or '—'}; outputs {outputs or '—'}.")
+        residual = getattr(result, "residual_map", None)
+        if residual is not None:
+            image = np.nan_to_num(np.asarray(residual, dtype=float))
+            # ImageItem's first axis is x: transpose rows x frequency to frequency x rows.
+            self.residual_image.setImage(image.T, autoLevels=True)
+            frequency = np.asarray(result.frequency_hz, dtype=float)
+            if frequency.size > 1:
+                self.residual_image.setRect(QtCore.QRectF(
+                    frequency[0], 0, frequency[-1] - frequency[0], image.shape[0]))
+            labels = list(getattr(result, "row_labels", []))
+            axis = self.residual_plot.getAxis("left")
+            axis.setTicks([[(i + 0.5, text) for i, text in enumerate(labels)]])
+        candidates = sorted(report.get("candidates", []), key=lambda c: -c.get("shrink", 0.0))
+        self.candidate_table.setRowCount(len(candidates))
+        for r, cand in enumerate(candidates):
+            values = (cand.get("effect", ""), f"{cand.get('gap_after', float('nan')):.3g}",
+                      f"{100 * cand.get('shrink', float('nan')):.0f} %", cand.get("evidence", ""))
+            for c, text in enumerate(values):
+                self.candidate_table.setItem(r, c, QtWidgets.QTableWidgetItem(str(text)))
+        self.tabs.setCurrentIndex(3)
+
+    # ------------------------------------------------------------------ worker plumbing
+    def submit(self, work: Callable[[], Any], done: Callable[[Any], None], what: str) -> Future:
+        """Run ``work`` off the UI thread; ``done(result)`` runs on the UI thread."""
+        future = self._executor.submit(work)
+        self._pending.append((future, done, what))
+        self.file_label.setToolTip(f"{what} running…")
+        return future
+
+    def _collect(self) -> None:
+        for item in list(self._pending):
+            future, done, what = item
+            if not future.done():
+                continue
+            self._pending.remove(item)
+            try:
+                result = future.result()
+            except Exception as exc:
+                QtWidgets.QMessageBox.warning(self, f"{what} failed",
+                                              " ".join(str(exc).split()))
+                continue
+            done(result)
+
+    def busy(self) -> bool:
+        """True while background work is pending."""
+        return bool(self._pending)
+
+
+def _gate_s(channel: Any) -> tuple[float, float] | None:
+    gate = channel.quality.get("gate_s") if isinstance(channel.quality, dict) else None
+    if isinstance(gate, (tuple, list, np.ndarray)) and len(gate) == 2:
+        return float(gate[0]), float(gate[1])
+    return None

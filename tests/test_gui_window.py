@@ -1,0 +1,51 @@
+"""Operator window basics, offscreen (pytest-qt)."""
+
+from __future__ import annotations
+
+import pytest
+from PySide6 import QtWidgets
+
+from pelvislab.app.gui_main import subject_id_problem
+
+
+@pytest.mark.parametrize("text", ["S017", "pilot-3", "A.b_2"])
+def test_ids_are_accepted(text):
+    assert subject_id_problem(text) is None
+
+
+@pytest.mark.parametrize("text", ["", "John Smith", "x" * 40, "-lead"])
+def test_names_and_junk_are_refused(text):
+    assert subject_id_problem(text) is not None
+
+
+def test_window_shows_simulated_badge_and_stop_shortcut(operator_window):
+    window = operator_window()
+    assert window.simulated_badge.isVisible()
+    assert "Esc" in window.stop_button.text()
+    # STOP with nothing running is harmless and says so.
+    window.stop_run()
+    assert "nothing is running" in window.statusBar().currentMessage()
+
+
+def test_bad_session_file_gives_a_dialog_not_a_crash(operator_window, tmp_path, monkeypatch):
+    shown = []
+    monkeypatch.setattr(QtWidgets.QMessageBox, "critical",
+                        lambda parent, title, text: shown.append((title, text)))
+    bad = tmp_path / "bad.h5"
+    bad.write_bytes(b"not hdf5 at all")
+    window = operator_window()
+    assert window.open_replay(bad) is False
+    assert shown and "bad.h5" in shown[0][1]
+
+
+def test_screenshot_command_writes_a_png(tmp_path):
+    import subprocess
+    import sys
+
+    out = tmp_path / "shot.png"
+    proc = subprocess.run(
+        [sys.executable, "-m", "pelvislab.app", "gui", "--screenshot", str(out)],
+        capture_output=True, text=True, timeout=120,
+    )
+    assert proc.returncode == 0, proc.stderr
+    assert out.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
