@@ -144,7 +144,7 @@ def test_one_dof_closed_form():
                                        axis=[1, 0, 0]))
     # stiff springs lock y, z and the three rotations (through lever arms)
     for name, p, ax in (("y", [0, 0, 0], [0, 1, 0]), ("z", [0, 0, 0], [0, 0, 1]),
-                        ("ry", [0, 0, 1.0], [0, 1, 0]), ("rz", [0, 1.0, 0], [0, 0, 1]),
+                        ("ry", [1.0, 0, 0], [0, 0, 1]), ("rz", [0, 1.0, 0], [0, 0, 1]),
                         ("rx", [1.0, 0, 0], [0, 1, 0])):
         model = model.with_spring(Spring(name, "b", p, GROUND, p, big, axis=ax))
     f = np.array([1.0, 7.0, 11.254, 30.0])

@@ -1,10 +1,10 @@
-"""``pelvislab model``: modes and FRFs of the pelvis model (thesis ch. 4-5, app. E)."""
+"""``pelvislab model``: modes and FRFs of the pelvis model (thesis ch. 4-5, 7, app. B, D, E)."""
 
 from __future__ import annotations
 
 import argparse
-
-from pelvislab.app.commands._common import not_implemented
+import json
+import sys
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -15,9 +15,109 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     m = sub.add_parser("modes", help="elastic modes of the model (default: thesis appendix E)")
     m.add_argument("--model", metavar="M.toml", help="model file; default: thesis appendix E")
     m.add_argument("--json", action="store_true", help="print JSON to stdout")
-    m.set_defaults(handler=not_implemented("model modes"))
+    m.add_argument("--f-k", type=float, default=None, metavar="F",
+                   help="eq. 7.3 stiffness slope factor (overrides the model file)")
+    m.add_argument("--f-c", type=float, default=None, metavar="F",
+                   help="eq. 7.2 hysteretic damping factor (overrides the model file)")
+    m.set_defaults(handler=_modes)
     f = sub.add_parser("frf", help="FRFs of the model at catalogue points")
     f.add_argument("--model", metavar="M.toml", help="model file; default: thesis appendix E")
-    f.add_argument("--points", metavar="NAMES", help="comma-separated landmark names")
+    f.add_argument("--points", metavar="NAMES", required=True,
+                   help="comma-separated landmark names (outputs; also inputs unless --inputs)")
+    f.add_argument("--inputs", metavar="NAMES", help="comma-separated landmark names of the "
+                   "excitation points (force along the landmark direction); default: --points")
+    f.add_argument("--landmarks", metavar="L.toml",
+                   help="landmark catalogue; default: protocols/landmarks.toml")
+    f.add_argument("--start-hz", type=float, default=5.0)
+    f.add_argument("--stop-hz", type=float, default=300.0)
+    f.add_argument("--step-hz", type=float, default=2.5)
     f.add_argument("--json", action="store_true", help="print JSON to stdout")
-    f.set_defaults(handler=not_implemented("model frf"))
+    f.add_argument("--out", metavar="F.h5", help="also write an FRF-only HDF5 file (/frf)")
+    f.set_defaults(handler=_frf)
+
+
+def _load(path: str | None):  # noqa: ANN202 - returns PelvisModel (import kept lazy)
+    from pelvislab.model.pelvis import load_model
+
+    return load_model(path)
+
+
+def _modes(args: argparse.Namespace) -> int:
+    from pelvislab.model.modal import model_modes
+
+    model = _load(args.model)
+    if args.f_k is not None or args.f_c is not None:
+        fd = model.frequency_dependence
+        model = model.with_frequency_dependence(
+            fd.f_k if args.f_k is None else args.f_k, fd.f_c if args.f_c is None else args.f_c)
+    modes = model_modes(model)
+    result = {
+        "frequencies_hz": [float(x) for x in modes.damped_frequencies_hz],
+        "damping_ratios": [float(x) for x in modes.damping_ratios],
+        "n_rigid_body": int(modes.n_rigid_body),
+        "natural_frequencies_hz": [float(x) for x in modes.natural_frequencies_hz],
+        "overdamped_poles_rad_s": [float(x.real) for x in modes.overdamped_poles],
+        "model": model.name,
+    }
+    if args.json:
+        json.dump(result, sys.stdout, indent=2)
+        sys.stdout.write("\n")
+    else:
+        print(f"model {model.name!r}: {modes.n_rigid_body} rigid-body modes, "
+              f"{len(modes.poles)} elastic modes")
+        print("  mode  damped f (Hz)  damping ratio")
+        for i, (fr, z) in enumerate(zip(result["frequencies_hz"], result["damping_ratios"],
+                                        strict=True)):
+            print(f"  {i + 1:4d}  {fr:13.3f}  {z:13.5f}")
+    return 0
+
+
+def _names(text: str) -> list[str]:
+    names = [n.strip() for n in text.split(",") if n.strip()]
+    if not names:
+        raise ValueError("no landmark names given")
+    return names
+
+
+def _frf(args: argparse.Namespace) -> int:
+    import numpy as np
+
+    from pelvislab.model.frf import frf
+    from pelvislab.model.landmarks import landmark_points, load_landmarks
+
+    if not (0 < args.start_hz <= args.stop_hz) or args.step_hz <= 0:
+        raise ValueError("need 0 < --start-hz <= --stop-hz and --step-hz > 0")
+    model = _load(args.model)
+    catalogue = load_landmarks(args.landmarks)
+    out_names = _names(args.points)
+    in_names = _names(args.inputs) if args.inputs else out_names
+    outputs = landmark_points(out_names, catalogue)
+    inputs = landmark_points(in_names, catalogue)
+    n = int(np.floor((args.stop_hz - args.start_hz) / args.step_hz + 1e-9)) + 1
+    f = args.start_hz + args.step_hz * np.arange(n)
+    H = frf(model, f, outputs, inputs)
+    if args.out:
+        from pelvislab.acquisition.frfset import Channels, FrfSet, write_frf
+
+        def channels(points) -> Channels:  # noqa: ANN001
+            return Channels(list(points.name), list(points.bone), points.position_m,
+                            points.direction)
+
+        write_frf(args.out, FrfSet(f, H, channels(outputs), channels(inputs)))
+    if args.json:
+        json.dump({
+            "model": model.name,
+            "units": "m/N",
+            "frequency_hz": f.tolist(),
+            "outputs": out_names,
+            "inputs": in_names,
+            "H_real": H.real.tolist(),
+            "H_imag": H.imag.tolist(),
+        }, sys.stdout)
+        sys.stdout.write("\n")
+    elif not args.out:
+        for i, o in enumerate(out_names):
+            for j, e in enumerate(in_names):
+                k = int(np.argmax(np.abs(H[:, i, j])))
+                print(f"{o} <- {e}: max |H| = {abs(H[k, i, j]):.3e} m/N at {f[k]:g} Hz")
+    return 0
