@@ -392,6 +392,8 @@ class Agilent33220A(SCPIInstrument):
         """New frequency (Hz) for the present function."""
         fn = self._state["function"]
         check_frequency(fn, frequency_hz)
+        if fn == "pulse":  # the pulse width and edges must still fit the new period
+            check_pulse(1.0 / frequency_hz, self._state["width_s"], self._state["edge_s"])
         with self._operation("set_frequency"):
             self.frequency_hz = frequency_hz
         self._state["frequency_hz"] = frequency_hz

@@ -7,6 +7,8 @@ import math
 from pathlib import Path
 
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from pelvislab.drivers import agilent33220a as ag
 from pelvislab.drivers.agilent33220a import Agilent33220A, ReferenceUnlockedError
@@ -327,3 +329,37 @@ def test_exception_mid_sweep_leaves_both_generators_off(failure):
         assert g.command_log[-1][1] == "OUTP OFF"
     VisaTransport.close(t1)
     VisaTransport.close(t2)
+
+
+def test_set_frequency_in_pulse_mode_keeps_the_pulse_rules():
+    g, t = make([("FUNC PULS", None), ("FUNC:PULS:WIDT 1E-05", None),
+                 ("PULS:PER 0.0002", None), ("FUNC:PULS:TRAN 5E-09", None),
+                 ("VOLT 5", None), ("VOLT:OFFS 2.5", None), ("TRIG:SOUR EXT", None),
+                 ("TRIG:SLOP POS", None), ("BURS:MODE TRIG", None),
+                 ("BURS:NCYC 10", None), ("BURS:STAT ON", None), ("SYST:ERR?", OK)])
+    g.configure_pulse_burst(5000, 10, 10e-6, 5.0)
+    with pytest.raises(LimitError, match="pulse width"):
+        g.set_frequency(100e3)  # period 10 us: a 10 us pulse no longer fits
+    t.assert_done()
+
+
+@settings(max_examples=60, deadline=None)
+@given(old_amp=st.floats(0.01, 10.0), old_frac=st.floats(-1, 1),
+       new_amp=st.floats(0.01, 10.0), new_frac=st.floats(-1, 1))
+def test_amplitude_offset_ordering_never_passes_an_invalid_state(old_amp, old_frac, new_amp,
+                                                                 new_frac):
+    """Whatever the old and new (valid) settings, every intermediate state the command
+    order produces respects |offset| + Vpp/2 <= 5 V (50 ohm)."""
+    old_off = old_frac * (5.0 - old_amp / 2)
+    new_off = new_frac * (5.0 - new_amp / 2)
+    g, _ = make([])
+    g._state.update(amplitude_vpp=old_amp, offset_v=old_off)
+    amp, off = old_amp, old_off
+    for cmd in g._amp_offset_commands(new_amp, new_off):
+        head, value = cmd.split(" ")
+        if head == "VOLT":
+            amp = float(value)
+        else:
+            off = float(value)
+        assert abs(off) + amp / 2 <= 5.0 + 1e-9, (cmd, amp, off)
+    assert amp == pytest.approx(new_amp) and off == pytest.approx(new_off)
