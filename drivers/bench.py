@@ -32,10 +32,12 @@ No bench file means the simulated bench (:func:`open_bench` with ``None``).
 
 from __future__ import annotations
 
+import atexit
 import cmath
 import logging
 import math
 import tomllib
+import weakref
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -428,6 +430,18 @@ class Bench:
                     pending = exc
         if pending is not None:
             raise pending
+
+    def __post_init__(self) -> None:
+        # Last line of defence: outputs off when the interpreter exits normally or on an
+        # unhandled exception, even if nobody closed the bench (weakly referenced).
+        ref = weakref.ref(self)
+
+        def _close_at_exit() -> None:
+            bench = ref()
+            if bench is not None:
+                bench.close()
+
+        atexit.register(_close_at_exit)
 
     def __enter__(self) -> Bench:
         return self

@@ -224,3 +224,29 @@ def test_open_bench_real_path_opens_in_order_and_cleans_up_on_failure(tmp_path, 
     assert drive.load_ohm == math.inf and trig.load_ohm == 50
     for g in (trig, drive):
         assert g._closed and g.command_log[-1][1] == "OUTP OFF"
+
+
+def test_interpreter_exit_turns_outputs_off_even_without_close(tmp_path):
+    import subprocess
+    import sys
+
+    marker = tmp_path / "log.txt"
+    code = f"""
+from pelvislab.drivers.bench import Bench, BenchConfig
+class G:
+    def safe_state(self):
+        open({str(marker)!r}, "a").write("off\\n")
+    def close(self):
+        pass
+class D:
+    def abort(self):
+        pass
+    def close(self):
+        pass
+bench = Bench(trigger=G(), drive=G(), digitizer=D(), pulsers=[], config=BenchConfig.default(),
+              simulated=True)
+raise RuntimeError("script dies without closing the bench")
+"""
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, timeout=60)
+    assert r.returncode != 0
+    assert marker.read_text().split() == ["off", "off"]
