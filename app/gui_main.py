@@ -19,7 +19,14 @@ from typing import Any
 import numpy as np
 from PySide6 import QtCore, QtGui, QtWidgets
 
-from pelvislab.app.gui_plots import AScanPanel, DisplacementPanel, FrfPanel, QualityTable
+from pelvislab.app.gui_plots import (
+    AScanPanel,
+    DisplacementPanel,
+    FrfPanel,
+    QualityTable,
+    gate_seconds,
+    quality_row,
+)
 
 REFRESH_MS = 50  # 20 frames per second at most; the issue asks for >= 10
 SUBJECT_ID_PATTERN = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,31}$")
@@ -274,7 +281,7 @@ class OperatorWindow(QtWidgets.QMainWindow):
         except Exception as exc:
             self.protocol_info.setText(f"<span style='color:#c62828'>invalid: {exc}</span>")
             return
-        minutes, seconds = divmod(int(round(protocol.estimated_duration_s)), 60)
+        minutes, seconds = divmod(int(round(protocol.estimated_duration_s())), 60)
         warnings = getattr(protocol, "warnings", []) or []
         text = (f"{len(protocol.setups)} setup(s), {len(protocol.steps())} steps, "
                 f"about {minutes} min {seconds:02d} s")
@@ -480,17 +487,11 @@ class OperatorWindow(QtWidgets.QMainWindow):
             n_samples = ch.codes.shape[1]
             t = ch.delay_s + np.arange(n_samples) / ch.sample_rate_hz
             volts = ch.codes[-1].astype(float) * ch.volts_per_count + ch.volts_offset
-            gate = ch.quality.get("gate_s") if isinstance(ch.quality, dict) else None
-            gate_s = None
-            if isinstance(gate, (tuple, list, np.ndarray)) and len(gate) == 2:
-                gate_s = (float(gate[0]), float(gate[1]))
-            self.ascan.show_echo(i, t, volts, gate_s)
+            self.ascan.show_echo(i, t, volts, gate_seconds(ch))
             if ch.displacement_m is not None:
                 pulse_t = np.arange(ch.displacement_m.size) / ch.prf_hz
                 self.displacement.show_trace(i, pulse_t, ch.displacement_m)
-            row = {"channel": ch.name, "landmark": ch.output.name}
-            row.update(ch.quality)
-            rows.append(row)
+            rows.append(quality_row(ch))
         for warning in self.quality.show_quality(rows):
             self.statusBar().showMessage(f"check channel {warning}")
 

@@ -7,6 +7,7 @@ Views only: each panel takes arrays already computed by ``pelvislab.acquisition`
 from __future__ import annotations
 
 from collections.abc import Sequence
+from typing import Any
 
 import numpy as np
 import pyqtgraph as pg
@@ -197,3 +198,26 @@ def _as_float(value: object) -> float | None:
         return None if value is None else float(value)  # type: ignore[arg-type]
     except (TypeError, ValueError):
         return None
+
+
+def gate_seconds(channel: Any) -> tuple[float, float] | None:
+    """The tracking gate of a step's channel as times after the trigger (s), if recorded."""
+    quality = channel.quality if isinstance(channel.quality, dict) else {}
+    if "gate_start" not in quality or "gate_stop" not in quality:
+        return None
+    return (channel.delay_s + float(quality["gate_start"]) / channel.sample_rate_hz,
+            channel.delay_s + float(quality["gate_stop"]) / channel.sample_rate_hz)
+
+
+def quality_row(channel: Any) -> dict[str, object]:
+    """One row of the quality table from a step channel's recorded quality figures."""
+    quality = channel.quality if isinstance(channel.quality, dict) else {}
+    n_pulses = channel.codes.shape[0] if getattr(channel, "codes", None) is not None else 0
+    lost_fraction = quality.get("lost_fraction")
+    return {
+        "channel": channel.name, "landmark": channel.output.name,
+        "correlation": quality.get("correlation_median"),
+        "snr_db": quality.get("snr_db_median"),
+        "peak_hops": quality.get("peak_hops", 0),
+        "lost": None if lost_fraction is None else round(float(lost_fraction) * n_pulses),
+    }

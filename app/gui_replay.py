@@ -16,7 +16,14 @@ import numpy as np
 import pyqtgraph as pg
 from PySide6 import QtCore, QtWidgets
 
-from pelvislab.app.gui_plots import AScanPanel, DisplacementPanel, FrfPanel, QualityTable
+from pelvislab.app.gui_plots import (
+    AScanPanel,
+    DisplacementPanel,
+    FrfPanel,
+    QualityTable,
+    gate_seconds,
+    quality_row,
+)
 
 
 class ReplayView(QtWidgets.QWidget):
@@ -221,13 +228,11 @@ class ReplayView(QtWidgets.QWidget):
             n_samples = ch.codes.shape[1]
             t = ch.delay_s + np.arange(n_samples) / ch.sample_rate_hz
             volts = ch.codes[0].astype(float) * ch.volts_per_count + ch.volts_offset
-            self.ascan.show_echo(i, t, volts, _gate_s(ch))
+            self.ascan.show_echo(i, t, volts, gate_seconds(ch))
             if ch.displacement_m is not None:
                 self.displacement.show_trace(
                     i, np.arange(ch.displacement_m.size) / ch.prf_hz, ch.displacement_m)
-            row_values = {"channel": ch.name, "landmark": ch.output.name}
-            row_values.update(ch.quality)
-            rows.append(row_values)
+            rows.append(quality_row(ch))
         self.quality.show_quality(rows)
 
     def tracking_options(self) -> Any:
@@ -386,10 +391,3 @@ class ReplayView(QtWidgets.QWidget):
     def busy(self) -> bool:
         """True while background work is pending."""
         return bool(self._pending)
-
-
-def _gate_s(channel: Any) -> tuple[float, float] | None:
-    gate = channel.quality.get("gate_s") if isinstance(channel.quality, dict) else None
-    if isinstance(gate, (tuple, list, np.ndarray)) and len(gate) == 2:
-        return float(gate[0]), float(gate[1])
-    return None

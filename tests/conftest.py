@@ -34,3 +34,21 @@ def operator_window(qtbot):
         window.close()
         window.deleteLater()
     QtWidgets.QApplication.processEvents()
+
+
+@pytest.fixture(scope="session", autouse=True)
+def _delete_qt_widgets_before_exit():
+    """Delete every remaining top-level Qt widget while Qt still runs (see operator_window)."""
+    yield
+    from PySide6 import QtWidgets
+
+    app = QtWidgets.QApplication.instance()
+    if app is None:
+        return
+    import gc
+
+    gc.collect()
+    for widget in app.topLevelWidgets():
+        widget.close()
+        widget.deleteLater()
+    app.processEvents()
