@@ -250,3 +250,16 @@ raise RuntimeError("script dies without closing the bench")
     r = subprocess.run([sys.executable, "-c", code], capture_output=True, timeout=60)
     assert r.returncode != 0
     assert marker.read_text().split() == ["off", "off"]
+
+
+def test_the_examples_in_the_bench_file_doc_parse():
+    import re
+
+    doc = (Path(__file__).resolve().parents[1] / "docs" / "bench-file.md").read_text()
+    blocks = re.findall(r"```toml\n(.*?)```", doc, flags=re.S)
+    assert len(blocks) == 2
+    real = BenchConfig.from_dict(__import__("tomllib").loads(blocks[0]))
+    assert not real.simulated and real.drive.options["load_ohm"] == "inf"
+    assert real.drive_newton_per_volt == complex(8.5, -0.4) and len(real.pulsers) == 2
+    sim = BenchConfig.from_dict(__import__("tomllib").loads(blocks[1]))
+    assert sim.simulated and sim.max_drive_vpp == 1.0
