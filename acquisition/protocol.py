@@ -147,6 +147,8 @@ class Setup:
     transducers: Mapping[int, str]
     """Digitizer channel (1-based) -> point name."""
     prompt: str = ""
+    excitation_direction: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    """Unit direction of the applied force (default: into the surface, -landmark direction)."""
 
 
 @dataclass(frozen=True)
@@ -193,11 +195,14 @@ class Protocol:
     ultrasound: Ultrasound
     setups: tuple[Setup, ...]
     points: Mapping[str, Point]
-    """Every point the setups name, resolved (catalogue or the file's own ``[points]``)."""
+    """Every point a transducer looks at, resolved (catalogue or the file's ``[points]``);
+    direction: bone surface -> transducer."""
     text: str
     """The TOML source (stored verbatim in the session's ``/protocol``)."""
     source: str = "<string>"
     warnings: tuple[str, ...] = ()
+    excitations: Mapping[str, Point] = field(default_factory=dict)
+    """Every excitation point; direction: that of the applied force (design 4.1)."""
 
     def n_pulses(self, frequency_hz: float) -> int:
         """Pulses (echoes) per record at ``frequency_hz``."""
@@ -279,16 +284,16 @@ def load_landmarks(path: Path | str | None = None) -> dict[str, Point]:
     table = data.get("landmarks", data)
     if isinstance(table, list):  # [[landmarks]] array of tables with a name key
         table = {str(t.get("name")): t for t in table if isinstance(t, Mapping)}
-    problems: list[str] = []
+    problems = _Problems()
     out: dict[str, Point] = {}
     for name, entry in table.items():
         if not isinstance(entry, Mapping) or not ({"position_m", "position_mm"} & set(entry)):
             continue
-        point = _point(name, entry, f"{where}: {name}", problems, strict=False)
+        point = _point(name, entry, name, problems, strict=False)
         if point is not None:
             out[name] = point
-    if problems:
-        raise ProtocolError(where, problems)
+    if problems.items:
+        raise ProtocolError(where, problems.items)
     return out
 
 
@@ -301,7 +306,7 @@ _US_FLOAT = {"prf_hz", "sample_rate_hz", "delay_s", "speed_of_sound_m_s", "full_
              "offset_v", "trigger_width_s", "trigger_high_v", "gain_db", "damping_ohm",
              "high_pass_hz", "low_pass_hz"}
 _US = _US_FLOAT | {"pulses", "samples", "pulse_energy"}
-_SETUP = {"name", "excitation", "transducers", "prompt"}
+_SETUP = {"name", "excitation", "excitation_direction", "transducers", "prompt"}
 _SUBJECT = {"id", "position", "notes", "age_years", "mass_kg", "height_m", "sex", "side"}
 _POINT = {"bone", "position_m", "position_mm", "direction", "description"}
 
@@ -633,6 +638,7 @@ def parse_protocol(text: str, source: str = "<string>", limits: BenchLimits | No
         p.add("setups", "must be a non-empty array of tables ([[setups]])")
         raw_setups = []
     used: dict[str, Point] = {}
+    excitations: dict[str, Point] = {}
 
     def resolve(pname: Any, key: str) -> str | None:
         if not isinstance(pname, str) or not pname:
@@ -672,8 +678,31 @@ def parse_protocol(text: str, source: str = "<string>", limits: BenchLimits | No
                     channels[CHANNEL_KEYS[key]] = pname
             if len(set(channels.values())) != len(channels):
                 p.add(f"{where}.transducers", "two channels look at the same point")
-        if sname is not None and excitation is not None and channels:
-            setups.append(Setup(sname, excitation, channels, prompt))
+        force_dir = None
+        if excitation is not None:
+            force_dir = tuple(-v for v in known_points[excitation].direction)
+        if "excitation_direction" in raw:
+            force_dir = _vector(raw["excitation_direction"], f"{where}.excitation_direction", p)
+            if force_dir is not None:
+                norm = math.sqrt(sum(v * v for v in force_dir))
+                if not 0.98 < norm < 1.02:
+                    p.add(f"{where}.excitation_direction",
+                          f"must be a unit vector, norm is {norm:.3g}")
+                    force_dir = None
+                else:
+                    force_dir = tuple(v / norm for v in force_dir)
+        if excitation is not None and force_dir is not None:
+            earlier = excitations.get(excitation)
+            if earlier is not None and not np.allclose(earlier.direction, force_dir):
+                p.add(f"{where}.excitation_direction",
+                      f"{excitation!r} is excited along {list(earlier.direction)} in an "
+                      "earlier setup; one point, one force direction")
+            pt = known_points[excitation]
+            excitations[excitation] = Point(pt.name, pt.bone, pt.position_m,
+                                            force_dir)  # type: ignore[arg-type]
+        if sname is not None and excitation is not None and channels and force_dir:
+            setups.append(Setup(sname, excitation, channels, prompt,
+                                force_dir))  # type: ignore[arg-type]
     names = [s.name for s in setups]
     for dup in sorted({n for n in names if names.count(n) > 1}):
         p.add("setups", f"setup name {dup!r} is used twice")
@@ -686,7 +715,7 @@ def parse_protocol(text: str, source: str = "<string>", limits: BenchLimits | No
         raise ProtocolError(source, p.items)
 
     protocol = Protocol(name, description, subject, sweep, ultrasound, tuple(setups), used,
-                        text, source)
+                        text, source, (), excitations)
     warnings: list[str] = []
     if sweep.settle_s < MIN_SETTLE_S:
         warnings.append(f"sweep.settle_s: {sweep.settle_s:g} s is under the "
@@ -705,7 +734,7 @@ def parse_protocol(text: str, source: str = "<string>", limits: BenchLimits | No
                         f"{lowest * ultrasound.pulses / ultrasound.prf_hz:.3g} periods "
                         "(ch. 6.2 uses 10)")
     return Protocol(name, description, subject, sweep, ultrasound, tuple(setups), used, text,
-                    source, tuple(warnings))
+                    source, tuple(warnings), excitations)
 
 
 def load_protocol(path: Path | str, limits: BenchLimits | None = None,

@@ -127,7 +127,7 @@ def plan_channels(protocol: Protocol) -> tuple[list[float], Channels, Channels]:
         if s.excitation not in in_names:
             in_names.append(s.excitation)
     return frequencies, _channels([protocol.points[n] for n in out_names]), \
-        _channels([protocol.points[n] for n in in_names])
+        _channels([protocol.excitations[n] for n in in_names])
 
 
 def _channels(points: Sequence[Point]) -> Channels:

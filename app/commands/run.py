@@ -1,23 +1,41 @@
-"""``pelvislab run`` and ``pelvislab reprocess``: headless sessions (design 4.3)."""
+"""``pelvislab run`` and ``pelvislab reprocess``: headless sessions (design 4.3).
+
+Exit codes of ``run``: 0 completed; 1 bad input (protocol, bench or session file; nothing
+is written over an existing file); 3 an instrument fault (outputs off, reason recorded,
+every completed step kept); 4 aborted (operator prompt refused); 130 interrupted (Ctrl-C or
+SIGTERM). A one-line reason goes to stderr in every non-zero case.
+"""
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
+import signal
+import sys
+import time
+from typing import Any, TextIO
 
-from pelvislab.app.commands._common import not_implemented
+EXIT_FAULT = 3
+EXIT_ABORTED = 4
+EXIT_INTERRUPTED = 130
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
     """Add ``run`` and ``reprocess`` to the CLI."""
     p = subparsers.add_parser(
         "run", help="run a protocol headless (simulated bench unless --bench is given)",
-        description="Run a measurement protocol and write the session file step by step.",
+        description="Run a measurement protocol and write the session file step by step. "
+        "Exit codes: 0 completed, 1 bad input, 3 instrument fault, 4 aborted, 130 interrupted.",
     )
     p.add_argument("protocol", metavar="PROTOCOL.toml", help="protocol file")
     p.add_argument("--out", required=True, metavar="S.h5", help="session file to write")
     p.add_argument("--bench", metavar="BENCH.toml", help="bench file; default: simulated bench")
-    p.add_argument("--resume", action="store_true", help="continue an interrupted session in --out")
-    p.set_defaults(handler=not_implemented("run"))
+    p.add_argument("--resume", action="store_true",
+                   help="continue the interrupted session in --out (same protocol)")
+    p.add_argument("--wait-prompts", action="store_true",
+                   help="wait for Enter at each operator prompt (default: auto-continue)")
+    p.add_argument("--quiet", action="store_true", help="no progress output")
+    p.set_defaults(handler=run_command)
 
     p = subparsers.add_parser(
         "reprocess", help="recompute displacement, phasors and /frf from raw echoes",
@@ -25,4 +43,200 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     )
     p.add_argument("session", metavar="S.h5", help="recorded session file")
     p.add_argument("--out", required=True, metavar="S2.h5", help="new session file")
-    p.set_defaults(handler=not_implemented("reprocess"))
+    p.add_argument("--estimator", help="sub-sample peak estimator (phase, parabolic, cosine, "
+                   "spline)")
+    p.add_argument("--max-lag-samples", type=int, help="correlation lag half-range, samples")
+    p.add_argument("--min-correlation", type=float, help="echoes below this are lost")
+    p.add_argument("--gate", metavar="START:STOP", help="bone echo window, samples")
+    p.add_argument("--speed-of-sound", type=float, metavar="M_S",
+                   help="speed of sound to assume instead of the recorded one, m/s")
+    p.add_argument("--tracking", action="append", default=[], metavar="KEY=VALUE",
+                   help="any other TrackingOptions field (repeatable)")
+    p.set_defaults(handler=reprocess_command)
+
+
+# --------------------------------------------------------------------------- console listener
+class ConsoleProgress:
+    """Runner listener for the terminal: a progress bar on a tty, a few lines otherwise."""
+
+    def __init__(self, runner: Any, stream: TextIO = sys.stderr, wait_prompts: bool = False,
+                 quiet: bool = False) -> None:
+        self.runner = runner
+        self.stream = stream
+        self.tty = bool(getattr(stream, "isatty", lambda: False)())
+        self.wait_prompts = wait_prompts
+        self.quiet = quiet
+        self._bar = False
+
+    def _line(self, text: str) -> None:
+        if self._bar:
+            self.stream.write("\n")
+            self._bar = False
+        self.stream.write(text + "\n")
+        self.stream.flush()
+
+    def __call__(self, event: Any) -> None:
+        from pelvislab.acquisition import runner as r
+
+        if isinstance(event, r.OperatorPrompt):
+            if self.wait_prompts:
+                self._line(f"PROMPT: {event.message}")
+                self.stream.write("press Enter when the transducers are in place (Ctrl-C "
+                                  "aborts) ")
+                self.stream.flush()
+                answer = sys.stdin.readline()
+                if not answer:
+                    self.runner.abort("operator prompt: no answer (stdin closed)")
+                else:
+                    self.runner.confirm()
+            elif not self.quiet:
+                self._line(f"prompt (auto-continue): {event.message}")
+        elif self.quiet:
+            return
+        elif isinstance(event, r.RunStarted):
+            self._line(f"run {event.protocol!r}: {event.n_steps - event.n_done} steps to go "
+                       f"(~{event.estimated_s:.0f} s + processing) on the "
+                       f"{'simulated' if event.simulated else 'real'} bench")
+        elif isinstance(event, r.Progress) and self.tty:
+            width = 30
+            filled = int(round(width * event.fraction))
+            self.stream.write(f"\r[{'#' * filled}{'.' * (width - filled)}] "
+                              f"{event.n_done}/{event.n_steps} steps, "
+                              f"{event.elapsed_s:5.1f} s, ETA {event.eta_s:5.1f} s ")
+            self.stream.flush()
+            self._bar = True
+        elif isinstance(event, r.SetupStarted) and not self.tty:
+            self._line(f"setup {event.setup_index + 1}/{event.n_setups} {event.setup!r}")
+        elif isinstance(event, r.Quality) and not event.ok:
+            self._line(f"quality warning: step {event.step.index} "
+                       f"({event.step.frequency_hz:g} Hz) {event.channel}: {event.message}")
+        elif isinstance(event, r.LogMessage) and event.level in ("WARNING", "ERROR"):
+            self._line(f"{event.level.lower()}: {event.text}")
+        elif isinstance(event, r.RunFinished) and self._bar:
+            self._line("")
+
+
+# --------------------------------------------------------------------------- run
+def run_command(args: argparse.Namespace) -> int:
+    """``pelvislab run``."""
+    from pelvislab.acquisition.runner import prepare_session
+    from pelvislab.app.cli import package_version
+
+    prepared = prepare_session(args.protocol, args.out, args.bench, resume=args.resume,
+                               auto_continue=not args.wait_prompts,
+                               software_version=package_version())
+    with prepared:
+        for warning in prepared.protocol.warnings:
+            print(f"warning: {warning}", file=sys.stderr)
+        for problem in prepared.problems:
+            print(f"warning: {args.out}: step {problem} (kept; measured again)",
+                  file=sys.stderr)
+        prepared.runner.subscribe(ConsoleProgress(prepared.runner, sys.stderr,
+                                                  args.wait_prompts, args.quiet))
+        started = time.perf_counter()
+        final = _run_with_signals(prepared)
+        elapsed = time.perf_counter() - started
+    where = f"{final.n_done} of {final.n_steps} steps in {args.out}"
+    if final.status == "completed":
+        print(f"session complete: {where} ({elapsed:.1f} s)", file=sys.stderr)
+        return 0
+    print(f"pelvislab run: {final.status}: {final.reason}; outputs off; {where}",
+          file=sys.stderr)
+    return {"failed": EXIT_FAULT, "aborted": EXIT_ABORTED}.get(final.status, EXIT_INTERRUPTED)
+
+
+def _run_with_signals(prepared: Any) -> Any:
+    """Run with SIGINT/SIGTERM turned into an immediate abort (outputs off at once)."""
+    runner = prepared.runner
+
+    def on_signal(signum: int, frame: object) -> None:
+        name = "SIGTERM" if signum == signal.SIGTERM else "Ctrl-C (SIGINT)"
+        runner.interrupt(f"interrupted by {name}")
+
+    previous = {}
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        try:
+            previous[sig] = signal.signal(sig, on_signal)
+        except ValueError:  # not the main thread: leave signals alone
+            pass
+    try:
+        return prepared.run()
+    finally:
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
+
+
+# --------------------------------------------------------------------------- reprocess
+def _tracking_options(args: argparse.Namespace) -> Any:
+    from pelvislab.acquisition.tracking import TrackingOptions
+
+    fields = {f.name: f for f in dataclasses.fields(TrackingOptions)}
+    values: dict[str, Any] = {}
+    if args.estimator is not None:
+        values["estimator"] = args.estimator
+    if args.max_lag_samples is not None:
+        values["max_lag_samples"] = args.max_lag_samples
+    if args.min_correlation is not None:
+        values["min_correlation"] = args.min_correlation
+    if args.gate is not None:
+        try:
+            start, stop = (int(v) for v in args.gate.split(":"))
+        except ValueError:
+            raise ValueError(f"--gate: expected START:STOP sample indices, got {args.gate!r}")\
+                from None
+        values["gate"] = (start, stop)
+    defaults = TrackingOptions()
+    for item in args.tracking:
+        key, sep, raw = item.partition("=")
+        key = key.strip().replace("-", "_")
+        if not sep or key not in fields:
+            raise ValueError(f"--tracking {item!r}: expected KEY=VALUE with KEY one of "
+                             f"{sorted(fields)}")
+        current = getattr(defaults, key)
+        values[key] = _convert(raw.strip(), current, key)
+    try:
+        return TrackingOptions(**values)
+    except (TypeError, ValueError) as exc:
+        raise ValueError(f"tracking options: {exc}") from None
+
+
+def _convert(raw: str, like: Any, key: str) -> Any:
+    try:
+        if isinstance(like, bool):
+            if raw.lower() not in ("true", "false", "1", "0", "yes", "no"):
+                raise ValueError(raw)
+            return raw.lower() in ("true", "1", "yes")
+        if isinstance(like, int):
+            return int(raw)
+        if isinstance(like, float):
+            return float(raw)
+        if isinstance(like, tuple) or (like is None and ":" in raw):
+            return tuple(float(v) if "." in v or "e" in v else int(v) for v in raw.split(":"))
+        if like is None and raw.lower() == "none":
+            return None
+    except ValueError:
+        raise ValueError(f"--tracking {key}={raw!r}: not a valid value") from None
+    return raw
+
+
+def reprocess_command(args: argparse.Namespace) -> int:
+    """``pelvislab reprocess``."""
+    from pelvislab.acquisition.runner import reprocess_session
+    from pelvislab.app.cli import package_version
+
+    options = _tracking_options(args)
+    tty = sys.stderr.isatty()
+
+    def progress(done: int, total: int) -> None:
+        if tty:
+            sys.stderr.write(f"\rreprocessing step {done}/{total} ")
+            sys.stderr.flush()
+
+    n, problems = reprocess_session(args.session, args.out, options, args.speed_of_sound,
+                                    progress, package_version())
+    if tty:
+        sys.stderr.write("\n")
+    for problem in problems:
+        print(f"warning: skipped step {problem}", file=sys.stderr)
+    print(f"reprocessed {n} steps -> {args.out}", file=sys.stderr)
+    return 0

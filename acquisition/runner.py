@@ -1,0 +1,928 @@
+"""The sweep runner: executes a protocol on a bench and emits events (design 2 and 3).
+
+Separation as in Bluesky: the :class:`Runner` executes the plan (setups x frequency steps)
+and *emits events*; everything else listens. The CLI progress bar, the GUI and the session
+writer (:class:`SessionRecorder`) are listeners, called synchronously in the runner's
+thread, in subscription order. ``docs/runner.md`` lists every event type.
+
+Control from any thread (GUI buttons, signal handlers): :meth:`Runner.pause`,
+:meth:`Runner.resume`, :meth:`Runner.abort`, :meth:`Runner.confirm` (operator prompt).
+``abort`` puts the bench in its safe state *immediately in the calling thread* (outputs
+off), then the runner stops at its next check.
+
+Safety rule: whatever ends a run (completion, abort, Ctrl-C, an exception in any instrument,
+a listener or the numerics), every output goes off (``Bench.safe_state``) before the runner
+returns, the reason is recorded (``RunFinished.reason``, session ``/runs``), and every step
+completed so far has already been written.
+
+Per step (design section 2): set the drive frequency -> wait to settle (max(settle_s,
+settle_periods/f)) -> acquire N echoes per channel -> track displacement (ch. 8) -> phasor
+at the drive frequency -> FRF line H = X / F, with F from the calibrated drive chain.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import threading
+import time
+from collections.abc import Callable, Iterable, Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from pelvislab.acquisition.protocol import PlannedStep, Protocol, Setup
+from pelvislab.acquisition.session import (
+    STATUS_COMPLETE,
+    ChannelData,
+    SessionReader,
+    SessionWriter,
+    StepData,
+    frf_from_steps,
+)
+
+__all__ = [
+    "DRIVE_PHASE_AT_FIRST_PULSE_RAD",
+    "Event",
+    "Fault",
+    "LogMessage",
+    "OperatorPrompt",
+    "Paused",
+    "PreparedSession",
+    "Progress",
+    "Quality",
+    "Resumed",
+    "RunFinished",
+    "RunStarted",
+    "Runner",
+    "SessionRecorder",
+    "SetupFinished",
+    "SetupStarted",
+    "StepFinished",
+    "StepStarted",
+    "drive_voltage_phasor",
+    "prepare_session",
+    "process_channel",
+    "reprocess_session",
+]
+
+log = logging.getLogger(__name__)
+
+DRIVE_PHASE_AT_FIRST_PULSE_RAD = -math.pi / 2
+"""Phase of the drive sine at the first pulse of a record.
+
+The trigger burst starts on the drive generator's SYNC edge, i.e. at the start of a sine
+period (design section 2), so v(t) = A sin(wt) = Re(A e^{-i pi/2} e^{iwt}) from the first
+pulse on (harmonic convention of design 4.1).
+"""
+QUALITY_MIN_CORRELATION = 0.8
+QUALITY_MAX_LOST_FRACTION = 0.05
+
+
+# --------------------------------------------------------------------------- events
+@dataclass(frozen=True)
+class Event:
+    """Base of every runner event; ``t_s`` is seconds since the run started."""
+
+    t_s: float
+
+
+@dataclass(frozen=True)
+class RunStarted(Event):
+    """The run begins; ``n_done`` steps were already in the session (resume)."""
+
+    protocol: str
+    n_steps: int
+    n_done: int
+    estimated_s: float
+    simulated: bool
+
+
+@dataclass(frozen=True)
+class SetupStarted(Event):
+    """A setup (transducer placement) begins."""
+
+    setup_index: int
+    setup: str
+    excitation: str
+    transducers: Mapping[int, str]
+    n_setups: int
+
+
+@dataclass(frozen=True)
+class OperatorPrompt(Event):
+    """Reposition the transducers: the runner waits for :meth:`Runner.confirm` (or abort)
+    unless it runs with ``auto_continue``. Outputs are off while it waits."""
+
+    setup_index: int
+    setup: str
+    message: str
+    auto_continue: bool
+
+
+@dataclass(frozen=True)
+class StepStarted(Event):
+    """A frequency step begins (``index`` in the plan)."""
+
+    step: PlannedStep
+    n_done: int
+    n_steps: int
+
+
+@dataclass(frozen=True)
+class StepFinished(Event):
+    """A step was acquired and processed; ``data`` is what the session stores."""
+
+    step: PlannedStep
+    data: StepData
+    duration_s: float
+
+
+@dataclass(frozen=True)
+class Quality(Event):
+    """Signal quality of one channel of one step (echo tracking, ch. 8)."""
+
+    step: PlannedStep
+    channel: str
+    ok: bool
+    correlation_median: float
+    lost_fraction: float
+    snr_db_median: float
+    message: str
+
+
+@dataclass(frozen=True)
+class Progress(Event):
+    """Steps done of the plan, and the estimated time left."""
+
+    n_done: int
+    n_steps: int
+    elapsed_s: float
+    eta_s: float
+
+    @property
+    def fraction(self) -> float:
+        """Done fraction 0..1."""
+        return self.n_done / self.n_steps if self.n_steps else 1.0
+
+
+@dataclass(frozen=True)
+class Paused(Event):
+    """The runner paused between steps (outputs off)."""
+
+    reason: str
+
+
+@dataclass(frozen=True)
+class Resumed(Event):
+    """The runner resumed after a pause."""
+
+
+@dataclass(frozen=True)
+class SetupFinished(Event):
+    """Every step of a setup is done (outputs off)."""
+
+    setup_index: int
+    setup: str
+
+
+@dataclass(frozen=True)
+class LogMessage(Event):
+    """A line for the operator and the session log."""
+
+    level: str
+    text: str
+
+
+@dataclass(frozen=True)
+class Fault(Event):
+    """An instrument (or the session writer) failed; outputs are already off."""
+
+    reason: str
+
+
+@dataclass(frozen=True)
+class RunFinished(Event):
+    """The run ended: ``status`` is completed, aborted, interrupted or failed."""
+
+    status: str
+    reason: str
+    n_done: int
+    n_steps: int
+
+
+Listener = Callable[[Event], None]
+
+
+class _Stop(Exception):
+    """Raised inside the runner when an abort was requested."""
+
+
+# --------------------------------------------------------------------------- numerics glue
+def drive_voltage_phasor(amplitude_vpp: float) -> complex:
+    """Drive-voltage phasor (V, peak) at the first pulse of a record."""
+    return 0.5 * amplitude_vpp * complex(math.cos(DRIVE_PHASE_AT_FIRST_PULSE_RAD),
+                                         math.sin(DRIVE_PHASE_AT_FIRST_PULSE_RAD))
+
+
+def force_phasor(frequency_hz: float, amplitude_vpp: float, newton_per_volt: complex) -> complex:
+    """Force phasor (N, peak, at the first pulse) from the calibrated drive chain
+    (:func:`pelvislab.acquisition.frf_lines.drive_force_phasor`)."""
+    from pelvislab.acquisition.frf_lines import drive_force_phasor
+
+    return complex(drive_force_phasor(frequency_hz, amplitude_vpp, newton_per_volt,
+                                      DRIVE_PHASE_AT_FIRST_PULSE_RAD).value)
+
+
+def process_channel(channel: ChannelData, frequency_hz: float, options: Any = None,
+                    speed_of_sound_m_s: float | None = None) -> ChannelData:
+    """Track ``channel``'s echoes and estimate the displacement phasor, in place.
+
+    Uses :func:`pelvislab.acquisition.tracking.track_echoes` (ch. 8) and
+    :func:`pelvislab.acquisition.phasor.estimate_phasor` with pulse times k / prf (s),
+    referred to the first pulse. Tracking failures leave ``phasor_m`` None and say why in
+    ``quality['message']``.
+    """
+    from pelvislab.acquisition.phasor import estimate_phasor
+    from pelvislab.acquisition.tracking import track_echoes
+
+    c = float(speed_of_sound_m_s or channel.speed_of_sound_m_s)
+    channel.speed_of_sound_m_s = c
+    try:
+        result = track_echoes(channel.codes, channel.trigger_offset_s, channel.sample_rate_hz,
+                              c, volts_per_count=channel.volts_per_count, options=options)
+    except Exception as exc:  # bad echoes are a quality problem, not a crash
+        channel.displacement_m = None
+        channel.phasor_m = None
+        channel.phasor_std_m = None
+        channel.quality = {"ok": False, "message": f"tracking failed: {exc}"}
+        return channel
+    disp = np.asarray(result.displacement_m, dtype=float)
+    time_s = np.arange(disp.size, dtype=float) / channel.prf_hz
+    lost = np.asarray(getattr(result, "lost", np.zeros(disp.size, bool)), dtype=bool)
+    quality: dict[str, Any] = {}
+    corr = np.asarray(getattr(result, "correlation", np.ones(disp.size)), dtype=float)
+    snr = np.asarray(getattr(result, "snr_db", np.full(disp.size, np.nan)), dtype=float)
+    quality["correlation_median"] = float(np.nanmedian(corr)) if corr.size else float("nan")
+    quality["correlation_min"] = float(np.nanmin(corr)) if corr.size else float("nan")
+    quality["snr_db_median"] = float(np.nanmedian(snr)) if np.isfinite(snr).any() else float(
+        "nan")
+    quality["lost_fraction"] = float(lost.mean()) if lost.size else 0.0
+    gate = getattr(result, "gate", None)
+    if gate is not None:
+        quality["gate_start"], quality["gate_stop"] = int(gate[0]), int(gate[1])
+    hops = getattr(result, "peak_hops", None)
+    if hops is not None:
+        quality["peak_hops"] = int(np.count_nonzero(np.asarray(hops)))
+    good = ~lost & np.isfinite(disp)
+    channel.displacement_m = disp
+    try:
+        if good.sum() < 4:
+            raise ValueError("fewer than 4 tracked echoes")
+        ph = estimate_phasor(disp[good], time_s[good], frequency_hz)
+        channel.phasor_m = complex(ph.value)
+        channel.phasor_std_m = float(getattr(ph, "std", float("nan")))
+        thd = getattr(ph, "thd", None)
+        if thd is not None:
+            quality["thd"] = float(thd)
+    except Exception as exc:
+        channel.phasor_m = None
+        channel.phasor_std_m = None
+        quality["message"] = f"phasor failed: {exc}"
+    ok = (channel.phasor_m is not None
+          and quality["correlation_median"] >= QUALITY_MIN_CORRELATION
+          and quality["lost_fraction"] <= QUALITY_MAX_LOST_FRACTION)
+    quality["ok"] = bool(ok)
+    quality.setdefault("message", "ok" if ok else (
+        f"poor tracking: median correlation {quality['correlation_median']:.2f}, "
+        f"{100 * quality['lost_fraction']:.1f}% echoes lost"))
+    channel.quality = quality
+    return channel
+
+
+# --------------------------------------------------------------------------- runner
+class Runner:
+    """Runs ``protocol`` on an open ``bench`` (see module docstring).
+
+    ``skip``: step keys ``(setup, frequency)`` already in the session (resume).
+    ``auto_continue``: answer operator prompts automatically (headless runs).
+    """
+
+    def __init__(self, protocol: Protocol, bench: Any, *, auto_continue: bool = True,
+                 tracking_options: Any = None, skip: Iterable[tuple[str, float]] = (),
+                 clock: Callable[[], float] = time.monotonic) -> None:
+        self.protocol = protocol
+        self.bench = bench
+        self.auto_continue = auto_continue
+        self.tracking_options = tracking_options
+        self._skip = {(s, round(float(f), 9)) for s, f in skip}
+        self._clock = clock
+        self._listeners: list[tuple[Listener, bool]] = []
+        self._abort = threading.Event()
+        self._abort_reason = ""
+        self._abort_status = "aborted"
+        self._pause = threading.Event()
+        self._confirm = threading.Event()
+        self._wake = threading.Event()
+        self._lock = threading.RLock()  # generator commands vs. abort from another thread
+        self._t0 = clock()
+        self.critical = False
+        """True while listeners run (they write the session): signal handlers must then
+        only call :meth:`abort`, not raise."""
+        self.state = "idle"
+        self._notes: list[str] = []
+        self._notes_lock = threading.Lock()
+
+    # -------------------------------------------------------------- listeners
+    def subscribe(self, listener: Listener, critical: bool = False) -> None:
+        """Call ``listener(event)`` for every event. An exception in a ``critical``
+        listener (the session writer) is a fault that stops the run; in another listener
+        it is logged and that listener is dropped."""
+        self._listeners.append((listener, critical))
+
+    def _emit(self, event: Event) -> None:
+        # Listeners write files: a signal handler must not raise inside them (see critical).
+        was = self.critical
+        self.critical = True
+        try:
+            for listener, critical in list(self._listeners):
+                if critical:
+                    listener(event)
+                    continue
+                try:
+                    listener(event)
+                except Exception as exc:
+                    log.error("listener %r failed on %s, dropped: %s", listener,
+                              type(event).__name__, exc)
+                    self._listeners.remove((listener, critical))
+        finally:
+            self.critical = was
+
+    def _t(self) -> float:
+        return self._clock() - self._t0
+
+    def _log(self, text: str, level: str = "INFO") -> None:
+        self._emit(LogMessage(self._t(), level, text))
+
+    # -------------------------------------------------------------- control (any thread)
+    def pause(self) -> None:
+        """Pause before the next step (outputs go off until :meth:`resume`)."""
+        self._pause.set()
+
+    def resume(self) -> None:
+        """Continue after :meth:`pause`."""
+        self._pause.clear()
+        self._wake.set()
+
+    def confirm(self) -> None:
+        """Answer the current operator prompt: transducers are in place, go on."""
+        self._confirm.set()
+        self._wake.set()
+
+    def abort(self, reason: str = "aborted by the operator", status: str = "aborted") -> None:
+        """Stop the run: every output off now (in this thread), the runner stops next."""
+        if not self._abort.is_set():
+            self._abort_reason = reason
+            self._abort_status = status
+        self._abort.set()
+        self._wake.set()
+        self._safe_state()
+
+    def interrupt(self, reason: str = "interrupted (SIGINT)") -> None:
+        """For a signal handler in the runner's own thread: abort (outputs off at once) and,
+        unless listeners are writing, raise KeyboardInterrupt to cut a wait short."""
+        self.abort(reason, "interrupted")
+        if not self.critical and self.state in ("running", "waiting", "paused"):
+            raise KeyboardInterrupt(reason)
+
+    @property
+    def aborted(self) -> bool:
+        """True once an abort was requested."""
+        return self._abort.is_set()
+
+    def _safe_state(self) -> None:
+        got = self._lock.acquire(timeout=0.05)  # never wait long for the runner thread
+        try:
+            self.bench.safe_state()
+        except BaseException as exc:  # Bench.safe_state should not raise; be sure anyway
+            log.error("safe state: %s", exc)
+        finally:
+            if got:
+                self._lock.release()
+
+    # -------------------------------------------------------------- helpers
+    def add_note(self, text: str) -> None:
+        """Operator note from any thread; the runner's thread emits it as a LogMessage of
+        level NOTE (so the session writer stays single-threaded) at its next check."""
+        with self._notes_lock:
+            self._notes.append(" ".join(str(text).split()))
+        self._wake.set()
+
+    def _flush_notes(self) -> None:
+        with self._notes_lock:
+            notes, self._notes = self._notes, []
+        for note in notes:
+            self._emit(LogMessage(self._t(), "NOTE", note))
+
+    def _check(self) -> None:
+        if self._notes:
+            self._flush_notes()
+        if self._abort.is_set():
+            raise _Stop(self._abort_reason)
+
+    def _sleep(self, seconds: float) -> None:
+        """Interruptible wait (abort wakes it)."""
+        deadline = self._clock() + seconds
+        while True:
+            self._check()
+            left = deadline - self._clock()
+            if left <= 0:
+                return
+            self._wake.wait(min(left, 0.05))
+            self._wake.clear()
+
+    def _generators(self, on: bool) -> None:
+        with self._lock:
+            if on:
+                self._check()  # never switch on after an abort
+                self.bench.drive.output_on()
+                self.bench.trigger.output_on()
+            else:
+                self.bench.drive.output_off()
+                self.bench.trigger.output_off()
+
+    def _wait_prompt(self, setup_index: int, setup: Setup) -> None:
+        transducers = ", ".join(f"ch{c} -> {p}" for c, p in sorted(setup.transducers.items()))
+        message = (setup.prompt or f"Setup {setup.name!r}: excitation at {setup.excitation}; "
+                   f"place the transducers: {transducers}.")
+        self._confirm.clear()
+        self._emit(OperatorPrompt(self._t(), setup_index, setup.name, message,
+                                  self.auto_continue))
+        if self.auto_continue:
+            self._log(f"prompt auto-continued (headless): {message}")
+            return
+        self.state = "waiting"
+        while not self._confirm.is_set():
+            self._check()
+            self._wake.wait(0.05)
+            self._wake.clear()
+        self.state = "running"
+        self._log(f"operator confirmed setup {setup.name!r}")
+
+    def _place(self, setup: Setup) -> None:
+        """On a simulated bench, let its simulated operator move shaker and transducers
+        (a bench exposing ``place`` or ``world.place``); a real operator did it already."""
+        place = getattr(self.bench, "place", None) or getattr(
+            getattr(self.bench, "world", None), "place", None)
+        if place is None or not self.bench.simulated:
+            return
+        excitation = self.protocol.excitations[setup.excitation]
+        place(excitation=excitation,
+              channels={ch: self.protocol.points[name] for ch, name in setup.transducers.items()},
+              excitation_direction=excitation.direction)
+        self._log(f"simulated operator placed the shaker at {excitation.name} and the "
+                  f"transducers for setup {setup.name!r}")
+
+    def _maybe_pause(self) -> bool:
+        """Honour a pause request; True if the runner paused (outputs were off)."""
+        if not self._pause.is_set():
+            return False
+        with self._lock:
+            self._generators(False)
+        self.state = "paused"
+        self._emit(Paused(self._t(), "paused by the operator"))
+        self._log("paused; outputs off")
+        while self._pause.is_set():
+            self._check()
+            self._wake.wait(0.05)
+            self._wake.clear()
+        self.state = "running"
+        self._emit(Resumed(self._t()))
+        self._log("resumed")
+        return True
+
+    def _configure(self, step: PlannedStep, channels: tuple[int, ...]) -> None:
+        us = self.protocol.ultrasound
+        with self._lock:
+            self._check()
+            self.bench.trigger.configure_pulse_burst(us.prf_hz, step.n_pulses,
+                                                     us.trigger_width_s, us.trigger_high_v)
+        self.bench.digitizer.configure_sequence(
+            list(channels), us.sample_rate_hz, us.samples, step.n_pulses, us.delay_s,
+            us.full_scale_v, us.offset_v)
+
+    # -------------------------------------------------------------- the run
+    def run(self) -> RunFinished:
+        """Execute the plan; returns the final event (also emitted). Never leaves an
+        output on. KeyboardInterrupt ends the run as ``interrupted`` (not re-raised)."""
+        plan = self.protocol.steps()
+        todo = [s for s in plan if s.key not in self._skip]
+        n_total = len(plan)
+        n_done = n_total - len(todo)
+        self._t0 = self._clock()
+        self.state = "running"
+        status, reason = "completed", ""
+        try:
+            self._emit(RunStarted(self._t(), self.protocol.name, n_total, n_done,
+                                  sum(self.protocol.step_duration_s(s.frequency_hz)
+                                      for s in todo), bool(self.bench.simulated)))
+            if n_done:
+                self._log(f"resuming: {n_done} of {n_total} steps already in the session")
+            n_done = self._run_plan(todo, n_done, n_total)
+        except _Stop as exc:
+            status, reason = self._abort_status, str(exc) or "aborted"
+        except KeyboardInterrupt:
+            self.abort("interrupted (Ctrl-C / SIGINT)", "interrupted")
+            status, reason = self._abort_status, self._abort_reason
+        except Exception as exc:
+            self._safe_state()
+            if self._abort.is_set():  # an abort made an instrument call fail: not a fault
+                status, reason = self._abort_status, self._abort_reason
+            else:
+                status = "failed"
+                reason = f"fault: {type(exc).__name__}: {' '.join(str(exc).split())}"
+                try:
+                    self._emit(Fault(self._t(), reason))
+                except Exception as listener_exc:
+                    log.error("listener failed on Fault: %s", listener_exc)
+        finally:
+            self._safe_state()
+        self.state = "finished"
+        if status != "completed":
+            try:
+                self._log(f"run {status}: {reason}; outputs off", "ERROR")
+            except Exception as exc:
+                log.error("listener failed on the final log line: %s", exc)
+        try:
+            self._flush_notes()
+        except Exception as exc:
+            log.error("listener failed on a note: %s", exc)
+        done = n_total - len(todo) + self._n_new
+        final = RunFinished(self._t(), status, reason, done, n_total)
+        try:
+            self._emit(final)
+        except Exception as exc:
+            log.error("listener failed on RunFinished: %s", exc)
+        return final
+
+    _n_new = 0
+
+    def _run_plan(self, todo: list[PlannedStep], n_done: int, n_total: int) -> int:
+        proto = self.protocol
+        bench = self.bench
+        us = proto.ultrasound
+        channels = proto.channels
+        self._n_new = 0
+        remaining_est = [proto.step_duration_s(s.frequency_hz) for s in todo]
+        est_done = 0.0
+        with self._lock:
+            self._check()
+            bench.drive.output_off()
+            bench.trigger.output_off()
+        for ch in channels:
+            if ch - 1 < len(bench.pulsers):
+                bench.pulsers[ch - 1].configure(us.gain_db, us.pulse_energy, us.damping_ohm,
+                                                us.high_pass_hz, us.low_pass_hz)
+        cfg = bench.config
+        force_per_volt = complex(cfg.drive_newton_per_volt)
+        n_setups = len(proto.setups)
+        configured: tuple[int, tuple[int, ...]] = (-1, ())
+        t_run = self._clock()
+        for si, setup in enumerate(proto.setups):
+            steps = [s for s in todo if s.setup_index == si]
+            if not steps:
+                continue
+            self._check()
+            self._emit(SetupStarted(self._t(), si, setup.name, setup.excitation,
+                                    dict(setup.transducers), n_setups))
+            self._wait_prompt(si, setup)
+            self._place(setup)
+            first = steps[0]
+            with self._lock:
+                self._check()
+                bench.drive.configure_sine(first.frequency_hz, proto.sweep.drive_vpp)
+            self._generators(True)
+            setup_channels = tuple(sorted(setup.transducers))
+            for step in steps:
+                self._check()
+                if self._maybe_pause():
+                    self._generators(True)
+                self._emit(StepStarted(self._t(), step, n_done, n_total))
+                t_step = self._clock()
+                started_at = self._session_time()
+                with self._lock:
+                    self._check()
+                    bench.drive.set_frequency(step.frequency_hz)
+                if (step.n_pulses, setup_channels) != configured:
+                    self._configure(step, setup_channels)
+                    configured = (step.n_pulses, setup_channels)
+                self._sleep(step.settle_s)
+                record_s = step.n_pulses / us.prf_hz
+                records = bench.digitizer.acquire(timeout_s=2.0 * record_s + 5.0)
+                self._check()  # an abort during the acquisition: do not keep a cut record
+                data = self._process(step, setup, records, force_per_volt, started_at)
+                self._emit(StepFinished(self._t(), step, data, self._clock() - t_step))
+                for c in data.channels:
+                    q = c.quality
+                    self._emit(Quality(self._t(), step, c.name, bool(q.get("ok", False)),
+                                       float(q.get("correlation_median", np.nan)),
+                                       float(q.get("lost_fraction", np.nan)),
+                                       float(q.get("snr_db_median", np.nan)),
+                                       str(q.get("message", ""))))
+                n_done += 1
+                self._n_new += 1
+                est_done += remaining_est.pop(0)
+                elapsed = self._clock() - t_run
+                left = sum(remaining_est)
+                eta = left * (elapsed / est_done) if est_done > 0 else left
+                self._emit(Progress(self._t(), n_done, n_total, elapsed, eta))
+            self._generators(False)
+            self._emit(SetupFinished(self._t(), si, setup.name))
+        return n_done
+
+    def _session_time(self) -> float:
+        return self.session_offset_s + self._t()
+
+    session_offset_s = 0.0
+    """Seconds between the session's creation and this run's start (set by the caller)."""
+
+    def _process(self, step: PlannedStep, setup: Setup, records: Mapping[int, Any],
+                 force_per_volt: complex, started_at: float) -> StepData:
+        proto = self.protocol
+        us = proto.ultrasound
+        cfg = self.bench.config
+        chans: list[ChannelData] = []
+        for ch in sorted(setup.transducers):
+            if ch not in records:
+                raise RuntimeError(f"digitizer returned no record for channel {ch}")
+            rec = records[ch]
+            override = dict(getattr(cfg, "channel_speed_of_sound_m_s", {}) or {})
+            c = float(override.get(ch, us.speed_of_sound_m_s))
+            cd = ChannelData(
+                name=f"ch{ch}", codes=np.asarray(rec.codes),
+                trigger_offset_s=np.asarray(rec.trigger_offset_s, dtype=float),
+                sample_rate_hz=float(rec.sample_rate_hz), prf_hz=us.prf_hz,
+                delay_s=float(rec.delay_s), volts_per_count=float(rec.volts_per_count),
+                volts_offset=float(rec.volts_offset), speed_of_sound_m_s=c,
+                output=proto.points[setup.transducers[ch]])
+            process_channel(cd, step.frequency_hz, self.tracking_options)
+            chans.append(cd)
+        force = force_phasor(step.frequency_hz, proto.sweep.drive_vpp, force_per_volt)
+        ok = all(bool(c.quality.get("ok")) for c in chans)
+        return StepData(setup=setup.name, frequency_hz=step.frequency_hz,
+                        input=proto.excitations[setup.excitation], started_at_s=started_at,
+                        channels=chans, force_phasor_n=force, drive_vpp=proto.sweep.drive_vpp,
+                        status=STATUS_COMPLETE,
+                        extra={"plan_index": step.index, "setup_index": step.setup_index,
+                               "n_pulses": step.n_pulses, "quality_ok": ok})
+
+
+# --------------------------------------------------------------------------- recorder
+def command_logs(bench: Any) -> dict[str, list[tuple[float, str]]]:
+    """Every instrument's command log (``command_log`` attribute), by role."""
+    roles = [("trigger", bench.trigger), ("drive", bench.drive), ("digitizer", bench.digitizer)]
+    roles += [(f"pulser{i + 1}", p) for i, p in enumerate(bench.pulsers)]
+    out: dict[str, list[tuple[float, str]]] = {}
+    for role, inst in roles:
+        entries = getattr(inst, "command_log", None)
+        if entries is not None:
+            out[role] = [(float(t), str(s)) for t, s in list(entries)]
+    return out
+
+
+@dataclass
+class SessionRecorder:
+    """The session writer as a listener: steps, log lines and the run's end go to the file.
+
+    Subscribe it as *critical* (a failure to write is a fault that stops the run).
+    """
+
+    writer: SessionWriter
+    bench: Any = None
+    steps_written: int = 0
+    statuses: list[str] = field(default_factory=list)
+
+    def __call__(self, event: Event) -> None:
+        if isinstance(event, StepFinished):
+            self.writer.log(f"step {event.step.index} setup {event.step.setup!r} "
+                            f"{event.step.frequency_hz:g} Hz: {event.data.channels and 'ok'}",
+                            "DEBUG")
+            self.writer.append_step(event.data)  # flushes
+            self.steps_written += 1
+        elif isinstance(event, LogMessage):
+            self.writer.log(event.text, event.level, flush=event.level in ("WARNING", "ERROR"))
+        elif isinstance(event, Quality) and not event.ok:
+            self.writer.log(f"quality: step {event.step.index} {event.channel}: "
+                            f"{event.message}", "WARNING")
+        elif isinstance(event, OperatorPrompt):
+            self.writer.log(f"prompt: {event.message}")
+        elif isinstance(event, Fault):
+            self.writer.log(event.reason, "ERROR", flush=True)
+        elif isinstance(event, RunFinished):
+            logs = command_logs(self.bench) if self.bench is not None else {}
+            self.writer.finish_run(event.status, event.reason, logs)
+
+
+# --------------------------------------------------------------------------- wiring
+@dataclass
+class PreparedSession:
+    """A runner wired to an open bench and session writer (CLI ``run`` and the GUI).
+
+    Subscribe your own listeners to ``runner``, then call :meth:`run` (any thread) and
+    finally :meth:`close` (idempotent: safe state, close the file, release the bench).
+    """
+
+    runner: Runner
+    writer: SessionWriter
+    bench: Any
+    protocol: Protocol
+    path: Path
+    resumed: bool = False
+    problems: list[str] = field(default_factory=list)
+    """Damaged or incomplete step groups found when resuming (kept; measured again)."""
+    final: RunFinished | None = None
+    _closed: bool = False
+
+    def run(self) -> RunFinished:
+        """Execute the plan (see :meth:`Runner.run`)."""
+        self.final = self.runner.run()
+        return self.final
+
+    def close(self) -> None:
+        """Outputs off, session flushed and closed, instruments released. Safe twice."""
+        if self._closed:
+            return
+        self._closed = True
+        try:
+            self.bench.safe_state()
+        finally:
+            try:
+                if self.final is None and self.writer.run_group is not None:
+                    # run() never ran or died without an end event: record that honestly
+                    self.writer.finish_run("aborted", "session closed before the run ended",
+                                           command_logs(self.bench))
+            except Exception as exc:
+                log.error("recording the end of the run: %s", exc)
+            finally:
+                try:
+                    self.writer.close()
+                finally:
+                    self.bench.close()
+
+    def __enter__(self) -> PreparedSession:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+def prepare_session(protocol_path: Path | str, out_path: Path | str,
+                    bench_path: Path | str | None = None, resume: bool = False,
+                    auto_continue: bool = True, tracking_options: Any = None,
+                    software_version: str = "", bench: Any = None) -> PreparedSession:
+    """Validate the protocol against the bench, open the bench and the session file.
+
+    Checks everything that can be checked before touching an instrument or a file: the
+    bench file, the protocol (against the bench limits), and that ``out_path`` does not
+    exist (new session) or is a readable session of the same protocol (``resume``).
+    Nothing is ever written over an existing file. ``bench``: an already open bench to use
+    instead of opening ``bench_path`` (its config then supplies the limits); it is closed
+    with the session.
+    """
+    from pelvislab.acquisition.protocol import BenchLimits, load_protocol
+    from pelvislab.acquisition.session import bench_description
+    from pelvislab.drivers.bench import BenchConfig, open_bench
+
+    out = Path(out_path)
+    bench_file = Path(bench_path) if bench_path is not None else None
+    if bench is not None:
+        config = bench.config
+    elif bench_file is not None:
+        config = BenchConfig.load(bench_file)
+    else:
+        config = BenchConfig.default()
+    protocol = load_protocol(protocol_path, BenchLimits.from_config(config))
+    skip: list[tuple[str, float]] = []
+    problems: list[str] = []
+    if resume:
+        if not out.is_file():
+            raise FileNotFoundError(f"--resume: no session file {out} to continue")
+        with SessionReader(out) as reader:
+            if reader.protocol_text != protocol.text:
+                raise ValueError(f"{out}: its /protocol differs from {protocol_path}; resume "
+                                 "with the protocol the session started with")
+            skip = [s.key for s in reader.steps(with_echoes=False)]
+            problems = reader.damaged + reader.incomplete
+    elif out.exists():
+        raise FileExistsError(f"{out} exists; not overwriting it (use --resume to continue "
+                              "that session, or choose another --out)")
+    if bench is None:
+        bench = open_bench(bench_file)
+    try:
+        description = bench_description(bench)
+        if resume:
+            writer = SessionWriter.resume(out, protocol.text)
+        else:
+            writer = SessionWriter.create(out, protocol, description, software_version)
+        try:
+            runner = Runner(protocol, bench, auto_continue=auto_continue,
+                            tracking_options=tracking_options, skip=skip)
+            runner.session_offset_s = writer.elapsed_s()
+            runner.subscribe(SessionRecorder(writer, bench), critical=True)
+            writer.start_run(description, software_version)
+            writer.log(f"run started: protocol {protocol.name!r} ({protocol.source}), "
+                       f"{'resumed, ' + str(len(skip)) + ' steps kept' if resume else 'new'}"
+                       f" session, bench {description['name']!r}", flush=True)
+            for problem in problems:
+                writer.log(f"resume: step {problem}; measured again", "WARNING")
+        except BaseException:
+            writer.close()
+            raise
+    except BaseException:
+        bench.close()
+        raise
+    return PreparedSession(runner, writer, bench, protocol, out, resume, problems)
+
+
+# --------------------------------------------------------------------------- reprocessing
+def reprocess_session(source: Path | str, target: Path | str, tracking_options: Any = None,
+                      speed_of_sound_m_s: float | None = None,
+                      progress: Callable[[int, int], None] | None = None,
+                      software_version: str = "") -> tuple[int, list[str]]:
+    """Recompute displacement, phasors and /frf of ``source`` from its raw echoes alone.
+
+    Writes a new session ``target`` (never over an existing file) with the same /protocol,
+    /bench and raw echoes, and a log line naming the source and the options. Returns
+    (steps reprocessed, problems met: damaged or incomplete groups skipped).
+    """
+    import h5py
+
+    from pelvislab.acquisition.frfset import write_frf
+    from pelvislab.acquisition.session import SESSION_SCHEMA, SESSION_SCHEMA_VERSION
+
+    source, target = Path(source), Path(target)
+    if target.exists():
+        raise FileExistsError(f"{target} exists; not overwriting it")
+    if target.resolve() == source.resolve():
+        raise ValueError("--out must differ from the session being reprocessed")
+    reader = SessionReader(source)
+    try:
+        names = reader.step_names()
+        with h5py.File(target, "w-") as out:
+            for k in reader.handle.attrs:
+                out.attrs[k] = reader.handle.attrs[k]
+            out.attrs["schema"] = SESSION_SCHEMA
+            out.attrs["schema_version"] = SESSION_SCHEMA_VERSION
+            out.attrs["reprocessed_from"] = str(source)
+            out.attrs["software_version"] = software_version
+            for group in ("protocol", "bench", "runs"):
+                if group in reader.handle:
+                    reader.handle.copy(reader.handle[group], out, name=group)
+            out.create_dataset("log", data=np.array(reader.log_lines() + [
+                f"reprocessed from {source} with tracking options {tracking_options!r}"
+                + (f", speed of sound {speed_of_sound_m_s} m/s" if speed_of_sound_m_s else "")],
+                dtype=object), maxshape=(None,), chunks=True, dtype=h5py.string_dtype())
+            steps_out = out.create_group("steps")
+            done: list[StepData] = []
+            for n, step in enumerate(reader.steps()):
+                for c in step.channels:
+                    process_channel(c, step.frequency_hz, tracking_options, speed_of_sound_m_s)
+                src = reader.handle["steps"][f"{step.index:06d}"]
+                g = steps_out.create_group(src.name.split("/")[-1])
+                for k in src.attrs:
+                    g.attrs[k] = src.attrs[k]
+                g.create_group("echoes")
+                for k in src["echoes"]:
+                    src.copy(src["echoes"][k], g["echoes"], name=k)
+                    if not k.endswith("_trigger_offset_s") and speed_of_sound_m_s:
+                        g["echoes"][k].attrs["speed_of_sound_m_s"] = float(speed_of_sound_m_s)
+                disp = g.create_group("displacement")
+                ph = g.create_group("phasor")
+                for c in step.channels:
+                    if c.displacement_m is not None:
+                        d = disp.create_dataset(c.name, data=c.displacement_m)
+                        for qk, qv in c.quality.items():
+                            d.attrs[f"quality_{qk}"] = qv
+                    if c.phasor_m is not None:
+                        p = ph.create_dataset(c.name, data=np.complex128(c.phasor_m))
+                        p.attrs["std_m"] = float(np.nan if c.phasor_std_m is None
+                                                 else c.phasor_std_m)
+                g.create_dataset("force_phasor_n", data=np.complex128(step.force_phasor_n))
+                done.append(step)
+                if progress is not None:
+                    progress(n + 1, len(names))
+            layout = reader.frf_layout()
+            if layout is not None:
+                frf = frf_from_steps(done, *layout)
+            else:
+                frf = frf_from_steps(done)
+            write_frf(out, frf)
+        problems = reader.damaged + reader.incomplete
+    except BaseException:
+        target.unlink(missing_ok=True)
+        raise
+    finally:
+        reader.close()
+    return len(done), problems

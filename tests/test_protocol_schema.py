@@ -1,0 +1,299 @@
+"""Protocol schema v1: validation rules name the key and the rule; duration estimate; fuzzing."""
+
+from __future__ import annotations
+
+import math
+import re
+import subprocess
+import sys
+from importlib import resources
+from pathlib import Path
+
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from pelvislab.acquisition.protocol import (
+    BenchLimits,
+    Point,
+    ProtocolError,
+    load_landmarks,
+    load_protocol,
+    parse_protocol,
+)
+from pelvislab.app.cli import main
+
+POINTS = {
+    "a": Point("a", "sacrum", (-0.15, 0.0, -0.05), (-1.0, 0.0, 0.0)),
+    "b": Point("b", "innominate_left", (0.0, 0.11, 0.0), (1.0, 0.0, 0.0)),
+    "c": Point("c", "innominate_right", (0.0, -0.11, 0.0), (1.0, 0.0, 0.0)),
+}
+
+
+def dumps(data: dict) -> str:
+    """Minimal TOML writer (scalars, lists, tables, arrays of tables) for the tests."""
+
+    def value(v):
+        if isinstance(v, bool):
+            return "true" if v else "false"
+        if isinstance(v, int | float):
+            if isinstance(v, float) and not math.isfinite(v):
+                return "nan" if math.isnan(v) else ("inf" if v > 0 else "-inf")
+            return repr(v)
+        if isinstance(v, str):
+            return '"' + v.replace("\\", "\\\\").replace('"', '\\"').replace("\n", "\\n") + '"'
+        if isinstance(v, list):
+            return "[" + ", ".join(value(x) for x in v) + "]"
+        if isinstance(v, dict):
+            return "{" + ", ".join(f"{key(k)} = {value(x)}" for k, x in v.items()) + "}"
+        raise TypeError(v)
+
+    def key(k):
+        return k if re.fullmatch(r"[A-Za-z0-9_-]+", k) else value(k)
+
+    lines, tables = [], []
+    for k, v in data.items():
+        if isinstance(v, dict):
+            tables.append((k, v))
+        elif isinstance(v, list) and v and all(isinstance(x, dict) for x in v):
+            tables.append((k, v))
+        else:
+            lines.append(f"{key(k)} = {value(v)}")
+    for k, v in tables:
+        if isinstance(v, dict):
+            lines.append(f"[{key(k)}]")
+            lines += [f"{key(a)} = {value(b)}" for a, b in v.items()]
+        else:
+            for item in v:
+                lines.append(f"[[{key(k)}]]")
+                lines += [f"{key(a)} = {value(b)}" for a, b in item.items()]
+    return "\n".join(lines) + "\n"
+
+
+def base() -> dict:
+    return {
+        "schema": "pelvislab-protocol",
+        "schema_version": 1,
+        "name": "test",
+        "subject": {"id": "T01", "position": "face-up"},
+        "sweep": {"start_hz": 5.0, "stop_hz": 300.0, "step_hz": 2.5, "drive_vpp": 0.5,
+                  "settle_s": 0.05, "periods_per_step": 10},
+        "ultrasound": {"prf_hz": 5000.0, "sample_rate_hz": 500e6, "samples": 500},
+        "setups": [{"name": "s1", "excitation": "a", "transducers": {"ch1": "a", "ch2": "b"}}],
+    }
+
+
+def parse(data: dict, limits: BenchLimits | None = None):
+    return parse_protocol(dumps(data), "p.toml", limits, POINTS)
+
+
+def problems_of(data: dict) -> str:
+    with pytest.raises(ProtocolError) as info:
+        parse(data)
+    message = str(info.value)
+    assert "\n" not in message
+    return message
+
+
+def test_thesis_sweep_duration_is_23_s():
+    # ch. 6.2: 5-300 Hz, 2.5 Hz, 10 periods per step, 50 ms settle -> "23 seconds"
+    p = parse(base())
+    assert len(p.sweep.frequencies_hz) == 119
+    assert p.sweep_duration_s() == pytest.approx(23.4, abs=0.1)
+    assert p.n_pulses(5.0) == 10_000 and p.n_pulses(300.0) == 167
+    assert not p.warnings
+
+
+def test_finer_step_warns_about_keeping_still():
+    data = base()
+    data["sweep"]["step_hz"] = 1.0
+    p = parse(data)
+    assert any("keep still" in w and "45" in w for w in p.warnings)
+
+
+def test_down_order_and_list():
+    data = base()
+    data["sweep"] = {"frequencies_hz": [280.0, 80.0, 180.0], "order": "down", "drive_vpp": 1.0}
+    data["ultrasound"]["pulses"] = 2000
+    p = parse(data)
+    assert p.sweep.frequencies_hz == (280.0, 180.0, 80.0)
+    assert [s.frequency_hz for s in p.steps()] == [280.0, 180.0, 80.0]
+
+
+@pytest.mark.parametrize(
+    ("mutate", "key", "rule"),
+    [
+        (lambda d: d["sweep"].update(stpe_hz=1.0), "sweep.stpe_hz", "unknown key"),
+        (lambda d: d.update(colour="red"), "colour", "unknown key"),
+        (lambda d: d["sweep"].update(stop_hz="300 Hz"), "sweep.stop_hz", "must be a number"),
+        (lambda d: d["sweep"].update(drive_vpp=True), "sweep.drive_vpp", "must be a number"),
+        (lambda d: d["sweep"].update(drive_vpp=5.0), "sweep.drive_vpp", "bench limit"),
+        (lambda d: d["sweep"].pop("drive_vpp"), "sweep.drive_vpp", "missing"),
+        (lambda d: d["sweep"].update(stop_hz=2600.0), "sweep.stop_hz", "prf_hz/2"),
+        (lambda d: d["ultrasound"].update(samples=100_000), "ultrasound.samples",
+         "before the next pulse"),
+        (lambda d: (d["sweep"].pop("periods_per_step"), d["ultrasound"].update(pulses=500)),
+         "ultrasound.pulses", "periods"),
+        (lambda d: d["sweep"].update(periods_per_step=1), "sweep.periods_per_step", ">= 2"),
+        (lambda d: d["setups"][0].update(excitation="nowhere"), "setups[0].excitation",
+         "unknown point"),
+        (lambda d: d["setups"][0]["transducers"].update(ch3="c"), "setups[0].transducers.ch3",
+         "unknown channel"),
+        (lambda d: d.update(schema_version=2), "schema_version", "reads version 1"),
+        (lambda d: d.update(setups=[]), "setups", "non-empty"),
+        (lambda d: d["subject"].update(position="upside-down"), "subject.position",
+         "must be one of"),
+        (lambda d: d["sweep"].update(start_hz=-5.0), "sweep.start_hz", "must be > 0"),
+    ],
+)
+def test_each_rule_names_key_and_rule(mutate, key, rule):
+    data = base()
+    mutate(data)
+    message = problems_of(data)
+    assert f"{key}:" in message and rule in message, message
+
+
+def test_all_problems_are_reported_on_one_line():
+    data = base()
+    data["sweep"]["drive_vpp"] = 9.0
+    data["ultrasound"]["prf_hz"] = "5 kHz"
+    data["extra"] = 1
+    message = problems_of(data)
+    assert "sweep.drive_vpp" in message and "ultrasound.prf_hz" in message and "extra" in message
+
+
+def test_bench_limit_comes_from_the_bench():
+    data = base()
+    data["sweep"]["drive_vpp"] = 3.0
+    with pytest.raises(ProtocolError, match="bench limit 2"):
+        parse(data)
+    assert parse(data, BenchLimits(max_drive_vpp=5.0)).sweep.drive_vpp == 3.0
+
+
+def test_inline_points_and_mm():
+    data = base()
+    data["points"] = {"probe": {"bone": "", "position_mm": [10, 0, 0], "direction": [0, 0, 2]}}
+    with pytest.raises(ProtocolError, match="unit vector"):
+        parse(data)
+    data["points"]["probe"]["direction"] = [0, 0, 1]
+    data["setups"][0]["transducers"]["ch2"] = "probe"
+    p = parse(data)
+    assert p.points["probe"].position_m == pytest.approx((0.01, 0.0, 0.0))
+
+
+SHIPPED = sorted(
+    str(p.name) for p in resources.files("pelvislab.protocols").iterdir()
+    if p.name.endswith(".toml") and p.name != "landmarks.toml"
+)
+
+
+@pytest.mark.parametrize("name", SHIPPED)
+def test_shipped_protocols_validate(name):
+    path = Path(str(resources.files("pelvislab.protocols") / name))
+    p = load_protocol(path)
+    assert p.steps()
+    assert p.estimated_duration_s() > 0
+
+
+def test_shipped_set_is_complete():
+    expected = {"demo.toml", "face_up.toml", "face_down.toml", "nine_point.toml",
+                "validation_amplitude.toml", "validation_phase.toml"}
+    assert expected <= set(SHIPPED)
+
+
+def test_thesis_scenarios_match_tables_6_3_and_6_4():
+    root = resources.files("pelvislab.protocols")
+    up = load_protocol(Path(str(root / "face_up.toml")))
+    down = load_protocol(Path(str(root / "face_down.toml")))
+    # Table 6.3: 3 excitations x 5 pick-ups (drive point + 4 SIAS); Table 6.4: 2 x 4.
+    for p, n_exc, n_lines in ((up, 3, 15), (down, 2, 8)):
+        pairs = {(s.excitation, o) for s in p.setups for o in s.transducers.values()}
+        assert len({s.excitation for s in p.setups}) == n_exc
+        assert len(pairs) == n_lines
+        assert all((s.excitation, s.excitation) in pairs for s in p.setups)
+
+
+def test_landmark_catalogue_loads():
+    catalogue = load_landmarks()
+    for point in catalogue.values():
+        assert point.bone in ("innominate_right", "innominate_left", "sacrum", "")
+
+
+def test_cli_check_prints_duration_and_fails_with_one_line(tmp_path, capsys):
+    good = tmp_path / "good.toml"
+    data = base()
+    data["points"] = {k: {"bone": v.bone, "position_m": list(v.position_m),
+                          "direction": list(v.direction)} for k, v in POINTS.items()}
+    good.write_text(dumps(data))
+    assert main(["protocol", "check", str(good)]) == 0
+    out = capsys.readouterr().out
+    assert "estimated duration: 23.4 s" in out
+    data["sweep"]["drive_vpp"] = 50.0
+    bad = tmp_path / "bad.toml"
+    bad.write_text(dumps(data))
+    assert main(["protocol", "check", str(bad)]) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "sweep.drive_vpp" in err[0] and "Traceback" not in err[0]
+    assert main(["protocol", "check", str(tmp_path / "missing.toml")]) == 1
+
+
+# --------------------------------------------------------------------------- fuzzing
+scalars = st.one_of(st.none(), st.booleans(), st.integers(-10**6, 10**6),
+                    st.floats(allow_nan=True, allow_infinity=True), st.text(max_size=8))
+values = st.recursive(
+    scalars.filter(lambda v: v is not None),
+    lambda inner: st.one_of(st.lists(inner, max_size=3),
+                            st.dictionaries(st.text("abcxyz_", min_size=1, max_size=6), inner,
+                                            max_size=3)),
+    max_leaves=6,
+)
+PATHS = [("sweep", k) for k in ("start_hz", "stop_hz", "step_hz", "drive_vpp", "settle_s",
+                                "periods_per_step", "order", "frequencies_hz")] + \
+        [("ultrasound", k) for k in ("prf_hz", "pulses", "samples", "sample_rate_hz",
+                                     "delay_s", "pulse_energy", "speed_of_sound_m_s")] + \
+        [(None, k) for k in ("schema", "name", "subject", "sweep", "setups", "points")]
+
+
+def check_never_crashes(text: str) -> None:
+    try:
+        parse_protocol(text, "fuzz.toml", None, POINTS)
+    except ProtocolError as exc:
+        assert "\n" not in str(exc) and str(exc).startswith("fuzz.toml: ")
+
+
+@settings(max_examples=40)
+@given(st.lists(st.tuples(st.sampled_from(PATHS), st.one_of(st.just("<delete>"), values)),
+                min_size=1, max_size=4))
+def test_fuzzed_values_give_protocol_errors_only(changes):
+    data = base()
+    for (table, key), v in changes:
+        target = data if table is None else data.setdefault(table, {})
+        if not isinstance(target, dict):
+            continue
+        if v == "<delete>":
+            target.pop(key, None)
+        else:
+            target[key] = v
+    try:
+        text = dumps(data)
+    except TypeError:
+        return
+    check_never_crashes(text)
+
+
+@settings(max_examples=40)
+@given(st.data())
+def test_fuzzed_text_gives_protocol_errors_only(data):
+    text = dumps(base())
+    cut = data.draw(st.integers(0, len(text)))
+    junk = data.draw(st.text(max_size=12))
+    check_never_crashes(text[:cut] + junk + text[cut + len(junk):])
+
+
+def test_cli_on_garbage_file_is_one_line(tmp_path):
+    bad = tmp_path / "bin.toml"
+    bad.write_bytes(b"\xff\xfe\x00garbage")
+    proc = subprocess.run([sys.executable, "-m", "pelvislab.app", "protocol", "check", str(bad)],
+                          capture_output=True, text=True)
+    assert proc.returncode == 1
+    assert len(proc.stderr.strip().splitlines()) == 1 and "Traceback" not in proc.stderr

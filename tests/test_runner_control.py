@@ -1,0 +1,404 @@
+"""Runner control on a small test bench: events, FRF values, abort, pause, prompts, faults.
+
+The test bench (:func:`make_bench`) speaks the driver interfaces and keeps command logs like
+the real and simulated instruments; its digitizer synthesises echoes of a point moving with
+a known receptance, so the FRF the runner stores can be checked against the truth. It runs
+faster than real time (``pace``).
+"""
+
+from __future__ import annotations
+
+import math
+import threading
+import time
+
+import numpy as np
+import pytest
+
+from pelvislab.acquisition import runner as r
+from pelvislab.acquisition.protocol import Point
+from pelvislab.acquisition.session import SessionReader
+from pelvislab.drivers.bench import Bench, BenchConfig
+from pelvislab.drivers.interfaces import InstrumentError, InstrumentTimeoutError, SegmentedRecord
+
+pytest.importorskip("pelvislab.acquisition.tracking")
+pytest.importorskip("pelvislab.acquisition.phasor")
+
+POINTS = {
+    "a": Point("a", "sacrum", (-0.15, 0.0, -0.05), (-1.0, 0.0, 0.0)),
+    "b": Point("b", "innominate_left", (0.0, 0.11, 0.0), (1.0, 0.0, 0.0)),
+    "c": Point("c", "innominate_right", (0.0, -0.11, 0.0), (1.0, 0.0, 0.0)),
+}
+POINTS_TOML = "".join(
+    f"[points.{k}]\nbone = \"{p.bone}\"\nposition_m = {list(p.position_m)}\n"
+    f"direction = {list(p.direction)}\n" for k, p in POINTS.items())
+PROTOCOL = """
+schema = "pelvislab-protocol"
+schema_version = 1
+name = "runner-test"
+[sweep]
+frequencies_hz = [60.0, 100.0, 140.0, 180.0]
+drive_vpp = 0.4
+settle_s = 0.05
+[ultrasound]
+pulses = 400
+samples = 160
+delay_s = 10e-6
+[[setups]]
+name = "s1"
+excitation = "a"
+transducers = { ch1 = "a", ch2 = "b" }
+[[setups]]
+name = "s2"
+excitation = "c"
+transducers = { ch1 = "b" }
+""" + POINTS_TOML
+
+
+def true_receptance(point: str, frequency_hz: float) -> complex:
+    """A made-up 1-DOF receptance per point (m/N) the test digitizer applies."""
+    fn = {"a": 120.0, "b": 150.0, "c": 90.0}[point]
+    w, wn = 2 * math.pi * frequency_hz, 2 * math.pi * fn
+    return 1e-6 / (1 - (w / wn) ** 2 + 2j * 0.1 * w / wn)
+
+
+class Log:
+    def __init__(self):
+        self.command_log: list[tuple[float, str]] = []
+
+    def _log(self, text):
+        self.command_log.append((time.monotonic(), text))
+
+
+class TestGenerator(Log):
+    __test__ = False
+
+    def __init__(self, name, fail_on=None, fail_after=0):
+        super().__init__()
+        self.identity, self.resource = f"TEST,{name}", f"TEST::{name}"
+        self.enabled = False
+        self.frequency_hz = 0.0
+        self.amplitude_vpp = 0.0
+        self.fail_on, self.fail_after, self.calls = fail_on, fail_after, 0
+
+    def _maybe_fail(self, what):
+        if what == self.fail_on:
+            self.calls += 1
+            if self.calls > self.fail_after:
+                self._log(f"FAULT {what}")
+                raise InstrumentError(f"{self.identity}: -222 data out of range ({what})")
+
+    def configure_sine(self, frequency_hz, amplitude_vpp, offset_v=0.0):
+        self.frequency_hz, self.amplitude_vpp = frequency_hz, amplitude_vpp
+        self._log(f"APPL:SIN {frequency_hz},{amplitude_vpp}")
+
+    def set_frequency(self, frequency_hz):
+        self._maybe_fail("set_frequency")
+        self.frequency_hz = frequency_hz
+        self._log(f"FREQ {frequency_hz}")
+
+    def set_amplitude(self, amplitude_vpp):
+        self.amplitude_vpp = amplitude_vpp
+        self._log(f"VOLT {amplitude_vpp}")
+
+    def configure_pulse_burst(self, prf_hz, n_pulses, width_s, high_v, low_v=0.0):
+        self._log(f"BURS {prf_hz},{n_pulses}")
+
+    def output_on(self):
+        self._maybe_fail("output_on")
+        self.enabled = True
+        self._log("OUTP ON")
+
+    def output_off(self):
+        self.enabled = False
+        self._log("OUTP OFF")
+
+    @property
+    def output_enabled(self):
+        return self.enabled
+
+    def reference_locked(self):
+        return True
+
+    def safe_state(self):
+        self.output_off()
+
+    def close(self):
+        self.safe_state()
+
+
+class TestDigitizer(Log):
+    __test__ = False
+
+    def __init__(self, drive, config, pace=0.05, fail_at=None, hang_at=None, seed=0):
+        super().__init__()
+        self.identity, self.resource = "TEST,digitizer", "TEST::dig"
+        self.drive, self.config, self.pace = drive, config, pace
+        self.fail_at, self.hang_at = fail_at, hang_at
+        self.n_acquired = 0
+        self.rng = np.random.default_rng(seed)
+        self.points = {1: "a", 2: "b"}
+        self._abort = threading.Event()
+
+    def configure_sequence(self, channels, sample_rate_hz, n_samples, n_segments, delay_s,
+                           full_scale_v, offset_v=0.0):
+        self.channels, self.fs, self.n_samples = list(channels), sample_rate_hz, n_samples
+        self.n_segments, self.delay_s, self.full_scale_v = n_segments, delay_s, full_scale_v
+        self._log(f"configure {channels} {n_segments}x{n_samples}")
+
+    def acquire(self, timeout_s):
+        self._abort.clear()
+        self.n_acquired += 1
+        self._log("acquire")
+        if self.fail_at == self.n_acquired:
+            self._log("FAULT acquire")
+            raise InstrumentTimeoutError("digitizer: acquisition timed out (no trigger)")
+        duration = self.n_segments / 5000.0 * self.pace
+        if self.hang_at == self.n_acquired:
+            duration = 30.0
+        if self._abort.wait(duration):
+            raise InstrumentError("digitizer: acquisition aborted")
+        f = self.drive.frequency_hz
+        force = self.config.drive_newton_per_volt * r.drive_voltage_phasor(
+            self.drive.amplitude_vpp if self.drive.enabled else 0.0)
+        t_pulse = np.arange(self.n_segments) / 5000.0
+        records = {}
+        for ch in self.channels:
+            x = np.real(true_receptance(self.points[ch], f) * force
+                        * np.exp(2j * np.pi * f * t_pulse))
+            off = self.rng.uniform(-1 / self.fs, 0, self.n_segments)
+            tau = 10.15e-6 - 2 * x / 1540.0
+            t = self.delay_s + np.arange(self.n_samples)[None, :] / self.fs + off[:, None]
+            d = t - tau[:, None]
+            v = 90 * np.exp(-0.5 * (d / 0.1e-6) ** 2) * np.cos(2 * np.pi * 5e6 * d)
+            v += self.rng.normal(0, 1.0, v.shape)
+            records[ch] = SegmentedRecord(np.clip(np.round(v), -128, 127).astype(np.int8), off,
+                                          self.fs, self.delay_s, 0.004, 0.0)
+        return records
+
+    def abort(self):
+        self._abort.set()
+        self._log("abort")
+
+    def close(self):
+        self.abort()
+
+
+class TestPulser(Log):
+    __test__ = False
+
+    def __init__(self, i):
+        super().__init__()
+        self.identity, self.resource = f"TEST,pulser{i}", f"TEST::p{i}"
+
+    def configure(self, gain_db, pulse_energy, damping_ohm, high_pass_hz, low_pass_hz):
+        self._log(f"gain {gain_db}")
+
+    def safe_state(self):
+        self._log("quiet")
+
+    def close(self):
+        self.safe_state()
+
+
+class TestBench(Bench):
+    """A Bench whose simulated operator can move the transducers (like the sim's world)."""
+
+    __test__ = False
+
+    def place(self, excitation, channels, excitation_direction):
+        self.digitizer.points = {ch: p.name for ch, p in channels.items()}
+        self.digitizer.excitation = excitation
+
+
+def make_bench(pace=0.05, drive_fail=None, drive_fail_after=0, fail_at=None, hang_at=None):
+    config = BenchConfig(name="test bench", drive_newton_per_volt=complex(8.0, -0.5))
+    drive = TestGenerator("drive", drive_fail, drive_fail_after)
+    trigger = TestGenerator("trigger")
+    digitizer = TestDigitizer(drive, config, pace, fail_at, hang_at)
+    return TestBench(trigger=trigger, drive=drive, digitizer=digitizer,
+                 pulsers=[TestPulser(1), TestPulser(2)], config=config, simulated=True)
+
+
+def prepare(tmp_path, bench, auto_continue=True, text=PROTOCOL):
+    proto = tmp_path / "p.toml"
+    proto.write_text(text)
+    return r.prepare_session(proto, tmp_path / "s.h5", bench=bench, auto_continue=auto_continue)
+
+
+def off_times(generator) -> list[float]:
+    return [t for t, s in generator.command_log if s == "OUTP OFF"]
+
+
+# --------------------------------------------------------------------------- tests
+def test_complete_run_events_and_frf(tmp_path):
+    bench = make_bench()
+    events = []
+    with prepare(tmp_path, bench) as session:
+        session.runner.subscribe(events.append)
+        final = session.run()
+    assert final.status == "completed" and final.n_done == final.n_steps == 8
+    kinds = [type(e).__name__ for e in events]
+    assert kinds[0] == "RunStarted" and kinds[-1] == "RunFinished"
+    assert kinds.count("StepFinished") == 8 and kinds.count("OperatorPrompt") == 2
+    assert kinds.count("Progress") == 8 and kinds.count("Quality") == 12
+    assert all(e.ok for e in events if isinstance(e, r.Quality))
+    progress = [e for e in events if isinstance(e, r.Progress)]
+    assert progress[-1].eta_s == 0 and progress[-1].fraction == 1
+    assert not bench.drive.enabled and not bench.trigger.enabled
+    with SessionReader(tmp_path / "s.h5") as reader:
+        assert reader.status == ("completed", "")
+        frf = reader.frf()
+        steps = list(reader.steps())
+        assert "gate_start" in steps[0].channels[0].quality
+        assert any("auto-continued" in line for line in reader.log_lines())
+        logs = reader.handle["runs/000/command_logs/drive/text"][()]
+        assert b"OUTP OFF" in list(logs)
+    # the stored FRF is the receptance the test bench applied (ch. 8 accuracy: a few %)
+    for i, f in enumerate(frf.frequency_hz):
+        for o, name in enumerate(frf.outputs.name):
+            for j, exc in enumerate(frf.inputs.name):
+                if np.isfinite(frf.H[i, o, j]):
+                    truth = true_receptance(name, f)
+                    assert abs(frf.H[i, o, j] - truth) < 0.05 * abs(truth), (f, name, exc)
+    assert np.isfinite(frf.H).sum() == 4 * 2 + 4
+
+
+def test_abort_from_another_thread_turns_outputs_off_at_once(tmp_path):
+    bench = make_bench(pace=1.0)  # real time: each acquisition takes 80 ms
+    with prepare(tmp_path, bench) as session:
+        result = {}
+        thread = threading.Thread(target=lambda: result.setdefault("f", session.run()))
+        thread.start()
+        while bench.digitizer.n_acquired < 3:
+            time.sleep(0.005)
+        t_abort = time.monotonic()
+        session.runner.abort("operator pressed STOP")
+        thread.join(5)
+    final = result["f"]
+    assert final.status == "aborted" and "STOP" in final.reason
+    for gen in (bench.drive, bench.trigger):
+        assert min(t for t in off_times(gen) if t >= t_abort) - t_abort < 0.1
+        assert not gen.enabled
+    with SessionReader(tmp_path / "s.h5") as reader:
+        assert reader.status[0] == "aborted"
+        assert len(list(reader.steps())) >= 2
+
+
+def test_pause_turns_drive_off_and_resume_continues(tmp_path):
+    bench = make_bench()
+    events = []
+    with prepare(tmp_path, bench) as session:
+        runner = session.runner
+
+        def listener(event):
+            events.append(event)
+            if isinstance(event, r.StepFinished) and event.step.index == 1:
+                runner.pause()
+                threading.Timer(0.1, runner.resume).start()
+                runner.add_note("subject coughed")
+
+        runner.subscribe(listener)
+        final = session.run()
+    assert final.status == "completed"
+    paused = next(e for e in events if isinstance(e, r.Paused))
+    assert not any(isinstance(e, r.StepStarted) and e.t_s > paused.t_s and e.step.index == 1
+                   for e in events)
+    texts = [t for _, t in bench.drive.command_log]
+    i_pause = max(i for i, t in enumerate(texts[:texts.index("FREQ 140.0")]) if t == "OUTP OFF")
+    assert "OUTP ON" in texts[i_pause:texts.index("FREQ 140.0")]
+    with SessionReader(tmp_path / "s.h5") as reader:
+        assert any("NOTE subject coughed" in line for line in reader.log_lines())
+
+
+def test_prompt_waits_for_confirmation_with_outputs_off(tmp_path):
+    bench = make_bench()
+    with prepare(tmp_path, bench, auto_continue=False) as session:
+        runner = session.runner
+        seen = []
+
+        def listener(event):
+            if isinstance(event, r.OperatorPrompt):
+                seen.append((event.setup, bench.drive.enabled))
+                threading.Timer(0.05, runner.confirm).start()
+
+        runner.subscribe(listener)
+        final = session.run()
+    assert final.status == "completed"
+    assert seen == [("s1", False), ("s2", False)]
+
+
+@pytest.mark.parametrize("fault", ["digitizer", "generator"])
+def test_instrument_fault_outputs_off_reason_kept_data(tmp_path, fault):
+    if fault == "digitizer":
+        bench = make_bench(fail_at=3)
+    else:
+        bench = make_bench(drive_fail="set_frequency", drive_fail_after=2)
+    with prepare(tmp_path, bench) as session:
+        final = session.run()
+    assert final.status == "failed"
+    assert ("timed out" in final.reason) if fault == "digitizer" else ("-222" in final.reason)
+    assert "\n" not in final.reason
+    log = bench.digitizer.command_log if fault == "digitizer" else bench.drive.command_log
+    t_fault = next(t for t, s in log if s.startswith("FAULT"))
+    for gen in (bench.drive, bench.trigger):
+        assert not gen.enabled
+        assert min(t for t in off_times(gen) if t >= t_fault) - t_fault < 0.1
+    with SessionReader(tmp_path / "s.h5") as reader:
+        assert len(list(reader.steps())) == 2
+        status, reason = reader.status
+        assert status == "failed" and reason == final.reason
+
+
+def test_resume_measures_only_what_is_missing(tmp_path):
+    bench = make_bench(fail_at=4)
+    with prepare(tmp_path, bench) as session:
+        assert session.run().status == "failed"
+    bench2 = make_bench()
+    proto = tmp_path / "p.toml"
+    with r.prepare_session(proto, tmp_path / "s.h5", bench=bench2, resume=True) as session:
+        assert len(session.runner.protocol.steps()) == 8
+        final = session.run()
+    assert final.status == "completed" and final.n_done == 8
+    assert bench2.digitizer.n_acquired == 5
+    with SessionReader(tmp_path / "s.h5") as reader:
+        keys = [s.key for s in reader.steps()]
+        assert len(keys) == len(set(keys)) == 8
+        assert np.isfinite(reader.frf().H).sum() == 12
+
+
+def test_listener_failure_is_not_a_fault_unless_critical(tmp_path):
+    bench = make_bench()
+    with prepare(tmp_path, bench) as session:
+        session.runner.subscribe(lambda e: 1 / 0)
+        assert session.run().status == "completed"
+    bench = make_bench()
+    with prepare(tmp_path / "x" if (tmp_path / "x").mkdir() is None else tmp_path,
+                 bench) as session:
+        def disk_full(event):
+            if isinstance(event, r.StepFinished) and event.step.index == 2:
+                raise OSError(28, "No space left on device")
+        session.runner.subscribe(disk_full, critical=True)
+        final = session.run()
+    assert final.status == "failed" and "No space left" in final.reason
+    assert not bench.drive.enabled
+
+
+def test_reprocess_from_raw_echoes(tmp_path):
+    bench = make_bench()
+    with prepare(tmp_path, bench) as session:
+        session.run()
+    out = tmp_path / "s2.h5"
+    from pelvislab.acquisition.tracking import TrackingOptions
+
+    options = TrackingOptions(estimator="parabolic")
+    n, problems = r.reprocess_session(tmp_path / "s.h5", out, options)
+    assert n == 8 and not problems
+    with SessionReader(tmp_path / "s.h5") as a, SessionReader(out) as b:
+        fa, fb = a.frf(), b.frf()
+        assert np.isfinite(fb.H).sum() == np.isfinite(fa.H).sum()
+        m = np.isfinite(fa.H)
+        np.testing.assert_allclose(fb.H[m], fa.H[m], rtol=0.05)
+        assert "parabolic" in b.log_lines()[-1]
+        sa, sb = next(a.steps()), next(b.steps())
+        np.testing.assert_array_equal(sa.channels[0].codes, sb.channels[0].codes)
