@@ -384,3 +384,34 @@ def test_missing_file_and_bad_toml(tmp_path):
         load_model(tmp_path / "nope.toml")
     with pytest.raises(ModelError, match="not valid TOML"):
         load_model(_write(tmp_path, "[[body]\n"))
+
+
+@pytest.mark.parametrize("fk, fc", [(0.0, 0.0), (0.5, 0.0), (0.0, 1.0), (1.0, 1.0)])
+@pytest.mark.parametrize("grounded", [False, True])
+def test_spectral_form_equals_solve(model, points, fk, fc, grounded):
+    m = model.with_grounding(SACRUM, 3e4, coefficient_n_s_per_m=2.0) if grounded else model
+    s = assemble(m)
+    o = rows_for(m, points)
+    f = np.linspace(2.0, 600.0, 300)
+    a = receptance(s.M, s.K, s.C, f, o, o, fk, fc, 300.0, method="solve")
+    b = receptance(s.M, s.K, s.C, f, o, o, fk, fc, 300.0, method="spectral")
+    assert np.abs(a - b).max() < 1e-9 * np.abs(a).max()
+    assert np.allclose(receptance(s.M, s.K, s.C, f, o, o, fk, fc, 300.0), a, rtol=0,
+                       atol=1e-9 * np.abs(a).max())
+
+
+def test_spectral_not_applicable_falls_back(model, points):
+    """A grounded dashpot without a grounded spring damps a rigid-body mode: the pencil is
+    defective, spectral() declines and "auto" uses the solve."""
+    from pelvislab.model.frf import spectral
+
+    m = model.with_dashpot(Dashpot("drag", SACRUM, [-0.1, 0, 0], GROUND, [-0.1, 0, 0], 5.0,
+                                   axis=[1, 0, 0]))
+    s = assemble(m)
+    assert spectral(s.M, s.K, s.C) is None
+    o = rows_for(m, points)
+    f = np.linspace(5.0, 300.0, 100)
+    with pytest.raises(ValueError, match="spectral form not applicable"):
+        receptance(s.M, s.K, s.C, f, o, o, method="spectral")
+    assert np.allclose(receptance(s.M, s.K, s.C, f, o, o),
+                       receptance(s.M, s.K, s.C, f, o, o, method="solve"))
