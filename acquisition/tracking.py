@@ -338,18 +338,21 @@ def _fine(g: _Groups, ref: _Reference, L: int, estimator: str) -> _BlockResult:
     raw_col[h: h + G, 1] = 1.0  # window sum, for the window mean
     TT = np.concatenate([_toeplitz(ref.q, lags_local, h),
                          _toeplitz(ref.q_hilbert, lags_local, h), raw_col], axis=1)
-    delay = np.empty(n)
-    proj = np.empty(n)
-    energy = np.empty(n)
+    CC = np.empty((n, TT.shape[1]), dtype=np.float32)
+    energy = np.empty(n, dtype=np.float32)
+    centre = np.empty(n)
     for p, r0, r1 in g.runs:
         start = L + p - h
         Wp = g.W[r0:r1, start: start + G + 2 * h]
-        CC = Wp @ TT
-        C, Ch = CC[:, : 2 * h + 1], CC[:, 2 * h + 1: 4 * h + 2]
-        delay[r0:r1] = p + _subsample(C, Ch, h, ref.omega, estimator)
-        proj[r0:r1] = CC[:, -2]  # unit_raw has zero mean: the window mean drops out
+        np.matmul(Wp, TT, out=CC[r0:r1])
         seg = Wp[:, h: h + G]
-        energy[r0:r1] = np.einsum("ij,ij->i", seg, seg) - CC[:, -1].astype(float) ** 2 / G
+        energy[r0:r1] = np.einsum("ij,ij->i", seg, seg)
+        centre[r0:r1] = p
+    # All rows at once: the estimators are vectorised, no per-group overhead.
+    C, Ch = CC[:, : 2 * h + 1], CC[:, 2 * h + 1: 4 * h + 2]
+    delay = centre + _subsample(C, Ch, h, ref.omega, estimator)
+    proj = CC[:, -2].astype(float)  # unit_raw has zero mean: the window mean drops out
+    energy = energy - CC[:, -1].astype(float) ** 2 / G
     with np.errstate(divide="ignore", invalid="ignore"):
         corr = np.where(energy > 0, proj / np.sqrt(energy), 0.0)
         noise_var = np.maximum(energy - np.clip(proj, 0.0, None) ** 2, 1e-12) / (G - 1)
