@@ -75,7 +75,7 @@ class TrackingOptions:
     rereference: bool = True
     block_size: int = 32
     hop_threshold_periods: float = 0.25
-    coarse_lag_step: int = 3
+    coarse_lag_step: int = 4
 
 
 @dataclass
@@ -96,6 +96,8 @@ class TrackingResult:
     n_rereferences: how many times the reference was rebuilt to follow drift.
     center_frequency_hz: the echo's mean frequency after the prefilter.
     echo_amplitude_v: peak envelope of the (filtered) reference echo, volts.
+    clipped: (n,) True where the echo peak reached the digitizer's code limits (integer
+        codes only; clipping distorts the echo: lower the receiver gain).
     warnings: what went wrong or was corrected, in words (empty when all is well).
     """
 
@@ -113,6 +115,7 @@ class TrackingResult:
     speed_of_sound_m_s: float
     estimator: str
     echo_amplitude_v: float = float("nan")
+    clipped: np.ndarray | None = None
     warnings: list[str] = field(default_factory=list)
 
 
@@ -327,17 +330,19 @@ class _Groups:
 def _fine(g: _Groups, ref: _Reference, L: int, estimator: str) -> _BlockResult:
     """Sub-sample delay of each echo around its integer lag (one matrix product per lag group).
 
-    Columns per group: 7 lags of the filtered reference, 7 of its Hilbert transform, the
-    unfiltered unit reference and a window of ones at the integer lag (correlation coefficient
-    and SNR). Results are in the original row order.
+    Columns per group: 7 lags of the filtered reference, (for ``phase`` only) 7 of its Hilbert
+    transform, the unfiltered unit reference and a window of ones at the integer lag
+    (correlation coefficient and SNR). Results are in the original row order.
     """
     n, G, h = g.W.shape[0], ref.q.size, _FINE_HALF
     lags_local = np.arange(-h, h + 1)
     raw_col = np.zeros((G + 2 * h, 2), dtype=np.float32)
     raw_col[h: h + G, 0] = ref.unit_raw
     raw_col[h: h + G, 1] = 1.0  # window sum, for the window mean
-    TT = np.concatenate([_toeplitz(ref.q, lags_local, h),
-                         _toeplitz(ref.q_hilbert, lags_local, h), raw_col], axis=1)
+    blocks = [_toeplitz(ref.q, lags_local, h)]
+    if estimator == "phase":
+        blocks.append(_toeplitz(ref.q_hilbert, lags_local, h))
+    TT = np.concatenate([*blocks, raw_col], axis=1)
     CC = np.empty((n, TT.shape[1]), dtype=np.float32)
     energy = np.empty(n, dtype=np.float32)
     centre = np.empty(n)
@@ -349,7 +354,8 @@ def _fine(g: _Groups, ref: _Reference, L: int, estimator: str) -> _BlockResult:
         energy[r0:r1] = np.einsum("ij,ij->i", seg, seg)
         centre[r0:r1] = p
     # All rows at once: the estimators are vectorised, no per-group overhead.
-    C, Ch = CC[:, : 2 * h + 1], CC[:, 2 * h + 1: 4 * h + 2]
+    C = CC[:, : 2 * h + 1]
+    Ch = CC[:, 2 * h + 1: 4 * h + 2] if estimator == "phase" else C
     delay = centre + _subsample(C, Ch, h, ref.omega, estimator)
     proj = CC[:, -2].astype(float)  # unit_raw has zero mean: the window mean drops out
     energy = energy - CC[:, -1].astype(float) ** 2 / G
@@ -507,6 +513,10 @@ def track_echoes(codes: np.ndarray, trigger_offset_s: np.ndarray | None, sample_
     ref0 = _make_reference(first.mean(axis=0), band)
 
     W = codes[:, start - L: stop + L].astype(np.float32)
+    clipped = _clipped(codes, start - L, ref0, L)
+    if np.any(clipped):
+        warnings.append(f"{int(clipped.sum())} echo(es) clipped at the digitizer's full scale: "
+                        "lower the receiver gain")
     res, ref = _track_block(W, ref0, L, opts, band, opts.reference_iterations)
     delay = res.delay + ref.offset
     corr, snr, lost_edge = res.corr, res.snr_db, res.edge.copy()
@@ -551,7 +561,22 @@ def track_echoes(codes: np.ndarray, trigger_offset_s: np.ndarray | None, sample_
         sample_rate_hz=fs, speed_of_sound_m_s=float(speed_of_sound_m_s),
         estimator=opts.estimator,
         echo_amplitude_v=float(np.max(np.abs(ref.q + 1j * ref.q_hilbert)) * volts_per_count),
-        warnings=warnings)
+        clipped=clipped, warnings=warnings)
+
+
+def _clipped(codes: np.ndarray, w0: int, ref: _Reference, L: int) -> np.ndarray:
+    """Echoes whose samples near the echo peak reach the integer code limits."""
+    if not np.issubdtype(codes.dtype, np.integer):
+        return np.zeros(codes.shape[0], dtype=bool)
+    info = np.iinfo(codes.dtype)
+    k = w0 + L + int(np.argmax(np.abs(ref.unit_raw)))
+    # The peak moves at most L samples: look at +-(L + 2 carrier periods) around it.
+    half = L + int(4 * np.pi / ref.omega)
+    lo = max(0, k - half)
+    seg = codes[:, lo: lo + 2 * half]
+    if seg.max() < info.max and seg.min() > info.min:  # the usual case: one pass, no rows
+        return np.zeros(codes.shape[0], dtype=bool)
+    return (seg.max(axis=1) >= info.max) | (seg.min(axis=1) <= info.min)
 
 
 def _local_median(x: np.ndarray, half: int = 2) -> np.ndarray:

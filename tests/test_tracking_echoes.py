@@ -159,6 +159,16 @@ def test_peak_hop_is_detected_and_corrected():
     assert abs(res.displacement_m[30] - (d[30] - d[0])) < 0.2e-6
 
 
+def test_clipping_is_flagged():
+    rng = np.random.default_rng(10)
+    arr = np.full(50, T0)
+    codes, off = synth_echoes(arr, snr_db=30.0, rng=rng, amplitude_counts=100.0)
+    assert not track_echoes(codes, off, FS, C).clipped.any()
+    loud, off = synth_echoes(arr, snr_db=30.0, rng=rng, amplitude_counts=200.0)
+    res = track_echoes(loud, off, FS, C)
+    assert res.clipped.all() and any("clipped" in w for w in res.warnings)
+
+
 def test_quality_figures():
     rng = np.random.default_rng(9)
     for snr in (20.0, 35.0):
