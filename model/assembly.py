@@ -94,6 +94,43 @@ def connector_vector(model: PelvisModel, element: Spring | Dashpot) -> np.ndarra
     return g
 
 
+def connector_vector_derivative(model: PelvisModel, element: Spring | Dashpot, end: str,
+                                axis: int) -> np.ndarray:
+    """∂g/∂r (n_dof,) for a move of attachment point ``end`` ("a" or "b") along model axis
+    ``axis`` (0, 1, 2), with ``g`` from :func:`connector_vector`.
+
+    The evaluation point moves with the points (midpoint, or point a when grounded); the
+    element axis turns with them when it is the line of the points (springs, eq. 4.13), and
+    is fixed otherwise (dashpot joint normals, explicit axes).
+    """
+    if end not in ("a", "b") or axis not in (0, 1, 2):
+        raise ValueError("end must be 'a' or 'b' and axis 0, 1 or 2")
+    a, b = element.point_a_m, element.point_b_m
+    e = element.axis
+    unit = np.eye(3)[axis]
+    grounded = element.body_b == GROUND
+    if grounded:
+        dx = unit if end == "a" else np.zeros(3)
+    else:
+        dx = 0.5 * unit
+    d = b - a
+    length = float(np.linalg.norm(d))
+    de = np.zeros(3)
+    if isinstance(element, Spring) and length > 1e-9 and np.allclose(np.abs(e @ d), length):
+        sign = -1.0 if end == "a" else 1.0
+        de = sign * (unit - e * e[axis]) / length * float(np.sign(e @ d))
+    x = a if grounded else 0.5 * (a + b)
+    dg = np.zeros(model.n_dof)
+    for body, sgn in ((element.body_a, 1.0), (element.body_b, -1.0)):
+        if body == GROUND:
+            continue
+        k = model.body_index(body)
+        rho = x - model.bodies[k].com_m
+        dg[6 * k:6 * k + 3] += sgn * de
+        dg[6 * k + 3:6 * k + 6] += sgn * (np.cross(dx, e) + np.cross(rho, de))
+    return dg
+
+
 def body_mass_block(mass_kg: float, inertia_kg_m2: np.ndarray) -> np.ndarray:
     """6x6 rigid-body mass matrix about the centre of mass (eq. 4.11)."""
     block = np.zeros((6, 6))

@@ -19,7 +19,12 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from pelvislab.model.assembly import SystemMatrices, assemble, connector_vector
+from pelvislab.model.assembly import (
+    SystemMatrices,
+    assemble,
+    connector_vector,
+    connector_vector_derivative,
+)
 from pelvislab.model.frf import (
     KIND_C,
     KIND_D,
@@ -33,7 +38,9 @@ from pelvislab.model.frf import (
 )
 from pelvislab.model.pelvis import PelvisModel
 
-KINDS = ("mass", "stiffness", "damping", "f_k", "f_c")
+KINDS = ("mass", "stiffness", "damping", "f_k", "f_c", "coordinate")
+LINEAR_KINDS = ("mass", "stiffness", "damping")
+_END_KEY = {"a": "point_a_m", "b": "point_b_m"}
 
 
 @dataclass(frozen=True)
@@ -48,6 +55,11 @@ class Parameter:
     lower: float
     upper: float
     log: bool = True
+    # kind "coordinate": spring end ("a"/"b"), model axis (0, 1, 2) and, per member, the
+    # sign relating the member's coordinate to the value (−1 for y on a mirrored left side)
+    end: str = ""
+    axis: int = -1
+    signs: tuple[float, ...] = ()
 
 
 def _param_name(prefix: str, group: str, side: str, symmetric: bool) -> str:
@@ -72,13 +84,15 @@ class ParameterSpace:
         # Equalise group members so that the base model is a point of the space.
         self.model = self.apply_to(model, self._read(model))
         self.n_dof = self.model.n_dof
-        self._dM, self._dK, self._dC = self._dense_derivatives()
+        self._has_coordinates = any(p.kind == "coordinate" for p in self.parameters)
+        self._dM, self._dK, self._dC = self._dense_derivatives(self.model)
         s = assemble(self.model)
         p0 = self.values()
-        self._M0 = s.M - np.tensordot(p0, self._dM, axes=1)
-        self._K0 = s.K - np.tensordot(p0, self._dK, axes=1)
-        self._C0 = s.C - np.tensordot(p0, self._dC, axes=1)
-        self._atoms_static = self._static_atoms()
+        lin = self._linear_values(p0)
+        self._M0 = s.M - np.tensordot(lin, self._dM, axes=1)
+        self._K0 = s.K - np.tensordot(lin, self._dK, axes=1)
+        self._C0 = s.C - np.tensordot(lin, self._dC, axes=1)
+        self._atoms_static = self._static_atoms(self.model)
 
     # -- basic API ---------------------------------------------------------------------
     def __len__(self) -> int:
@@ -101,10 +115,18 @@ class ParameterSpace:
                 vals = [model.spring(m).stiffness_n_per_m for m in p.members]
             elif p.kind == "damping":
                 vals = [model.dashpot(m).coefficient_n_s_per_m for m in p.members]
+            elif p.kind == "coordinate":
+                vals = [sg * getattr(model.spring(m), _END_KEY[p.end])[p.axis]
+                        for m, sg in zip(p.members, p.signs, strict=True)]
             else:
                 vals = [fd.f_k if p.kind == "f_k" else fd.f_c]
             out[j] = float(np.mean(vals))
         return out
+
+    def _linear_values(self, values: np.ndarray) -> np.ndarray:
+        """Values with non-linear (coordinate) entries zeroed, for the linear decomposition."""
+        v = np.asarray(values, dtype=float)
+        return np.where([p.kind in LINEAR_KINDS for p in self.parameters], v, 0.0)
 
     def values(self) -> np.ndarray:
         """Parameter values of the base model (group members equalised to their mean)."""
@@ -139,6 +161,12 @@ class ParameterSpace:
             elif p.kind == "damping":
                 for m in p.members:
                     model = model.replace_dashpot(m, coefficient_n_s_per_m=x)
+            elif p.kind == "coordinate":
+                key = _END_KEY[p.end]
+                for m, sg in zip(p.members, p.signs, strict=True):
+                    point = getattr(model.spring(m), key).copy()
+                    point[p.axis] = sg * x
+                    model = model.replace_spring(m, **{key: point})
             elif p.kind == "f_k":
                 f_k = x
             else:
@@ -185,11 +213,18 @@ class ParameterSpace:
         return np.where(self.log_mask, v, 1.0)
 
     # -- matrices and derivatives -------------------------------------------------------
-    def _dense_derivatives(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    def _dense_derivatives(self, model: PelvisModel
+                           ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         n, n_p = self.n_dof, len(self.parameters)
         dM, dK, dC = (np.zeros((n_p, n, n)) for _ in range(3))
-        model = self.model
         for j, p in enumerate(self.parameters):
+            if p.kind == "coordinate":
+                for m, sg in zip(p.members, p.signs, strict=True):
+                    sp = model.spring(m)
+                    g = connector_vector(model, sp)
+                    dg = sg * connector_vector_derivative(model, sp, p.end, p.axis)
+                    dK[j] += sp.stiffness_n_per_m * (np.outer(dg, g) + np.outer(g, dg))
+                continue
             for m in p.members:
                 if p.kind == "mass":
                     b = model.body_index(m)
@@ -206,16 +241,24 @@ class ParameterSpace:
                     dC[j] += np.outer(g, g)
         return dM, dK, dC
 
-    def derivatives(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """∂M/∂p, ∂K/∂p, ∂C/∂p, each (n_p, n_dof, n_dof), exact and constant.
+    def derivatives(self, values: np.ndarray | None = None
+                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """∂M/∂p, ∂K/∂p, ∂C/∂p, each (n_p, n_dof, n_dof), exact.
 
-        Zero for ``f_k`` / ``f_c`` (they act through Z(ω), see :meth:`atoms`).
+        Constant for masses, stiffness and damping coefficients; attachment coordinates
+        enter K non-linearly, so with coordinate parameters the derivatives are taken at
+        ``values`` (default: the base model). Zero for ``f_k`` / ``f_c`` (they act through
+        Z(ω), see :meth:`atoms`).
         """
-        return self._dM.copy(), self._dK.copy(), self._dC.copy()
+        if values is None or not self._has_coordinates:
+            return self._dM.copy(), self._dK.copy(), self._dC.copy()
+        return self._dense_derivatives(self.apply(values))
 
     def matrices(self, values: np.ndarray) -> SystemMatrices:
         """M, K, C (and f_k, f_c) at ``values`` = ``assemble(self.apply(values))``, fast."""
         v = np.asarray(values, dtype=float)
+        if self._has_coordinates:  # K is not linear in attachment coordinates
+            return assemble(self.apply(v))
         fd = self.model.frequency_dependence
         f_k, f_c = fd.f_k, fd.f_c
         for j, p in enumerate(self.parameters):
@@ -228,10 +271,21 @@ class ParameterSpace:
                               self._C0 + np.tensordot(v, self._dC, axes=1),
                               float(f_k), float(f_c), fd.f_max_hz)
 
-    def _static_atoms(self) -> tuple[list, list, list, list]:
+    def _static_atoms(self, model: PelvisModel) -> tuple[list, list, list, list]:
         vecs, weights, kinds, params = [], [], [], []
-        model = self.model
         for j, p in enumerate(self.parameters):
+            if p.kind == "coordinate":
+                # ∂K/∂r = k (dg gᵀ + g dgᵀ) = k/2 [(g+dg)(g+dg)ᵀ − (g−dg)(g−dg)ᵀ]
+                for m, sg in zip(p.members, p.signs, strict=True):
+                    sp = model.spring(m)
+                    g = connector_vector(model, sp)
+                    dg = sg * connector_vector_derivative(model, sp, p.end, p.axis)
+                    for vec, w in ((g + dg, 0.5), (g - dg, -0.5)):
+                        vecs.append(vec)
+                        weights.append(w * sp.stiffness_n_per_m)
+                        kinds.append(KIND_K)
+                        params.append(j)
+                continue
             for m in p.members:
                 if p.kind == "mass":
                     b = model.body_index(m)
@@ -261,11 +315,16 @@ class ParameterSpace:
 
     def atoms(self, values: np.ndarray) -> DerivativeAtoms:
         """Rank-1 atoms of ∂Z/∂p at ``values`` (f_k / f_c atoms depend on K, C values)."""
-        vecs, weights, kinds, params = (list(x) for x in self._atoms_static)
         v = np.asarray(values, dtype=float)
+        if self._has_coordinates:
+            model = self.apply(v)
+            vecs, weights, kinds, params = self._static_atoms(model)
+        else:
+            model = None
+            vecs, weights, kinds, params = (list(x) for x in self._atoms_static)
         fk_j = [j for j, p in enumerate(self.parameters) if p.kind in ("f_k", "f_c")]
         if fk_j:
-            model = self.apply(v)
+            model = self.apply(v) if model is None else model
             for j in fk_j:
                 kind = self.parameters[j].kind
                 elements = model.springs if kind == "f_k" else model.dashpots
@@ -303,7 +362,8 @@ class ParameterSpace:
 def parameter_space(model: PelvisModel, symmetric: bool = True, masses: bool = True,
                     stiffness: bool = True, damping: bool = True,
                     frequency_dependence: bool = False, only: Iterable[str] | None = None,
-                    bound_factor: float = 100.0) -> ParameterSpace:
+                    bound_factor: float = 100.0, coordinates: Iterable[str] = (),
+                    coordinate_range_m: float = 0.01) -> ParameterSpace:
     """The named parameters of ``model`` (design 4.5).
 
     ``symmetric=True`` ties left and right (``k_io``, ``c_sij``, ``m_innominate``); False
@@ -311,6 +371,11 @@ def parameter_space(model: PelvisModel, symmetric: bool = True, masses: bool = T
     ``f_k`` and ``f_c`` (eq. 7.1-7.3, bounds [0, 1], linear scaling). ``only`` keeps the
     named parameters only (in the listed order). Default bounds: value / ``bound_factor`` to
     value × ``bound_factor`` (a zero value gets [0, 1] in SI and linear scaling).
+
+    ``coordinates``: spring names or groups whose attachment points become parameters
+    (ch. 14 updated all spring positions except the pubic ones): ``r_<group>[_<side>]_<a|b>_
+    <x|y|z>`` in m (symmetric: ``r_<group>_<a|b>_<x|y|z>``, the left point mirroring the
+    right one in y), linear scaling, bounds nominal ± ``coordinate_range_m``.
     """
     groups: dict[str, tuple[str, str, list[str], str]] = {}
 
@@ -344,6 +409,29 @@ def parameter_space(model: PelvisModel, symmetric: bool = True, masses: bool = T
                                     value / bound_factor, value * bound_factor, True))
         else:
             params.append(Parameter(name, kind, tuple(members), unit, 0.0, 1.0, False))
+    wanted_coords = list(coordinates)
+    if wanted_coords:
+        known = {sp.name for sp in model.springs} | {sp.group for sp in model.springs}
+        unknown = [c for c in wanted_coords if c not in known]
+        if unknown:
+            raise KeyError(f"coordinates: unknown spring(s) or group(s) {unknown}")
+        coord_groups: dict[str, list[str]] = {}
+        for sp in model.springs:
+            if sp.name in wanted_coords or sp.group in wanted_coords:
+                base = _param_name("r", sp.group, sp.side, symmetric)
+                coord_groups.setdefault(base, []).append(sp.name)
+        for base, members in coord_groups.items():
+            for end in ("a", "b"):
+                for axis, label in enumerate("xyz"):
+                    signs = tuple(-1.0 if (axis == 1 and model.spring(m).side == "L"
+                                           and symmetric and len(members) > 1) else 1.0
+                                  for m in members)
+                    value = float(np.mean([sg * getattr(model.spring(m), _END_KEY[end])[axis]
+                                           for m, sg in zip(members, signs, strict=True)]))
+                    params.append(Parameter(f"{base}_{end}_{label}", "coordinate",
+                                            tuple(members), "m", value - coordinate_range_m,
+                                            value + coordinate_range_m, False, end, axis,
+                                            signs))
     if frequency_dependence:
         params.append(Parameter("f_k", "f_k", (), "1", 0.0, 1.0, False))
         params.append(Parameter("f_c", "f_c", (), "1", 0.0, 1.0, False))

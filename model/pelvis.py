@@ -355,8 +355,15 @@ class PelvisModel:
         return replace(self, frequency_dependence=FrequencyDependence(f_k, f_c, fmax))
 
     def replace_spring(self, name: str, **changes: Any) -> PelvisModel:
-        """A copy with spring ``name`` changed (e.g. ``stiffness_n_per_m=2e6``)."""
-        self.spring(name)
+        """A copy with spring ``name`` changed (e.g. ``stiffness_n_per_m=2e6``).
+
+        Moving an attachment point of a spring whose points are distinct re-derives its axis
+        from the new points (eq. 4.13) unless ``axis`` is given.
+        """
+        old = self.spring(name)
+        if ({"point_a_m", "point_b_m"} & set(changes) and "axis" not in changes
+                and old.rest_length_m > 1e-9):
+            changes = {**changes, "axis": None}
         springs = tuple(replace(s, **changes) if s.name == name else s for s in self.springs)
         return replace(self, springs=springs)
 

@@ -415,3 +415,44 @@ def test_spectral_not_applicable_falls_back(model, points):
         receptance(s.M, s.K, s.C, f, o, o, method="spectral")
     assert np.allclose(receptance(s.M, s.K, s.C, f, o, o),
                        receptance(s.M, s.K, s.C, f, o, o, method="solve"))
+
+
+@pytest.mark.parametrize("symmetric", [True, False])
+def test_coordinate_parameters(model, points, symmetric):
+    """Attachment coordinates as parameters (ch. 14): names, mirroring, ∂K and ∂H vs FD."""
+    sp = parameter_space(model, symmetric=symmetric, masses=False, damping=False,
+                         coordinates=["io", "pubs"])
+    side = "" if symmetric else "_R"
+    assert f"r_io{side}_a_y" in sp.names and "r_pubs_b_z" in sp.names
+    v = sp.values()
+    j = sp.index(f"r_io{side}_a_y")
+    assert v[j] == pytest.approx(-0.030)
+    assert sp.lower[j] == pytest.approx(-0.040) and sp.upper[j] == pytest.approx(-0.020)
+    v2 = v.copy()
+    v2[j] = -0.033
+    moved = sp.apply(v2)
+    assert moved.spring("io_R").point_a_m[1] == pytest.approx(-0.033)
+    # symmetric: the left point follows as the mirror image; independent: it stays
+    assert moved.spring("io_L").point_a_m[1] == pytest.approx(0.033 if symmetric else 0.030)
+    assert moved.spring("io_R").axis @ (moved.spring("io_R").point_b_m
+                                        - moved.spring("io_R").point_a_m) > 0
+    # K is non-linear in the coordinates: derivatives at a moved point, against FD
+    dM, dK, dC = sp.derivatives(v2)
+    f = np.linspace(5, 300, 30)
+    H, dH = sp.frf_and_jacobian(v2, f, points, points)
+    for k, p in enumerate(sp.parameters):
+        if p.kind != "coordinate":
+            continue
+        # near the 10.4 Hz resonance the FRF is strongly curved in r: a small step
+        h = 1e-7
+        vp, vm = v2.copy(), v2.copy()
+        vp[k] += h
+        vm[k] -= h
+        fdK = (assemble(sp.apply(vp)).K - assemble(sp.apply(vm)).K) / (2 * h)
+        assert np.allclose(fdK, dK[k], rtol=0, atol=1e-6 * np.abs(dK[k]).max()), p.name
+        fd = (frf(sp.apply(vp), f, points, points) - frf(sp.apply(vm), f, points, points))
+        fd /= 2 * h
+        assert np.abs(fd - dH[..., k]).max() < 1e-4 * np.abs(dH[..., k]).max(), p.name
+    assert np.allclose(sp.matrices(v2).K, assemble(moved).K)
+    with pytest.raises(KeyError, match="nope"):
+        parameter_space(model, coordinates=["nope"])
