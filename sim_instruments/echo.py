@@ -37,7 +37,6 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 import scipy.fft
-from scipy import signal
 
 __all__ = [
     "BONE_REFLECTION",
@@ -45,6 +44,7 @@ __all__ = [
     "Acoustics",
     "Receiver",
     "attenuation_gain",
+    "bone_amplitude_v",
     "bone_echo_peak_v",
     "layer_spectrum",
     "padded_length",
@@ -107,21 +107,31 @@ def attenuation_gain(frequency_hz: np.ndarray, path_m: float,
     return 10.0 ** (-alpha_db_per_m_mhz * f_mhz * path_m / 20.0)
 
 
+def _butterworth_lowpass(s_norm: np.ndarray, order: int) -> np.ndarray:
+    """Analog Butterworth low-pass H(s) at normalised complex frequency s/omega_c."""
+    k = np.arange(1, order + 1)
+    poles = np.exp(1j * np.pi * (2 * k + order - 1) / (2 * order))
+    h = np.ones(s_norm.shape, dtype=np.complex128)
+    for p in poles:
+        h = h * (-p / (s_norm - p))
+    return h
+
+
 def receiver_response(frequency_hz: np.ndarray, high_pass_hz: float | None,
                       low_pass_hz: float | None, order: int = 2) -> np.ndarray:
     """Complex response of the receiver's analog filters (Butterworth, ``order`` poles each).
 
-    ``None`` means that filter is out (full band).
+    ``None`` means that filter is out (full band). Low-pass H(s/w_c); high-pass H(w_c/s).
     """
     f = np.asarray(frequency_hz, dtype=np.float64)
     response = np.ones(f.shape, dtype=np.complex128)
-    w = 2.0 * math.pi * f
-    if high_pass_hz is not None:
-        b, a = signal.butter(order, 2.0 * math.pi * high_pass_hz, "highpass", analog=True)
-        response = response * signal.freqs(b, a, worN=w)[1]
     if low_pass_hz is not None:
-        b, a = signal.butter(order, 2.0 * math.pi * low_pass_hz, "lowpass", analog=True)
-        response = response * signal.freqs(b, a, worN=w)[1]
+        response = response * _butterworth_lowpass(1j * f / low_pass_hz, order)
+    if high_pass_hz is not None:
+        with np.errstate(divide="ignore", invalid="ignore"):
+            s_inv = np.where(f > 0, high_pass_hz / np.where(f > 0, 1j * f, 1.0), np.inf)
+        hp = np.where(f > 0, _butterworth_lowpass(s_inv, order), 0.0)
+        response = response * hp
     return response
 
 
@@ -209,19 +219,22 @@ def speckle_scatterers(rng: np.random.Generator, depth_from_m: float, depth_to_m
 class Acoustics:
     """The acoustic path of one channel: transducer, tissue and bone.
 
-    Amplitudes are volts at the receiver input at 0 dB gain and 200 V pulse voltage.
+    Amplitudes are volts at the receiver input at 0 dB gain and 100 V pulse voltage.
     """
 
-    bone_depth_m: float = 15.1e-3
-    """Skin (transducer face) to bone surface, m. At 1540 m/s the echo returns after 19.6 us."""
+    bone_depth_m: float = 8.2e-3
+    """Skin (transducer face) to bone surface, m (a lean subject). At 1540 m/s the echo
+    returns 10.65 us after the pulse: sample 325 of a record starting at 10 us."""
     speed_of_sound_m_s: float = 1540.0
     """True speed of sound in the tissue, m/s (the tracker assumes the bench's value)."""
     center_frequency_hz: float = 5e6
     fractional_bandwidth: float = 0.5
     """-6 dB fractional bandwidth of the pulse."""
     attenuation_db_per_m_mhz: float = TISSUE_ATTENUATION_DB_PER_M_MHZ
-    transmit_v: float = 0.1
-    """Echo of a perfect reflector at zero depth, V (sets the overall echo level)."""
+    transmit_v: float = 0.0075
+    """Echo of a perfect reflector at zero depth, V at 0 dB gain and 100 V pulses (sets the
+    overall level: the default bone echo peaks at ~0.3 V after 40 dB gain, 60 % of the
+    +-0.5 V range of a 1 V full scale)."""
     bone_reflection: float = BONE_REFLECTION
     speckle_level_db: float = -30.0
     """RMS amplitude of one speckle scatterer relative to the bone echo (before attenuation)."""
@@ -233,8 +246,9 @@ class Acoustics:
 class Receiver:
     """Receiver and noise settings of one channel (pulser/receiver + digitizer input)."""
 
-    gain_db: float = 20.0
-    pulse_voltage_v: float = 200.0
+    gain_db: float = 40.0
+    pulse_voltage_v: float = 100.0
+    """Pulser voltage, V (5077PR: 100-400 V); echo amplitudes scale with it."""
     high_pass_hz: float | None = None
     low_pass_hz: float | None = None
     snr_db: float = 30.0
@@ -255,14 +269,19 @@ def bone_echo_peak_v(acoustics: Acoustics, receiver: Receiver, sample_rate_hz: f
     f = scipy.fft.rfftfreq(n_fft, 1.0 / sample_rate_hz)
     shape = _channel_filter(f, acoustics, receiver)
     t0 = n_fft / 2.0 / sample_rate_hz
-    wave = scipy.fft.irfft(shape * np.exp(-2j * math.pi * f * t0) * sample_rate_hz, n=n_fft)
-    envelope = np.abs(signal.hilbert(wave))
-    amplitude = _bone_amplitude_v(acoustics, receiver)
+    one_sided = shape * np.exp(-2j * math.pi * f * t0) * sample_rate_hz
+    # analytic signal: positive frequencies doubled, negative ones zero
+    full = np.zeros(n_fft, dtype=np.complex128)
+    full[: f.size] = one_sided
+    full[1: f.size] *= 2.0
+    envelope = np.abs(scipy.fft.ifft(full))
+    amplitude = bone_amplitude_v(acoustics, receiver)
     return float(np.max(envelope) * amplitude * 10.0 ** (receiver.gain_db / 20.0))
 
 
-def _bone_amplitude_v(acoustics: Acoustics, receiver: Receiver) -> float:
-    return acoustics.transmit_v * acoustics.bone_reflection * receiver.pulse_voltage_v / 200.0
+def bone_amplitude_v(acoustics: Acoustics, receiver: Receiver) -> float:
+    """Peak of the bone echo before attenuation, filters and gain, V."""
+    return acoustics.transmit_v * acoustics.bone_reflection * receiver.pulse_voltage_v / 100.0
 
 
 def _channel_filter(f: np.ndarray, acoustics: Acoustics, receiver: Receiver) -> np.ndarray:
@@ -322,7 +341,7 @@ def synthesize_channel(
     depth = acoustics.bone_depth_m + depth_offset_m
     bone_t = 2.0 * depth / c - delay_s
     gain = 10.0 ** (receiver.gain_db / 20.0)
-    amp = _bone_amplitude_v(acoustics, receiver) if receiver.enabled else 0.0
+    amp = bone_amplitude_v(acoustics, receiver) if receiver.enabled else 0.0
 
     margin_s = _PULSE_SIGMAS * sigma
     window_lo = -margin_s
