@@ -389,7 +389,7 @@ def _aligned_reference(g: _Groups, delay: np.ndarray, good: np.ndarray, G: int, 
 
 
 def _track_block(W: np.ndarray, ref: _Reference, L: int, opts: TrackingOptions,
-                 band: _Band, rebuilds: int) -> tuple[_BlockResult, _Reference]:
+                 band: _Band, rebuilds: int) -> tuple[_BlockResult, _Reference, _Groups]:
     """Coarse pass, ``rebuilds`` aligned-average reference rebuilds, fine pass.
 
     W: (n, G + 2L) echo windows; zero lag = the gate. ``edge`` marks echoes whose peak is at
@@ -411,7 +411,7 @@ def _track_block(W: np.ndarray, ref: _Reference, L: int, opts: TrackingOptions,
             delay = res.delay
     res = _fine(g, ref, L, opts.estimator)
     res.edge = edge
-    return res, ref
+    return res, ref, g
 
 
 # --------------------------------------------------------------------------------------------
@@ -517,18 +517,29 @@ def track_echoes(codes: np.ndarray, trigger_offset_s: np.ndarray | None, sample_
     if np.any(clipped):
         warnings.append(f"{int(clipped.sum())} echo(es) clipped at the digitizer's full scale: "
                         "lower the receiver gain")
-    res, ref = _track_block(W, ref0, L, opts, band, opts.reference_iterations)
+    res, ref, groups = _track_block(W, ref0, L, opts, band, opts.reference_iterations)
     delay = res.delay + ref.offset
+    local_delay = res.delay
     corr, snr, lost_edge = res.corr, res.snr_db, res.edge.copy()
     shift = np.zeros(n, dtype=int)
     n_reref = 0
     if np.any(lost_edge) and opts.rereference:
-        delay, corr, snr, lost_edge, shift, n_reref = _track_drifting(
+        # Drift beyond the lag range: let the gate follow the echo (predicted per echo).
+        delay, corr, snr, lost_edge, shift, ref, groups, local_delay = _track_predicted(
             codes, start, G, L, ref, opts, band)
-        warnings.append(f"echo drifted beyond +-{L} samples: tracked block-wise with "
-                        f"{n_reref} reference rebuild(s)")
+        warnings.append(f"echo drifted beyond +-{L} samples: gate followed it over "
+                        f"{int(np.ptp(shift))} samples")
     elif np.any(lost_edge):
         warnings.append(f"{int(lost_edge.sum())} echo(es) left the +-{L}-sample lag range")
+    if opts.rereference and (np.any(lost_edge & (shift != 0)) or _shape_changed(
+            groups, local_delay, ~lost_edge & (corr >= opts.min_correlation),
+            opts.block_size, G, L, band)):
+        # The echo changed shape along the record (or the drift prediction failed):
+        # block-wise, rebuilding the reference whenever the correlation drops.
+        delay, corr, snr, lost_edge, shift, n_reref = _track_drifting(
+            codes, start, G, L, ref, opts, band)
+        warnings.append(f"echo shape changed along the record: tracked block-wise with "
+                        f"{n_reref} reference rebuild(s)")
 
     period = 2.0 * np.pi / ref.omega
     hops = _peak_hops(delay, opts.hop_threshold_periods * period)
@@ -604,6 +615,65 @@ def _peak_hops(delay: np.ndarray, threshold: float) -> np.ndarray:
     return np.nan_to_num(dev, nan=0.0) > threshold
 
 
+def _rebuild_level(rho_ref: float) -> float:
+    """Correlation below which the echo is taken to have changed shape."""
+    return rho_ref - max(0.01, 1.0 - rho_ref)
+
+
+def _shape_changed(g: _Groups, delay: np.ndarray, good: np.ndarray, B: int, G: int, L: int,
+                   band: _Band) -> bool:
+    """True when the aligned mean echo of the first ``B`` good echoes and that of the last
+    ``B`` differ in shape (correlation below 0.99; two averages of the same echo at >= 15 dB
+    correlate above 0.998)."""
+    idx = np.nonzero(good)[0]
+    if idx.size < 4 * B:
+        return False
+    first = np.zeros(good.size, dtype=bool)
+    last = np.zeros(good.size, dtype=bool)
+    first[idx[:B]] = True
+    last[idx[-B:]] = True
+    ra = _aligned_reference(g, delay, first, G, L, band, 0.0)
+    rb = _aligned_reference(g, delay, last, G, L, band, 0.0)
+    if ra is None or rb is None:
+        return False
+    return float(ra.q.astype(float) @ rb.q / (ra.norm * rb.norm)) < 0.99
+
+
+def _track_predicted(codes: np.ndarray, start: int, G: int, L: int, ref: _Reference,
+                     opts: TrackingOptions, band: _Band) -> tuple:
+    """Track echoes that drift beyond the lag range, all at once.
+
+    1. every 8th echo: correlation over every position in the record (lag step
+       ``coarse_lag_step``), whole-period hops removed against the neighbours' median;
+    2. per-echo gate offset = that trajectory interpolated and rounded;
+    3. each echo's window is cut at its own offset and the usual pipeline runs on them
+       (reference rebuilt from the drift-aligned echoes).
+    Echoes whose window leaves the record are lost.
+    """
+    n, m = codes.shape
+    stop = start + G
+    step = max(1, int(opts.coarse_lag_step))
+    rows = np.unique(np.r_[np.arange(0, n, 8), n - 1])
+    lags = np.arange(-start, m - stop + 1, step)
+    T = _toeplitz(ref.q, lags, start)
+    C = codes[rows, : T.shape[0]].astype(np.float32) @ T
+    coarse = lags[np.argmax(C, axis=1)].astype(float)
+    period = 2.0 * np.pi / ref.omega
+    local = _local_median(coarse)
+    coarse = coarse - np.rint((coarse - local) / period) * period
+    offset = np.rint(np.interp(np.arange(n), rows, coarse)).astype(int)
+    col0 = start + offset - L
+    width = G + 2 * L
+    inside = (col0 >= 0) & (col0 + width <= m)
+    col0 = np.clip(col0, 0, m - width)
+    windows = np.lib.stride_tricks.sliding_window_view(codes, width, axis=1)
+    W = windows[np.arange(n), col0].astype(np.float32)
+    res, ref, groups = _track_block(W, ref, L, opts, band, opts.reference_iterations)
+    shift = col0 + L - start
+    delay = np.where(inside, shift + res.delay + ref.offset, np.nan)
+    return delay, res.corr, res.snr_db, res.edge | ~inside, shift, ref, groups, res.delay
+
+
 def _track_drifting(codes: np.ndarray, start: int, G: int, L: int, ref: _Reference,
                     opts: TrackingOptions, band: _Band) -> tuple[np.ndarray, ...]:
     """Block-wise tracking whose gate follows the echo; the reference is rebuilt at each move.
@@ -621,6 +691,7 @@ def _track_drifting(codes: np.ndarray, start: int, G: int, L: int, ref: _Referen
     shift = np.zeros(n, dtype=int)
     offset_gate = 0
     n_reref = 0
+    rho_ref: float | None = None
     step = max(1, min(opts.coarse_lag_step, L))
     for b0 in range(0, n, B):
         rows = slice(b0, min(n, b0 + B))
@@ -631,7 +702,7 @@ def _track_drifting(codes: np.ndarray, start: int, G: int, L: int, ref: _Referen
                 res = None
                 break  # the echo left the record: these stay lost
             W = codes[rows, lo: lo + G + 2 * L].astype(np.float32)
-            res, _ = _track_block(W, ref, L, opts, band, 0)
+            res, _, _ = _track_block(W, ref, L, opts, band, 0)
             if attempt == 2 or not np.any(res.edge):
                 break
             if np.mean(res.edge) > 0.5:
@@ -657,17 +728,34 @@ def _track_drifting(codes: np.ndarray, start: int, G: int, L: int, ref: _Referen
         corr[rows], snr[rows], lost[rows] = res.corr, res.snr_db, ~ok
         shift[rows] = offset_gate
         good = ok & (res.corr >= opts.min_correlation)
+        if rho_ref is None and np.count_nonzero(good) >= 4:
+            # Start from this block's own echo shape, not a whole-record average.
+            new = _aligned_reference(_Groups.build(W, res.lag), res.delay, good, G, L, band,
+                                     ref.offset)
+            if new is not None:
+                ref = new
+                res, _, _ = _track_block(W, ref, L, opts, band, 0)
+                ok = ~res.edge
+                delay[rows] = np.where(ok, offset_gate + res.delay + ref.offset, np.nan)
+                corr[rows], snr[rows], lost[rows] = res.corr, res.snr_db, ~ok
+                good = ok & (res.corr >= opts.min_correlation)
         if np.count_nonzero(good) >= 4:
-            # Follow the echo to where the block ENDS (a steady drift keeps going).
+            rho = float(np.median(res.corr[good]))
+            if rho_ref is None:
+                rho_ref = rho
+            elif rho < _rebuild_level(rho_ref):
+                # The echo no longer looks like the reference: rebuild it from this block.
+                new = _aligned_reference(_Groups.build(W, res.lag), res.delay, good, G, L, band,
+                                         ref.offset)
+                if new is not None:
+                    # Its position relative to the old one (mean residual) is in its offset;
+                    # gate moves are carried by offset_gate, so delays stay on one scale.
+                    ref, rho_ref = new, None
+                    n_reref += 1
+            # Follow the echo to where the block ENDS (a steady drift keeps going). An
+            # integer gate move leaves the reference valid: no rebuild, no error added.
             tail = np.nonzero(good)[0][-max(4, B // 8):]
             move = int(np.rint(np.median(res.lag[tail])))
             if abs(move) >= 2:
-                g = _Groups.build(W, res.lag)
-                new = _aligned_reference(g, res.delay, good, G, L, band, ref.offset)
-                if new is not None:
-                    # The new reference sits at the old one's zero lag plus the mean residual
-                    # (its offset); the gate move is carried by offset_gate in the delays.
-                    ref = new
-                    offset_gate += move
-                    n_reref += 1
+                offset_gate += move
     return delay, corr, snr, lost, shift, n_reref
