@@ -27,8 +27,9 @@ Method (all echoes at once, no Python loop per echo):
 5. sub-sample peak: cosine fit through the three correlation samples around the peak
    (default; chosen by measurement over parabolic, cubic-spline and analytic-phase estimators:
    lowest jitter, bias < 0.001 sample down to 20 samples per carrier period, docs/tracking.md);
-6. quality per echo; echoes leaving the lag range trigger block-wise re-referencing with a
-   gate that follows the echo; echoes that cannot be tracked are NaN and flagged ``lost``.
+6. quality per echo; echoes leaving the lag range make the gate follow the echo (per-echo
+   offsets from a sparse whole-record search); a change of echo shape along the record
+   triggers block-wise re-referencing; echoes that cannot be tracked are NaN and ``lost``.
 """
 
 from __future__ import annotations
@@ -56,8 +57,9 @@ class TrackingOptions:
     reference_iterations: number of aligned-average reference rebuilds (0 = mean of the first
         ``initial_reference_echoes`` echoes only).
     min_correlation: echoes whose correlation coefficient is below this are ``lost``.
-    rereference: follow drift beyond the lag range block-wise (else such echoes are lost).
-    block_size: echoes per block when re-referencing.
+    rereference: follow drift beyond the lag range, and rebuild the reference block-wise when
+        the echo changes shape (else echoes outside the lag range are lost).
+    block_size: echoes per block when re-referencing (and per end in the shape check).
     hop_threshold_periods: a delay jump from its neighbours' median larger than this fraction
         of the carrier period is a peak hop.
     """
