@@ -21,8 +21,8 @@ Options (keyword arguments, all optional; an unknown one raises TypeError):
 ``effects`` ([]): effect dataclasses of :mod:`pelvislab.sim_instruments.effects`.
 ``faults`` ([]): fault dataclasses of :mod:`pelvislab.sim_instruments.faults`.
 ``snr_db`` (30): bone-echo peak envelope over noise RMS.
-``excitation`` ("SIAS_R_x") and ``excitation_direction`` (default: (-1, 0, 0) for the
-default excitation, else the landmark's direction); ``channels`` ({1: "sacrum_x",
+``excitation`` ("SIAS_R_x") and ``excitation_direction`` (default: into the bone, minus the
+landmark's outward direction: (-1, 0, 0) at SIAS_R_x); ``channels`` ({1: "sacrum_x",
 2: "SIPS_R_x"}): digitizer channel -> landmark.
 ``acoustics``: an :class:`~pelvislab.sim_instruments.echo.Acoustics` for every channel or a
 ``{channel: Acoustics}``; ``bone_depth_m``: shortcut for the depth (float or per channel).
@@ -52,11 +52,7 @@ from pelvislab.sim_instruments.instruments import (
     SimPulserReceiver,
     SimTransport,
 )
-from pelvislab.sim_instruments.layout import (
-    DEFAULT_CHANNELS,
-    DEFAULT_EXCITATION,
-    DEFAULT_EXCITATION_DIRECTION,
-)
+from pelvislab.sim_instruments.layout import DEFAULT_CHANNELS, DEFAULT_EXCITATION
 from pelvislab.sim_instruments.world import SimClock, World
 
 __all__ = ["SIM_RESOURCES", "SimulatedBench", "open_simulated_bench", "yaml_path"]
@@ -133,8 +129,6 @@ def open_simulated_bench(config: BenchConfig | None = None, **sim_options: Any) 
     channels = dict(opt.get("channels", DEFAULT_CHANNELS))
     excitation = opt.get("excitation", DEFAULT_EXCITATION)
     direction = opt.get("excitation_direction")
-    if direction is None and excitation == DEFAULT_EXCITATION:
-        direction = DEFAULT_EXCITATION_DIRECTION
     from pelvislab.sim_instruments.layout import resolve
 
     world = World(model=_model(opt.get("model")), config=cfg, clock=clock,

@@ -62,8 +62,8 @@ FALLBACK_LANDMARKS: dict[str, Landmark] = {
         # fig. 6.8 point 1: median sacral crest at S4, measured/excited along x
         _mm("sacrum_x", "sacrum", -150.0, 0.0, -55.0, (-1.0, 0.0, 0.0)),
         # points 2-3: anterior superior iliac spines, along x (the frame's origin is between them)
-        _mm("SIAS_R_x", "innominate_right", 0.0, -105.0, 0.0, (1.0, 0.0, 0.0)),
-        _mm("SIAS_L_x", "innominate_left", 0.0, 105.0, 0.0, (1.0, 0.0, 0.0)),
+        _mm("SIAS_R_x", "innominate_right", 0.0, -115.0, 0.0, (1.0, 0.0, 0.0)),
+        _mm("SIAS_L_x", "innominate_left", 0.0, 115.0, 0.0, (1.0, 0.0, 0.0)),
         # points 4-5: externally below the SIAS, along y (outward)
         _mm("SIAS_R_y", "innominate_right", -10.0, -115.0, -25.0, (0.0, -1.0, 0.0)),
         _mm("SIAS_L_y", "innominate_left", -10.0, 115.0, -25.0, (0.0, 1.0, 0.0)),
@@ -76,7 +76,8 @@ FALLBACK_LANDMARKS: dict[str, Landmark] = {
 DEFAULT_EXCITATION = "SIAS_R_x"
 """Face-down scenario (table 6.4): the shaker pushes the right SIAS from below."""
 DEFAULT_EXCITATION_DIRECTION = (-1.0, 0.0, 0.0)
-"""Force direction of the default excitation: posterior (the subject lies face down)."""
+"""Force direction of the default excitation: posterior (the subject lies face down), i.e.
+minus the landmark's outward direction, the default for any excitation."""
 DEFAULT_CHANNELS: dict[int, str] = {1: "sacrum_x", 2: "SIPS_R_x"}
 """Digitizer channel -> landmark of the default layout (both seen from behind)."""
 

@@ -257,7 +257,8 @@ class World:
         """The (simulated) operator moves the shaker and/or the transducers.
 
         ``excitation``: landmark name or point; ``excitation_direction``: force direction
-        (default: the landmark's direction). ``channels``: digitizer channel -> landmark.
+        (default: into the bone, minus the landmark's outward direction). ``channels``:
+        digitizer channel -> landmark (its direction: bone -> transducer).
         Call it where the runner prompts the operator to reposition the transducers.
         """
         with self._lock:
@@ -282,7 +283,9 @@ class World:
         outputs = Points(tuple(lm.bone for lm in lms), [lm.position_m for lm in lms],
                          [lm.direction for lm in lms], tuple(lm.name for lm in lms))
         ex = self.excitation
-        direction = self.excitation_direction or ex.direction
+        # catalogue directions point out of the bone (toward a sensor); a shaker pushing
+        # on that surface applies its force inward, along -direction (landmarks.toml)
+        direction = self.excitation_direction or tuple(-x for x in ex.direction)
         inputs = Points((ex.bone,), [ex.position_m], [direction], (ex.name,))
         return chans, outputs, inputs
 

@@ -273,3 +273,23 @@ def test_misconfigured_digitizer_is_refused(bench):
         bench.digitizer.configure_sequence([1], 1e9, 500, 10, 10e-6, 1.0)
     with pytest.raises(LimitError):
         bench.digitizer.configure_sequence([1], 500e6, 500, 10, 10e-6, 50.0)
+
+
+def test_layout_comes_from_the_catalogue_and_the_shaker_pushes_into_the_bone(bench):
+    from pelvislab.acquisition.protocol import load_landmarks
+    from pelvislab.sim_instruments.layout import FALLBACK_LANDMARKS
+
+    catalogue = load_landmarks()
+    assert set(FALLBACK_LANDMARKS) <= set(catalogue)
+    world = bench.world
+    assert world.excitation.position_m == pytest.approx(catalogue["SIAS_R_x"].position_m)
+    _, outputs, inputs = world._points()
+    assert inputs.direction[0] == pytest.approx(-np.asarray(catalogue["SIAS_R_x"].direction))
+    assert outputs.direction[0] == pytest.approx(catalogue["sacrum_x"].direction)
+    # the runner's simulated operator passes protocol points and the force direction
+    point = catalogue["SIPS_L_x"]
+    world.place(excitation=point, channels={1: catalogue["sacrum_x"]},
+                excitation_direction=(0.0, 0.0, 1.0))
+    _, outputs, inputs = world._points()
+    assert inputs.bone == ("innominate_left",) and inputs.direction[0] == pytest.approx([0, 0, 1])
+    assert outputs.name == ("sacrum_x",)
