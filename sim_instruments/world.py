@@ -19,9 +19,10 @@ is V = -i Vpp/2 (x(t) = Re(X e^{+iwt}), design 4.1), and the force phasor is
 ``drive_newton_per_volt * V``. With ``trigger_source="internal"`` the bursts start at a random
 drive phase (a bench without the SYNC link).
 
-Clock: ``fast`` pacing never sleeps: the world's time is the wall time since the bench was
-opened plus every acquisition's duration (the time the real bench would have spent);
-``realtime`` sleeps through acquisitions so the simulated bench runs at the real one's pace.
+Clock: ``fast`` pacing never sleeps: the world's time is virtual, advanced by every
+acquisition's duration and by the runner's settle waits (``world.clock.wait``), so runs are
+reproducible to the bit; ``realtime`` follows the wall clock and sleeps through
+acquisitions, so the simulated bench runs at the real one's pace.
 """
 
 from __future__ import annotations
@@ -68,20 +69,27 @@ __all__ = [
 
 # --------------------------------------------------------------------------- clock
 class SimClock:
-    """Seconds since the bench opened: wall time plus skipped (virtual) waiting."""
+    """Seconds since the bench opened, as the simulated world sees them.
+
+    ``fast``: purely virtual, advanced only by :meth:`wait` (acquisitions, the runner's
+    settle waits), so a run is reproducible to the bit whatever the machine's speed.
+    ``realtime``: the wall clock; :meth:`wait` sleeps.
+    """
 
     def __init__(self, pacing: str = "fast") -> None:
         if pacing not in ("fast", "realtime"):
             raise ValueError(f"pacing must be 'fast' or 'realtime', got {pacing!r}")
         self.pacing = pacing
         self._t0 = time.monotonic()
-        self._skipped = 0.0
+        self._virtual = 0.0
         self._lock = threading.Lock()
 
     def now(self) -> float:
         """Simulated time, s."""
+        if self.pacing == "realtime":
+            return time.monotonic() - self._t0
         with self._lock:
-            return time.monotonic() - self._t0 + self._skipped
+            return self._virtual
 
     def wait(self, seconds: float) -> None:
         """Let ``seconds`` of bench time pass (sleep in realtime, skip in fast pacing)."""
@@ -91,7 +99,7 @@ class SimClock:
             time.sleep(seconds)
         else:
             with self._lock:
-                self._skipped += seconds
+                self._virtual += seconds
 
 
 # --------------------------------------------------------------------------- generator state

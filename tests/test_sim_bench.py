@@ -113,8 +113,14 @@ def test_unconfigured_pulser_gives_noise_only(bench):
 
 def test_seeded_and_reproducible():
     def run(seed):
-        with open_simulated_bench(generators="python", seed=seed) as b:
+        # drift (a random walk) and the SYNC wait depend on the world's clock: fast pacing
+        # keeps it virtual, so wall-clock jitter cannot change the records
+        with open_simulated_bench(generators="python", seed=seed,
+                                  effects=[SubjectDrift(seed=seed)]) as b:
             _arm(b, n=200)
+            b.digitizer.acquire(2.0)
+            time.sleep(0.01)
+            b.drive.set_frequency(91.0)
             return b.digitizer.acquire(2.0)[1].codes
 
     a, b, c = run(5), run(5), run(6)
