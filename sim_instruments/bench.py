@@ -28,6 +28,9 @@ landmark's outward direction: (-1, 0, 0) at SIAS_R_x); ``channels`` ({1: "sacrum
 ``{channel: Acoustics}``; ``bone_depth_m``: shortcut for the depth (float or per channel).
 ``generators`` ("pyvisa-sim"): the 33220A driver over pyvisa-sim, or "python" (same driver
 over a built-in responder; no YAML parsing, faster to open).
+``digitizer`` ("python"): the Python ``SimDigitizer`` (fast timeouts), or "acqiris": the
+product's ``AcqirisDigitizer`` driver over a simulated D1 library (``SimD1Library``; its
+timeouts take wall-clock time, like the driver's).
 ``trigger_source`` ("drive_sync"): bursts start on the drive's SYNC edge; "internal": at a
 random drive phase. ``trigger_latency_s`` (0), ``trigger_jitter_s`` (0): SYNC-to-first-pulse
 delay and unmeasured trigger timing noise (RMS).
@@ -65,7 +68,7 @@ SIM_RESOURCES = {
 
 _OPTIONS = {"seed", "pacing", "model", "effects", "faults", "snr_db", "excitation",
             "excitation_direction", "channels", "acoustics", "bone_depth_m", "generators",
-            "trigger_source", "trigger_latency_s", "trigger_jitter_s"}
+            "trigger_source", "trigger_latency_s", "trigger_jitter_s", "digitizer"}
 
 
 @dataclass
@@ -170,7 +173,18 @@ def open_simulated_bench(config: BenchConfig | None = None, **sim_options: Any) 
             gen.transport_sim = transport  # type: ignore[attr-defined]
             opened.append(gen)
             gens[role] = gen
-        digitizer = SimDigitizer(world)
+        dig_kind = opt.get("digitizer", "python")
+        digitizer: Any
+        if dig_kind == "python":
+            digitizer = SimDigitizer(world)
+        elif dig_kind == "acqiris":
+            from pelvislab.drivers.acqiris import AcqirisDigitizer
+            from pelvislab.sim_instruments.acqiris_sim import SimD1Library
+
+            digitizer = AcqirisDigitizer(SimD1Library(world), "PCI::INSTR0",
+                                         external_clock_hz=cfg.reference_clock_hz)
+        else:
+            raise ValueError(f"digitizer must be 'python' or 'acqiris', got {dig_kind!r}")
         opened.append(digitizer)
         pulsers = [SimPulserReceiver(world, ch,
                                      cfg.pulsers[ch - 1].resource if len(cfg.pulsers) >= ch

@@ -299,3 +299,33 @@ def test_layout_comes_from_the_catalogue_and_the_shaker_pushes_into_the_bone(ben
     _, outputs, inputs = world._points()
     assert inputs.bone == ("innominate_left",) and inputs.direction[0] == pytest.approx([0, 0, 1])
     assert outputs.name == ("sacrum_x",)
+
+
+def test_real_acqiris_driver_over_the_simulated_library_gives_the_same_records():
+    records = {}
+    for kind in ("python", "acqiris"):
+        with open_simulated_bench(generators="python", digitizer=kind, seed=4) as b:
+            _arm(b, n=300)
+            records[kind] = b.digitizer.acquire(2.0)
+        log = [text for _, text in b.digitizer.command_log]
+    assert "AcqrsD1_readData" in log and "AcqrsD1_close" in log  # the real driver's log
+    for ch in (1, 2):
+        a, c = records["python"][ch], records["acqiris"][ch]
+        assert np.array_equal(a.codes, c.codes)
+        assert np.array_equal(a.trigger_offset_s, c.trigger_offset_s)
+        assert (a.volts_per_count, a.delay_s) == (c.volts_per_count, c.delay_s)
+
+
+def test_real_acqiris_driver_timeout_and_lost_connection():
+    faults = [LostConnection("digitizer", at_acquisition=2)]
+    with open_simulated_bench(generators="python", digitizer="acqiris", faults=faults) as b:
+        _arm(b, n=100)
+        b.trigger.output_off()
+        t0 = time.perf_counter()
+        with pytest.raises(InstrumentTimeoutError, match="not finished within 0.2"):
+            b.digitizer.acquire(0.2)
+        assert time.perf_counter() - t0 >= 0.2  # the driver's wall-clock timeout
+        b.trigger.output_on()
+        b.digitizer.acquire(2.0)
+        with pytest.raises(InstrumentConnectionError):
+            b.digitizer.acquire(2.0)
