@@ -1,10 +1,23 @@
-"""``pelvislab gap``: sim-to-real gap diagnosis and its withheld-effect self-check (design 4.4)."""
+"""``pelvislab gap``: sim-to-real gap diagnosis and its withheld-effect self-check (design 4.4).
+
+``gap diagnose`` reads the /frf set of a session or FRF-only file, runs
+:func:`pelvislab.model.gap.diagnose` and writes the design 4.4 JSON, a readable report on
+stdout and PNG plots next to the JSON.
+
+``gap benchmark`` runs the diagnosis blind on data sets with one hidden effect each. The
+data generator lives on the *test* side (``pelvislab.tests.benchmarks.bench_gap``), which
+is allowed to use the simulator (``sim_instruments``): product code never imports the
+simulator (design 3), and the generator shares no code with the diagnosis, so the check
+stays blind. The command imports it lazily, only when asked to run the self-check.
+"""
 
 from __future__ import annotations
 
 import argparse
-
-from pelvislab.app.commands._common import not_implemented
+import json
+import os
+import sys
+from pathlib import Path
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -16,7 +29,154 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     d.add_argument("session", metavar="S.h5", help="session or FRF-only file")
     d.add_argument("--model", metavar="M.toml", help="base model; default: thesis appendix E")
     d.add_argument("--json", required=True, metavar="OUT", help="write the diagnosis JSON here")
-    d.set_defaults(handler=not_implemented("gap diagnose"))
+    d.add_argument("--effects", metavar="LIST",
+                   help="comma-separated candidate effects to try (default: all)")
+    d.add_argument("--no-plots", action="store_true", help="do not write PNG plots")
+    d.set_defaults(handler=_diagnose)
     b = sub.add_parser("benchmark", help="diagnose data sets with a withheld effect each")
     b.add_argument("--json", required=True, metavar="OUT", help="write the benchmark JSON here")
-    b.set_defaults(handler=not_implemented("gap benchmark"))
+    b.add_argument("--cases", type=int, default=2, metavar="N",
+                   help="data sets per effect kind (plus N without effect); default 2")
+    b.add_argument("--seed", type=int, default=1, help="random seed of the generator")
+    b.add_argument("--source", choices=("auto", "sim", "model"), default="auto",
+                   help="data generator: the simulator's effect_frf ('sim'), the test-side "
+                   "model generator ('model'), or sim when available ('auto')")
+    b.set_defaults(handler=_benchmark)
+
+
+def _progress() -> object:
+    if sys.stderr.isatty():
+        return lambda msg: print(f"  {msg}", file=sys.stderr, flush=True)
+    return None
+
+
+def _diagnose(args: argparse.Namespace) -> int:
+    from pelvislab.acquisition.frfset import read_frf
+    from pelvislab.model.gap import diagnose, prepare_data
+    from pelvislab.model.gap_effects import EFFECT_NAMES
+    from pelvislab.model.pelvis import default_model, load_model
+
+    frf = read_frf(args.session)
+    model = load_model(args.model) if args.model else default_model()
+    effects = None
+    if args.effects:
+        effects = tuple(e.strip() for e in args.effects.split(",") if e.strip())
+        unknown = sorted(set(effects) - set(EFFECT_NAMES))
+        if unknown:
+            raise ValueError(f"unknown effect(s) {unknown}; known: {', '.join(EFFECT_NAMES)}")
+    from pelvislab.model.gap import GapOptions
+
+    data = prepare_data(frf.frequency_hz, frf.H, frf.H_std, frf.outputs, frf.inputs)
+    result = diagnose(data, model, GapOptions(effects=effects), progress=_progress())
+    out = Path(args.json)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    report = dict(result.report)
+    report["source"] = {"file": str(Path(args.session).resolve()),
+                        "model": args.model or "appendix_e (default)"}
+    plots: list[str] = []
+    if not args.no_plots:
+        try:
+            plots = _plots(result, out)
+        except Exception as exc:  # plots are a convenience; the JSON is the result
+            print(f"pelvislab gap diagnose: warning: no plots ({exc})", file=sys.stderr)
+    report["plots"] = plots
+    out.write_text(json.dumps(report, indent=2, allow_nan=True) + "\n")
+    print(format_report(report))
+    print(f"\nJSON: {out}")
+    for p in plots:
+        print(f"plot: {p}")
+    return 0
+
+
+def format_report(report: dict) -> str:
+    """A readable text version of the design 4.4 report."""
+    lines = [f"sim-to-real gap diagnosis: verdict = {report['verdict']}",
+             f"  {report.get('verdict_reason', '')}",
+             f"  gap before (held-out, 1 = noise level): {report['gap_before']:.3g}"
+             f"   noise: {report.get('noise', {}).get('source', '?')}"]
+    where = report["where"]
+    lines.append("where:")
+    lines.append("  bands:   " + ", ".join(
+        f"{b['lo_hz']:.0f}-{b['hi_hz']:.0f} Hz {b['share']:.0%}" for b in where["bands"][:4]))
+    lines.append("  outputs: " + ", ".join(
+        f"{o['name']} {o['share']:.0%}" for o in where["outputs"][:4]))
+    lines.append("  bones:   " + ", ".join(
+        f"{b['bone']} {b['share']:.0%}" for b in where["bones"]))
+    worst = sorted(where.get("frac", []), key=lambda x: x["frac"])[:3]
+    if worst:
+        lines.append("  lowest FRAC: " + ", ".join(
+            f"{w['output']}/{w['input']} {w['frac']:.3f}" for w in worst))
+    lines.append("which (held-out gap after adding the effect):")
+    for c in report["candidates"]:
+        lines.append(f"  {c['effect']:<30} gap {c['gap_after']:<8.3g} shrink "
+                     f"{c['shrink']:>6.0%}  [{c.get('variant', '')} @ {c.get('place', '')}]")
+    return "\n".join(lines)
+
+
+def _plots(result: object, out: Path) -> list[str]:
+    """Residual map and measured/base/best FRF of the worst FRF as PNG (pyqtgraph)."""
+    import numpy as np
+
+    os.environ.setdefault("QT_QPA_PLATFORM", "offscreen")
+    import pyqtgraph as pg
+    from pyqtgraph.exporters import ImageExporter
+
+    pg.mkQApp()
+    data = result.data  # type: ignore[attr-defined]
+    rmap = np.abs(result.residual_map)  # type: ignore[attr-defined]
+    n_f, n_out, n_in = rmap.shape
+    img = np.nan_to_num(rmap.reshape(n_f, n_out * n_in))
+    paths = []
+    stem = out.with_suffix("")
+    # 1. residual map: frequency x (output, input), |r| in noise units, log colour
+    plot = pg.PlotItem(title="normalised residual |H - H_base| / sigma (log10)")
+    image = pg.ImageItem(np.log10(np.maximum(img, 1e-2)))
+    image.setColorMap(pg.colormap.get("viridis"))
+    f = data.frequency_hz
+    df = (f[-1] - f[0]) / max(n_f - 1, 1)
+    image.setRect(pg.QtCore.QRectF(f[0], 0, df * n_f, n_out * n_in))
+    plot.addItem(image)
+    plot.setLabel("bottom", "frequency", units="Hz")
+    plot.setLabel("left", "FRF index (output-major)")
+    path = Path(f"{stem}_residual_map.png")
+    exporter = ImageExporter(plot)
+    exporter.parameters()["width"] = 1000
+    exporter.export(str(path))
+    paths.append(str(path))
+    # 2. the FRF with the largest residual: measured, base model, best candidate
+    energy = np.nansum(rmap**2, axis=0)
+    o, i = np.unravel_index(int(np.argmax(energy)), energy.shape)
+    plot = pg.PlotItem(title=f"|H| {data.out_names[o]} / {data.in_names[i]}: measured (white), "
+                       "base (red), best candidate (green)")
+    plot.setLogMode(y=True)
+    plot.plot(f, np.abs(data.H[:, o, i]), pen=None, symbol="o", symbolSize=3)
+    plot.plot(f, np.abs(result.H_base[:, o, i]), pen=pg.mkPen("r", width=2))  # type: ignore
+    if result.H_best is not None:  # type: ignore[attr-defined]
+        plot.plot(f, np.abs(result.H_best[:, o, i]), pen=pg.mkPen("g", width=2))  # type: ignore
+    plot.setLabel("bottom", "frequency", units="Hz")
+    plot.setLabel("left", "receptance", units="m/N")
+    path = Path(f"{stem}_worst_frf.png")
+    exporter = ImageExporter(plot)
+    exporter.parameters()["width"] = 1000
+    exporter.export(str(path))
+    paths.append(str(path))
+    return paths
+
+
+def _benchmark(args: argparse.Namespace) -> int:
+    from pelvislab.model.gap_benchmark import format_summary, run_benchmark
+
+    if args.cases < 1:
+        raise ValueError("--cases must be >= 1")
+    # test-side generator (may use the simulator); see the module docstring for why
+    from pelvislab.tests.benchmarks.bench_gap import make_generator
+
+    generator, source = make_generator(args.source, seed=args.seed)
+    result = run_benchmark(generator, cases_per_kind=args.cases, progress=_progress())
+    result["generator"] = source
+    out = Path(args.json)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text(json.dumps(result, indent=2) + "\n")
+    print(format_summary(result))
+    print(f"\nJSON: {out}")
+    return 0

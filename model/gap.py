@@ -1,0 +1,812 @@
+"""Sim-to-real gap diagnosis (design 4.4): where the model misses the data, which unmodelled
+effect explains it, and how far the gap shrinks once that effect is added.
+
+Method (``docs/gap-diagnosis.md`` has the long version):
+
+1. **Noise.** Every FRF line gets a standard uncertainty σ: ``H_std`` when the file has it
+   (design 4.2), otherwise a robust estimate per FRF from third differences along frequency
+   (the smooth FRF cancels, white noise does not): σ² = median|Δ³H|² / (20 ln 2).
+2. **Split.** Every 4th measured line (offset 2) is *held out*: never used for fitting,
+   only to measure gaps. ``gap = sqrt(max(mean |H_model − H|²/σ² − 1, 0))`` over held-out
+   lines: the rms model error beyond noise, in noise units (0 at the noise level).
+3. **Base fit.** All named parameters (design 4.5) are updated by robust least squares on
+   the fitted lines (thesis eq. 6.10 with a = b, weighted by 1/σ; log-parameters; damping
+   scanned over decades first because it may be far from appendix E; several starts
+   against the local minima of ch. 6.2/7).
+4. **Where.** Normalised residual map r = (H − H_base)/σ over output x input x frequency;
+   the excess |r|² − 1 is shared out by band, output and bone (each sums to 1), backed by
+   FRAC per FRF, COMAC per output and rigid-body content of the residual (eq. 11.4, 11.7).
+5. **Which.** Each candidate of :mod:`pelvislab.model.gap_effects` is screened at every
+   place with the base parameters frozen, and the best places are then fitted jointly with
+   all base parameters. Candidates are ranked by held-out χ² plus 2 per parameter (AIC).
+6. **Verdict.** ``none`` when the base gap is at noise level and no candidate improves the
+   held-out fit significantly; the best candidate when it brings the gap near noise or
+   removes most of it; ``unexplained`` otherwise (``where`` still points at the region).
+
+Numerics only: arrays in, dict out; no I/O.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy.optimize import least_squares
+
+from pelvislab.model.gap_effects import (
+    Candidate,
+    Context,
+    EffectTerms,
+    base_structure,
+    candidate_library,
+    evaluate,
+)
+from pelvislab.model.pelvis import PelvisModel
+
+Progress = Callable[[str], None]
+
+
+@dataclass(frozen=True)
+class GapOptions:
+    """Tuning of the diagnosis (defaults are what the benchmark in ``docs/`` measured).
+
+    * ``holdout_every`` / ``holdout_offset``: which lines are held out;
+    * ``none_gap``: base gap at or below which the data count as explained by parameter
+      updating alone; ``near_noise_gap``: gap_after counted as "near noise";
+    * ``min_shrink``: a candidate that removes at least this fraction of the gap explains
+      it even when the rest is not yet at noise level (its form differs from reality);
+    * ``significance``: held-out χ² drop (per line units) a candidate must achieve;
+    * ``joint_variants``: how many of the best-screened variants get a joint fit with the
+      base parameters (global variants always do); ``places_per_variant`` places each, plus
+      one more place for each of the ``extra_places_top`` best.
+    """
+
+    holdout_every: int = 4
+    holdout_offset: int = 2
+    none_gap: float = 0.5
+    near_noise_gap: float = 1.0
+    min_shrink: float = 0.6
+    significance: float = 25.0
+    significance_rel: float = 0.1
+    places_per_variant: int = 1
+    extra_places_top: int = 3
+    joint_variants: int = 6
+    clean_share: float = 0.35
+    base_starts: int = 2
+    max_nfev_base: int = 60
+    max_nfev_screen: int = 12
+    max_nfev_joint: int = 25
+    robust_scale: float = 3.0
+    effects: tuple[str, ...] | None = None
+    seed: int = 0
+
+
+@dataclass
+class GapData:
+    """FRF data prepared for the diagnosis (measured lines only)."""
+
+    frequency_hz: np.ndarray
+    H: np.ndarray  # (n_f, n_out, n_in) complex, NaN where not measured
+    sigma: np.ndarray  # (n_f, n_out, n_in) float, standard uncertainty (m/N)
+    mask: np.ndarray  # (n_f, n_out, n_in) bool: measured and usable
+    out_names: tuple[str, ...]
+    out_bones: tuple[str, ...]
+    out_position_m: np.ndarray
+    out_direction: np.ndarray
+    in_names: tuple[str, ...]
+    in_bones: tuple[str, ...]
+    in_position_m: np.ndarray
+    in_direction: np.ndarray
+    noise_source: str = "H_std"
+
+
+def estimate_noise(H: np.ndarray) -> np.ndarray:
+    """Robust per-FRF noise σ (m/N) from third differences along frequency.
+
+    For white complex noise of variance σ² per line, Δ³e has variance 20 σ² and |Δ³e|² is
+    exponential, so its median is 20 σ² ln 2; a smooth FRF contributes little to Δ³ on a
+    fine grid. Returns σ broadcast to H's shape (NaN where H is not measured).
+    """
+    n_f, n_out, n_in = H.shape
+    sigma = np.full(H.shape, np.nan)
+    for o in range(n_out):
+        for i in range(n_in):
+            h = H[:, o, i]
+            ok = np.isfinite(h)
+            hv = h[ok]
+            if hv.size < 8:
+                s = 0.05 * np.nanmax(np.abs(hv)) if hv.size else np.nan
+            else:
+                d3 = np.diff(hv, 3)
+                s = np.sqrt(np.median(np.abs(d3) ** 2) / (20 * np.log(2)))
+                s = max(s, 1e-6 * float(np.max(np.abs(hv))))
+            sigma[ok, o, i] = s
+    return sigma
+
+
+def prepare_data(frequency_hz: np.ndarray, H: np.ndarray, H_std: np.ndarray | None,
+                 outputs: object, inputs: object) -> GapData:
+    """Check and normalise FRF data; ``outputs``/``inputs`` are ``Channels``-like objects
+    (name, bone, position_m, direction), e.g. from :func:`pelvislab.acquisition.frfset.read_frf`.
+    """
+    H = np.asarray(H, complex)
+    f = np.asarray(frequency_hz, float)
+    mask = np.isfinite(H)
+    if H_std is not None:
+        std = np.asarray(H_std, float)
+        good = np.isfinite(std) & (std > 0)
+        if not good[mask].any():
+            raise ValueError("H_std holds no positive finite value on measured lines")
+        # a zero or missing std on a measured line: use the median std of that FRF
+        sigma = std.copy()
+        for o in range(H.shape[1]):
+            for i in range(H.shape[2]):
+                sel = good[:, o, i]
+                fill = np.median(std[sel, o, i]) if sel.any() else np.nan
+                sigma[~sel, o, i] = fill
+        source = "H_std"
+    else:
+        sigma = estimate_noise(H)
+        source = "estimated (third differences)"
+    mask &= np.isfinite(sigma) & (sigma > 0)
+    bones_out = tuple(outputs.bone)
+    bones_in = tuple(inputs.bone)
+    # points on no modelled bone cannot be predicted by the model: leave them out
+    for o, b in enumerate(bones_out):
+        if b == "":
+            mask[:, o, :] = False
+    for i, b in enumerate(bones_in):
+        if b == "":
+            mask[:, :, i] = False
+    if mask.sum() < 20:
+        raise ValueError(f"only {int(mask.sum())} usable FRF lines; the diagnosis needs >= 20")
+    return GapData(f, H, sigma, mask, tuple(outputs.name), bones_out,
+                   np.asarray(outputs.position_m, float), np.asarray(outputs.direction, float),
+                   tuple(inputs.name), bones_in, np.asarray(inputs.position_m, float),
+                   np.asarray(inputs.direction, float), source)
+
+
+# ---------------------------------------------------------------------------------------
+# Residuals and fitting
+# ---------------------------------------------------------------------------------------
+
+@dataclass
+class _Lines:
+    """A subset of the data: frequency lines and their masks (for fit or held-out)."""
+
+    ctx: Context
+    idx: np.ndarray  # frequency-line indices
+    mask: np.ndarray  # (n_sub, n_out, n_in)
+    H: np.ndarray  # measured values at mask
+    w: np.ndarray  # sqrt(2)/σ at mask
+
+    @classmethod
+    def build(cls, ctx: Context, data: GapData, line_mask: np.ndarray,
+              exclude_output: int | None = None, exclude_input: int | None = None) -> _Lines:
+        idx = np.flatnonzero(line_mask)
+        m = data.mask[idx] & True
+        if exclude_output is not None:
+            m[:, exclude_output, :] = False
+        if exclude_input is not None:
+            m[:, :, exclude_input] = False
+        return cls(ctx.subset(idx), idx, m, data.H[idx][m], np.sqrt(2.0) / data.sigma[idx][m])
+
+    @property
+    def n(self) -> int:
+        return int(self.H.size)
+
+    def residual(self, H_model: np.ndarray) -> np.ndarray:
+        d = (H_model[self.mask] - self.H) * self.w
+        return np.concatenate([d.real, d.imag])
+
+    def jac(self, dH: np.ndarray) -> np.ndarray:
+        d = dH[self.mask] * self.w[:, None]
+        return np.concatenate([d.real, d.imag])
+
+    def gap(self, H_model: np.ndarray) -> float:
+        """Model error beyond noise: sqrt(max(mean |ΔH|²/σ² − 1, 0)), in noise units."""
+        return excess_gap(self.chi2(H_model), self.n)
+
+    def rms(self, H_model: np.ndarray) -> float:
+        """Root-mean-square normalised residual (1 at the noise level)."""
+        return float(np.sqrt(self.chi2(H_model) / self.n))
+
+    def chi2(self, H_model: np.ndarray) -> float:
+        """Σ |ΔH|²/σ² (each line contributes 1 on average at the noise level)."""
+        r = self.residual(H_model)
+        return float(np.sum(r**2) / 2)
+
+
+def excess_gap(chi2: float, n_lines: int) -> float:
+    """The gap of design 4.4: rms model error beyond the noise, in units of the noise σ.
+
+    ``sqrt(max(χ²/n − 1, 0))`` with χ² = Σ|H_model − H|²/σ² over ``n_lines`` held-out lines:
+    0 when the model explains the data to the noise level, so that
+    ``shrink = 1 − gap_after/gap_before`` is the fraction of the model error removed.
+    """
+    return float(np.sqrt(max(chi2 / n_lines - 1.0, 0.0)))
+
+
+@dataclass
+class _Bounds:
+    lo: np.ndarray
+    hi: np.ndarray
+
+
+def _base_bounds(names: Sequence[str], start: np.ndarray) -> _Bounds:
+    lo = np.empty(len(names))
+    hi = np.empty(len(names))
+    for j, n in enumerate(names):
+        x = np.log(start[j])
+        if n.startswith("m_"):
+            lo[j], hi[j] = x - np.log(2.0), x + np.log(2.0)
+        elif n.startswith("k_"):
+            lo[j], hi[j] = x - np.log(30.0), x + np.log(30.0)
+        else:  # damping may be far from its nominal value
+            lo[j], hi[j] = x - np.log(1e4), x + np.log(1e6)
+    return _Bounds(lo, hi)
+
+
+class _Model:
+    """Residual/Jacobian over (log θ, effect u) for one candidate (or none) on some lines."""
+
+    def __init__(self, lines: _Lines, cand: Candidate | None, fixed_theta: np.ndarray | None,
+                 n_theta: int) -> None:
+        self.lines = lines
+        self.cand = cand
+        self.fixed_theta = fixed_theta  # when given, only effect parameters are free
+        self.n_theta = n_theta
+        self.nfev = 0
+
+    def split(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        if self.fixed_theta is not None:
+            return self.fixed_theta, x
+        return np.exp(x[:self.n_theta]), x[self.n_theta:]
+
+    def terms(self, u: np.ndarray) -> EffectTerms | None:
+        return None if self.cand is None else self.cand.build(u, self.lines.ctx)
+
+    def H(self, x: np.ndarray, jac: bool = False) -> tuple[np.ndarray, np.ndarray | None]:
+        theta, u = self.split(x)
+        self.nfev += 1
+        return evaluate(self.lines.ctx, theta, self.terms(u), jacobian=jac)
+
+    def residual(self, x: np.ndarray) -> np.ndarray:
+        return self.lines.residual(self.H(x)[0])
+
+    def jacobian(self, x: np.ndarray) -> np.ndarray:
+        theta, u = self.split(x)
+        blocks = []
+        if self.fixed_theta is None:
+            H, dH = self.H(x, jac=True)
+            blocks.append(self.lines.jac(dH))
+        else:
+            H, _ = self.H(x)
+        r0 = self.lines.residual(H)
+        if self.cand is not None:
+            # forward differences for the few effect parameters
+            cols = []
+            for k in range(u.size):
+                h = 1e-6 * max(1.0, abs(u[k]))
+                uk = u.copy()
+                uk[k] += h
+                Hk, _ = evaluate(self.lines.ctx, theta, self.cand.build(uk, self.lines.ctx))
+                self.nfev += 1
+                cols.append((self.lines.residual(Hk) - r0) / h)
+            if cols:
+                blocks.append(np.stack(cols, axis=1))
+        return np.concatenate(blocks, axis=1)
+
+
+def _lsq(model: _Model, x0: np.ndarray, lo: np.ndarray, hi: np.ndarray, max_nfev: int,
+         scale: float) -> tuple[np.ndarray, float]:
+    x0 = np.clip(x0, lo + 1e-9, hi - 1e-9)
+    try:
+        sol = least_squares(model.residual, x0, jac=model.jacobian, bounds=(lo, hi),
+                            method="trf", loss="soft_l1", f_scale=scale, max_nfev=max_nfev,
+                            x_scale="jac", ftol=1e-8, xtol=1e-8, gtol=1e-10)
+    except (np.linalg.LinAlgError, ValueError):
+        return x0, float("inf")
+    return sol.x, float(sol.cost)
+
+
+@dataclass
+class BaseFit:
+    """Result of the base-parameter updating."""
+
+    names: tuple[str, ...]
+    values: np.ndarray
+    start: np.ndarray
+    gap_fit: float
+    starts: int
+    wall_time_s: float
+    grid_start: np.ndarray | None = None  # best start (log θ) before least squares
+
+
+def _robust_cost(r: np.ndarray, scale: float) -> float:
+    z = (r / scale) ** 2
+    return float(scale**2 * np.sum(np.sqrt(1 + z) - 1))
+
+
+def fit_base(fit: _Lines, start: np.ndarray, names: Sequence[str], options: GapOptions,
+             progress: Progress | None = None,
+             initial: Sequence[np.ndarray] | None = None) -> BaseFit:
+    """Update all named parameters on the fitted lines (robust least squares, multi-start).
+
+    Seam: this is the place to call the identification engineer's routine
+    (``pelvislab.model.identification.identify_frf``); the diagnosis needs only the
+    parameter values that minimise the weighted FRF misfit.
+    """
+    t0 = time.perf_counter()
+    names = tuple(names)
+    n = len(names)
+    bounds = _base_bounds(names, start)
+    model = _Model(fit, None, None, n)
+    x_nom = np.log(start)
+    is_c = np.array([nm.startswith("c_") for nm in names])
+    is_k = np.array([nm.startswith("k_") for nm in names])
+    is_m = np.array([nm.startswith("m_") for nm in names])
+    # 1. grid over a common damping decade and global stiffness/mass scales: the damping
+    #    may be orders of magnitude away from the nominal values (thesis tables 6.2 vs E).
+    grid = []
+    decades = np.arange(-2.0, 5.01, 0.5) if initial is None else np.array([])
+    for x in initial or []:
+        grid.append((_robust_cost(model.residual(x), options.robust_scale), x))
+    for dc in decades:
+        for sk in (-0.3, 0.0, 0.3):
+            for sm in (-0.2, 0.0, 0.2):
+                x = x_nom.copy()
+                x[is_c] += dc * np.log(10)
+                x[is_k] += sk
+                x[is_m] += sm
+                x = np.clip(x, bounds.lo + 1e-9, bounds.hi - 1e-9)
+                grid.append((_robust_cost(model.residual(x), options.robust_scale), x))
+    grid.sort(key=lambda t: t[0])
+    starts = [g[1] for g in grid[:2]]
+    rng = np.random.default_rng(options.seed)
+    best_x, best_cost = starts[0], float("inf")
+    n_starts = 0
+    k = 0
+    n_runs = options.base_starts + len(starts) - 1 if initial is None else len(starts)
+    while k < n_runs:
+        if k < len(starts):
+            xs = starts[k]
+        else:
+            xs = best_x.copy()
+            xs[is_k] += rng.uniform(-0.4, 0.4, is_k.sum())
+            xs[is_m] += rng.uniform(-0.25, 0.25, is_m.sum())
+            xs[is_c] += rng.uniform(-1.0, 1.0, is_c.sum())
+        x, cost = _lsq(model, xs, bounds.lo, bounds.hi, options.max_nfev_base,
+                       options.robust_scale)
+        n_starts += 1
+        if cost < best_cost:
+            best_x, best_cost = x, cost
+        g = fit.gap(model.H(best_x)[0])
+        if progress:
+            progress(f"base fit start {n_starts}: fitted-line gap {g:.3g}")
+        k += 1
+        if k >= len(starts) and g <= options.none_gap:
+            break  # at noise level: no need for more starts
+    values = np.exp(best_x)
+    return BaseFit(names, values, start, fit.gap(model.H(best_x)[0]), n_starts,
+                   time.perf_counter() - t0, starts[0])
+
+
+@dataclass
+class CandidateResult:
+    """One fitted candidate (best variant and place of an effect)."""
+
+    candidate: Candidate
+    u: np.ndarray
+    theta: np.ndarray
+    gap_fit: float
+    gap_after: float
+    chi2_heldout: float
+    score: float
+    screened_places: int
+
+    def as_dict(self, gap_before: float, evidence: str) -> dict[str, object]:
+        c = self.candidate
+        params: dict[str, object] = {k: _round(v) for k, v in c.describe(self.u).items()}
+        params["place"] = c.place
+        return {
+            "effect": c.effect,
+            "gap_after": _round(self.gap_after),
+            "shrink": _round(1.0 - self.gap_after / gap_before) if gap_before > 0 else 0.0,
+            "params": params,
+            "evidence": evidence,
+            "variant": c.variant,
+            "place": c.place,
+            "place_kind": c.place_kind,
+            "bone": c.bone,
+            "n_params": c.n_params,
+            "score": _round(self.score),
+        }
+
+
+def _round(x: float, digits: int = 6) -> float:
+    x = float(x)
+    if not np.isfinite(x):
+        return x
+    return float(f"{x:.{digits}g}")
+
+
+def _screen(cand: Candidate, fit: _Lines, theta: np.ndarray, options: GapOptions
+            ) -> tuple[float, np.ndarray]:
+    """Best effect parameters with the base frozen (cheap: a few short fits)."""
+    model = _Model(fit, cand, theta, len(theta))
+    scored = []
+    for u0 in cand.starts:
+        u0 = np.clip(u0, cand.lower + 1e-9, cand.upper - 1e-9)
+        try:
+            r = model.residual(u0)
+        except np.linalg.LinAlgError:
+            continue
+        scored.append((_robust_cost(r, options.robust_scale), u0))
+    scored.sort(key=lambda t: t[0])
+    best = (float("inf"), cand.starts[0])
+    for _, u0 in scored[:1]:
+        u, cost = _lsq(model, u0, cand.lower, cand.upper, options.max_nfev_screen,
+                       options.robust_scale)
+        if cost < best[0]:
+            best = (cost, u)
+    return best
+
+
+def _joint(cand: Candidate, fit: _Lines, held: _Lines, thetas: Sequence[np.ndarray],
+           u0: np.ndarray, bounds: _Bounds, options: GapOptions
+           ) -> tuple[np.ndarray, np.ndarray, float, float]:
+    """Joint fit of base and effect parameters from each base start; the best on the fitted
+    lines is scored on the held-out lines."""
+    n = len(thetas[0])
+    model = _Model(fit, cand, None, n)
+    lo = np.concatenate([bounds.lo, cand.lower])
+    hi = np.concatenate([bounds.hi, cand.upper])
+    best = (float("inf"), None)
+    for theta in thetas:
+        x0 = np.concatenate([np.log(theta), u0])
+        x, cost = _lsq(model, x0, lo, hi, options.max_nfev_joint, options.robust_scale)
+        if cost < best[0]:
+            best = (cost, x)
+    x = best[1] if best[1] is not None else np.concatenate([np.log(thetas[0]), u0])
+    th, u = np.exp(x[:n]), x[n:]
+    Hf, _ = evaluate(fit.ctx, th, cand.build(u, fit.ctx))
+    Hh, _ = evaluate(held.ctx, th, cand.build(u, held.ctx))
+    return th, u, fit.gap(Hf), held.chi2(Hh)
+
+
+# ---------------------------------------------------------------------------------------
+# Where: residual map, shares, FRAC, COMAC, rigidity
+# ---------------------------------------------------------------------------------------
+
+def _shares(weights: dict[str, float], key: str) -> list[dict[str, object]]:
+    total = sum(weights.values())
+    items = sorted(weights.items(), key=lambda kv: -kv[1])
+    if total <= 0:
+        n = len(items)
+        return [{key: k, "share": _round(1.0 / n, 4)} for k, _ in items]
+    return [{key: k, "share": _round(v / total, 4)} for k, v in items]
+
+
+def band_edges(frequency_hz: np.ndarray, n_bands: int = 6) -> np.ndarray:
+    """Equal-width band edges (Hz) spanning the measured range."""
+    return np.linspace(float(frequency_hz.min()), float(frequency_hz.max()), n_bands + 1)
+
+
+def frac(H_meas: np.ndarray, H_model: np.ndarray) -> float:
+    """Frequency response assurance criterion of one FRF (MAC of eq. 4.49 over frequency)."""
+    ok = np.isfinite(H_meas) & np.isfinite(H_model)
+    a, b = H_meas[ok], H_model[ok]
+    den = float(np.vdot(a, a).real * np.vdot(b, b).real)
+    return float(abs(np.vdot(a, b)) ** 2 / den) if den > 0 else float("nan")
+
+
+def rigid_content(x: np.ndarray, R: np.ndarray) -> float:
+    """Rigid-body content (‖x‖ − ‖x − R α‖)/‖x‖ of eq. 11.4/11.7, α by least squares (11.2)."""
+    nx = float(np.linalg.norm(x))
+    if nx == 0:
+        return float("nan")
+    alpha, *_ = np.linalg.lstsq(R, x, rcond=None)
+    return float((nx - np.linalg.norm(x - R @ alpha)) / nx)
+
+
+def where_analysis(data: GapData, H_base: np.ndarray, n_bands: int = 6) -> dict[str, object]:
+    """Shares of the excess normalised residual by band, output and bone, plus FRAC, COMAC
+    and rigid-body content of the residual deflection shapes (eq. 11.4, 11.7)."""
+    r = np.where(data.mask, (data.H - H_base) / data.sigma, 0)
+    e2 = np.abs(r) ** 2
+    excess = np.where(data.mask, np.clip(e2 - 1.0, 0, None), 0)
+    if excess.sum() <= 0:
+        excess = np.where(data.mask, e2, 0)
+    edges = band_edges(data.frequency_hz, n_bands)
+    bands = []
+    tot = float(excess.sum())
+    for k in range(n_bands):
+        lo, hi = edges[k], edges[k + 1]
+        sel = (data.frequency_hz >= lo) & ((data.frequency_hz < hi) | (k == n_bands - 1))
+        share = float(excess[sel].sum()) / tot if tot > 0 else 1.0 / n_bands
+        bands.append({"lo_hz": _round(lo, 5), "hi_hz": _round(hi, 5), "share": _round(share, 4)})
+    bands.sort(key=lambda b: -b["share"])
+    by_out = {n: float(excess[:, o, :].sum()) for o, n in enumerate(data.out_names)}
+    by_bone: dict[str, float] = {}
+    for o, b in enumerate(data.out_bones):
+        by_bone[b or "(none)"] = by_bone.get(b or "(none)", 0.0) + by_out[data.out_names[o]]
+    by_in = {n: float(excess[:, :, i].sum()) for i, n in enumerate(data.in_names)}
+    fracs = []
+    for o, on in enumerate(data.out_names):
+        for i, inn in enumerate(data.in_names):
+            m = data.mask[:, o, i]
+            if m.sum() >= 3:
+                fracs.append({"output": on, "input": inn,
+                              "frac": _round(frac(data.H[m, o, i], H_base[m, o, i]), 4)})
+    comac = []
+    for o, on in enumerate(data.out_names):
+        m = data.mask[:, o, :]
+        a, b = data.H[:, o, :][m], H_base[:, o, :][m]
+        den = float(np.sum(np.abs(a) ** 2) * np.sum(np.abs(b) ** 2))
+        val = float(np.sum(np.abs(a * np.conj(b))) ** 2 / den) if den > 0 else float("nan")
+        comac.append({"name": on, "comac": _round(val, 4)})
+    peak = int(np.argmax(excess.sum(axis=(1, 2))))
+    return {
+        "bands": bands,
+        "outputs": _shares(by_out, "name"),
+        "bones": _shares(by_bone, "bone"),
+        "inputs": _shares(by_in, "name"),
+        "peak_hz": _round(data.frequency_hz[peak], 5),
+        "frac": fracs,
+        "comac": comac,
+    }
+
+
+def rigidity_of_residual(data: GapData, H_base: np.ndarray, rows_fn: Callable[..., np.ndarray]
+                         ) -> dict[str, object]:
+    """Global (eq. 11.4) and per-bone (eq. 11.7) rigid-body content of the residual
+    deflection shapes, weighted by residual energy. Needs more measured directions than 6
+    (per bone, resp. in total); otherwise ``null`` with the reason."""
+    r = np.where(data.mask, (data.H - H_base) / data.sigma, 0)
+    out: dict[str, object] = {}
+    n_out = len(data.out_names)
+
+    def rigid_rows(idx: list[int], frame_bone: str | None) -> np.ndarray:
+        # 6 rigid motions (unit translations, unit rotations about the origin) at the points
+        cols = []
+        for o in idx:
+            p, d = data.out_position_m[o], data.out_direction[o]
+            cols.append(np.concatenate([d, np.cross(p, d)]))
+        return np.array(cols)
+
+    def content(idx: list[int]) -> float | None:
+        if len(idx) <= 6:
+            return None
+        R = rigid_rows(idx, None)
+        num, den = 0.0, 0.0
+        for f in range(r.shape[0]):
+            for i in range(r.shape[2]):
+                x = r[f, idx, i]
+                w = float(np.sum(np.abs(x) ** 2))
+                if w == 0:
+                    continue
+                xr = np.concatenate([x.real, x.imag])
+                Rr = np.block([[R, np.zeros_like(R)], [np.zeros_like(R), R]])
+                num += w * rigid_content(xr, Rr)
+                den += w
+        return _round(num / den, 4) if den > 0 else None
+
+    g = content(list(range(n_out)))
+    out["global"] = g
+    if g is None:
+        out["global_note"] = f"not determined: {n_out} output directions <= 6"
+    per = {}
+    for b in sorted(set(data.out_bones) - {""}):
+        idx = [o for o in range(n_out) if data.out_bones[o] == b]
+        v = content(idx)
+        per[b] = v if v is not None else f"not determined: {len(idx)} directions <= 6"
+    out["bones"] = per
+    del rows_fn
+    return out
+
+
+# ---------------------------------------------------------------------------------------
+# The diagnosis
+# ---------------------------------------------------------------------------------------
+
+@dataclass
+class Diagnosis:
+    """Everything the diagnosis found; ``report`` is the design 4.4 dict."""
+
+    report: dict[str, object]
+    H_base: np.ndarray
+    H_best: np.ndarray | None
+    residual_map: np.ndarray  # (n_f, n_out, n_in) normalised residual of the base fit
+    data: GapData
+    timing_s: dict[str, float] = field(default_factory=dict)
+
+
+def _context(model: PelvisModel, data: GapData) -> Context:
+    base = base_structure(model)
+    out_rows = base.rows(data.out_bones, data.out_position_m, data.out_direction)
+    in_rows = base.rows(data.in_bones, data.in_position_m, data.in_direction)
+    # points on no bone have NaN rows; their lines are masked out, give them zero rows
+    out_rows = np.nan_to_num(out_rows)
+    in_rows = np.nan_to_num(in_rows)
+    return Context(base, data.frequency_hz, out_rows, in_rows, data.out_bones,
+                   data.out_position_m, data.out_direction, data.out_names, data.in_names,
+                   data.in_bones, data.in_position_m)
+
+
+def _top_place(where: dict[str, object], place_kind: str) -> str:
+    """The output, input or bone carrying the largest residual share."""
+    key = {"output": "outputs", "input": "inputs", "bone": "bones", "joint": "bones"}.get(
+        place_kind)
+    items = where.get(key, []) if key else []
+    return str(items[0].get("name", items[0].get("bone", ""))) if items else ""  # type: ignore
+
+
+def _evidence(res: CandidateResult, where: dict[str, object], chi2_base: float, n_ho: int
+              ) -> str:
+    c = res.candidate
+    p = c.describe(res.u)
+    ptxt = ", ".join(f"{k}={v:.3g}" for k, v in p.items())
+    share = ""
+    if c.place_kind == "output":
+        for item in where["outputs"]:  # type: ignore[union-attr]
+            if item["name"] == c.place:
+                share = f"; output {c.place} carries {item['share']:.0%} of the residual"
+    elif c.place_kind in ("bone",) and c.bone:
+        for item in where["bones"]:  # type: ignore[union-attr]
+            if item["bone"] == c.bone:
+                share = f"; bone {c.bone} carries {item['share']:.0%} of the residual"
+    return (f"{c.variant} at {c.place} ({ptxt}); held-out chi2 {chi2_base:.4g} -> "
+            f"{res.chi2_heldout:.4g} over {n_ho} lines with {c.n_params} extra parameter(s)"
+            f"{share}")
+
+
+def diagnose(data: GapData, model: PelvisModel, options: GapOptions | None = None,
+             progress: Progress | None = None) -> Diagnosis:
+    """Run the whole diagnosis on prepared data against the base ``model``.
+
+    Returns the design 4.4 report (``Diagnosis.report``) plus arrays for plots.
+    """
+    opt = options or GapOptions()
+    t0 = time.perf_counter()
+    ctx = _context(model, data)
+    names = ctx.base.names
+    start = ctx.base.nominal.copy()
+    if np.any(start <= 0):
+        bad = [n for n, v in zip(names, start, strict=True) if v <= 0]
+        raise ValueError(f"parameters must be positive to be updated: {bad}")
+    n_f = data.frequency_hz.size
+    line_idx = np.arange(n_f)
+    held_lines = (line_idx % opt.holdout_every) == opt.holdout_offset % opt.holdout_every
+    fit = _Lines.build(ctx, data, ~held_lines)
+    held = _Lines.build(ctx, data, held_lines)
+    if held.n < 5 or fit.n < 10:
+        raise ValueError("too few measured lines to hold some out (need >= 5 held out)")
+    timing: dict[str, float] = {}
+    base = fit_base(fit, start, names, opt, progress)
+    timing["base_fit_s"] = base.wall_time_s
+    theta = base.values
+    H_base, _ = evaluate(ctx, theta)
+    H_held_base, _ = evaluate(held.ctx, theta)
+    gap_before = held.gap(H_held_base)
+    chi2_base = held.chi2(H_held_base)
+    where = where_analysis(data, H_base)
+    where["rigidity"] = rigidity_of_residual(data, H_base, ctx.base.rows)
+
+    # Which: screen every place, then joint fits of the best places per variant
+    t1 = time.perf_counter()
+    cands = candidate_library(ctx, opt.effects)
+    by_variant: dict[tuple[str, str], list[tuple[float, Candidate, np.ndarray]]] = {}
+    for cand in cands:
+        cost, u = _screen(cand, fit, theta, opt)
+        by_variant.setdefault((cand.effect, cand.variant), []).append((cost, cand, u))
+    timing["screen_s"] = time.perf_counter() - t1
+    if progress:
+        progress(f"screened {len(cands)} candidate places in {timing['screen_s']:.1f} s")
+    t2 = time.perf_counter()
+    bounds = _base_bounds(names, start)
+    results: list[CandidateResult] = []
+    jobs = []
+    for items in by_variant.values():
+        items.sort(key=lambda t: t[0])
+    order = sorted(by_variant.values(), key=lambda items: items[0][0])
+    for rank, items in enumerate(order):
+        # joint fits for the best-screened variants; global (1-parameter) variants always,
+        # because parameter updating can absorb or reveal them only in the joint fit
+        if rank >= opt.joint_variants and items[0][1].place_kind != "global":
+            continue
+        n_places = opt.places_per_variant + (1 if rank < opt.extra_places_top else 0)
+        chosen = items[:n_places]
+        # "where" guides "which": also fit the variant at the place carrying most residual
+        top = _top_place(where, items[0][1].place_kind)
+        for item in items[n_places:]:
+            if top and top in (item[1].place, item[1].bone) and item[1].place_kind != "global":
+                chosen.append(item)
+                break
+        jobs.extend((cand, u, len(items)) for _cost, cand, u in chosen)
+    # a local effect drags the base fit; refit the base without the output (input) that
+    # carries most of the residual and use it as a second start for candidates there
+    clean: dict[tuple[str, str], np.ndarray] = {}
+    for kind, key, names_ in (("output", "outputs", data.out_names),
+                              ("input", "inputs", data.in_names)):
+        items = where.get(key, [])
+        if len(names_) < 2 or not items or items[0]["share"] < opt.clean_share:
+            continue
+        j = names_.index(items[0]["name"])
+        lines = (_Lines.build(ctx, data, ~held_lines, exclude_output=j) if kind == "output"
+                 else _Lines.build(ctx, data, ~held_lines, exclude_input=j))
+        if lines.n < 10 * len(names):
+            continue
+        inits = [np.log(theta)] + ([base.grid_start] if base.grid_start is not None else [])
+        clean[(kind, items[0]["name"])] = fit_base(lines, start, names, opt,
+                                                   initial=inits).values
+    timing["clean_refit_s"] = time.perf_counter() - t2
+    for cand, u, n_screened in jobs:
+        thetas = [theta]
+        if (cand.place_kind, cand.place) in clean:
+            thetas.append(clean[(cand.place_kind, cand.place)])
+        th, uu, gfit, chi2 = _joint(cand, fit, held, thetas, u, bounds, opt)
+        gap_after = excess_gap(chi2, held.n)
+        results.append(CandidateResult(cand, uu, th, gfit, gap_after, chi2,
+                                       chi2 + 2 * cand.n_params, n_screened))
+    timing["joint_fit_s"] = time.perf_counter() - t2
+    # one entry per effect: its best-scoring variant and place
+    best_by_effect: dict[str, CandidateResult] = {}
+    for res in results:
+        cur = best_by_effect.get(res.candidate.effect)
+        if cur is None or res.score < cur.score:
+            best_by_effect[res.candidate.effect] = res
+    ranked = sorted(best_by_effect.values(), key=lambda r: r.score)
+    best = ranked[0] if ranked else None
+
+    # Verdict
+    verdict = "unexplained"
+    reason = ""
+    if best is None:
+        verdict = "none" if gap_before <= opt.none_gap else "unexplained"
+        reason = "no candidates"
+    else:
+        improvement = chi2_base - best.score
+        shrink = 1.0 - best.gap_after / gap_before if gap_before > 0 else 0.0
+        significant = improvement > max(opt.significance, opt.significance_rel * chi2_base)
+        if gap_before <= opt.none_gap and not significant:
+            verdict = "none"
+            reason = (f"base gap {gap_before:.3g} <= {opt.none_gap} and no candidate improves "
+                      f"the held-out chi2 by more than {opt.significance}")
+        elif significant and (best.gap_after <= opt.near_noise_gap or shrink >= opt.min_shrink):
+            verdict = best.candidate.effect
+            reason = (f"{best.candidate.effect} brings the held-out gap from {gap_before:.3g} "
+                      f"to {best.gap_after:.3g} (shrink {shrink:.0%})")
+        else:
+            verdict = "unexplained"
+            reason = (f"best candidate {best.candidate.effect} leaves gap {best.gap_after:.3g} "
+                      f"(> {opt.near_noise_gap}) and shrink {shrink:.0%} (< {opt.min_shrink:.0%})")
+    candidates = [r.as_dict(gap_before, _evidence(r, where, chi2_base, held.n)) for r in ranked]
+    H_best = None
+    if best is not None:
+        H_best, _ = evaluate(ctx, best.theta, best.candidate.build(best.u, ctx))
+    residual_map = np.where(data.mask, (data.H - H_base) / data.sigma, np.nan)
+    timing["total_s"] = time.perf_counter() - t0
+    report: dict[str, object] = {
+        "gap_before": _round(gap_before),
+        "where": where,
+        "candidates": candidates,
+        "verdict": verdict,
+        "verdict_reason": reason,
+        "noise": {"source": data.noise_source,
+                  "median_sigma_m_per_n": _round(float(np.median(data.sigma[data.mask])))},
+        "held_out": {"scheme": f"every {opt.holdout_every}th line (offset {opt.holdout_offset})",
+                     "lines_fitted": fit.n, "lines_held_out": held.n,
+                     "chi2_before": _round(chi2_base),
+                     "rms_normalised_residual_before": _round(np.sqrt(chi2_base / held.n)),
+                     "gap_definition": "sqrt(max(mean |H_model - H|^2 / sigma^2 - 1, 0)) over "
+                                       "held-out lines: model error beyond noise, noise units"},
+        "base_fit": {"gap_fitted_lines": _round(base.gap_fit), "starts": base.starts,
+                     "parameters": {n: _round(v) for n, v in zip(names, theta, strict=True)}},
+        "thresholds": {"none_gap": opt.none_gap, "near_noise_gap": opt.near_noise_gap,
+                       "min_shrink": opt.min_shrink, "significance_chi2": opt.significance},
+        "timing_s": {k: _round(v, 4) for k, v in timing.items()},
+    }
+    return Diagnosis(report, H_base, H_best, residual_map, data, timing)

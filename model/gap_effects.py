@@ -1,0 +1,597 @@
+"""Parametric FRF model for gap diagnosis: base parameters plus one candidate extension.
+
+The base model is the rigid-body pelvis of thesis ch. 4.2/5 (appendix E by default),
+written as a sum of rank-1 "atoms" so that every named parameter (design 4.5) enters the
+dynamic stiffness linearly::
+
+    Z(ω) = a_m(ω) Σ θ_p M_p + a_k(ω) Σ θ_p K_p + a_c(ω) Σ θ_p C_p + ΔZ_effect(ω)
+    H(ω) = G_out(ω) ⊙ [O_effect Z(ω)⁻¹ Iᵀ] ⊙ G_in(ω)              (m/N, design 4.1)
+
+with a_m = −ω², a_k = 1, a_c = iω for the plain viscous model (eq. 4.54). A candidate
+*effect* (sim-to-real gap hypothesis) may change the frequency factors (eq. 7.1-7.3:
+frequency-dependent stiffness, hysteretic damping), add a low-rank ΔZ (added mass, missing
+ligament, support, soft-tissue loading), change an output row (sensor misorientation) or
+multiply outputs/inputs by a measurement-chain gain (soft tissue, fixture resonance).
+
+All functions here are pure numerics on arrays (no I/O). Frequencies in Hz, ω in rad/s,
+SI units throughout. This module deliberately shares no code with the simulator's effect
+generator (``sim_instruments``): the withheld-effect benchmark must stay blind.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from pelvislab.model.assembly import connector_vector, point_rows
+from pelvislab.model.pelvis import PelvisModel
+
+KIND_M, KIND_K, KIND_C = 0, 1, 2
+
+# Joint centres (m) for the missing-ligament candidate: mean of the appendix-E dashpot and
+# spring attachment points of each joint (thesis appendix E, right side; left = y-mirror).
+JOINT_CENTRES_M: dict[str, tuple[str, str, np.ndarray]] = {
+    "sij_right": ("innominate_right", "sacrum", np.array([-0.0880, -0.0400, 0.0000])),
+    "sij_left": ("innominate_left", "sacrum", np.array([-0.0880, 0.0400, 0.0000])),
+    "pubic": ("innominate_right", "innominate_left", np.array([-0.0050, 0.0000, -0.0950])),
+}
+
+
+# ---------------------------------------------------------------------------------------
+# Base structure: named parameters as rank-1 atoms
+# ---------------------------------------------------------------------------------------
+
+@dataclass(frozen=True, eq=False)
+class BaseStructure:
+    """Named parameters of a :class:`PelvisModel` as rank-1 atoms of M, K, C.
+
+    ``∂M/∂θ_p = Σ_{a: param[a]=p, kind[a]=M} w_a v_a v_aᵀ`` (likewise K, C); the matrices are
+    linear in the parameters: a body mass scales its inertia with it (ch. 5.2), a spring
+    adds ``k g gᵀ`` (eq. 4.12-4.13), a dashpot group ``c Σ g gᵀ`` (ch. 5.4).
+    """
+
+    model: PelvisModel
+    names: tuple[str, ...]
+    nominal: np.ndarray
+    vectors: np.ndarray  # (n_a, n_dof)
+    weights: np.ndarray  # (n_a,)
+    kinds: np.ndarray  # (n_a,)
+    params: np.ndarray  # (n_a,)
+    constant_M: np.ndarray  # (n_dof, n_dof) unparametrised mass (point masses of the file)
+    outers: np.ndarray = field(init=False)  # (n_a, n_dof, n_dof) w v vᵀ
+
+    def __post_init__(self) -> None:
+        outers = self.weights[:, None, None] * self.vectors[:, :, None] * self.vectors[:, None, :]
+        object.__setattr__(self, "outers", outers)
+
+    @property
+    def n_dof(self) -> int:
+        """Number of generalised coordinates."""
+        return int(self.vectors.shape[1])
+
+    @property
+    def n_params(self) -> int:
+        """Number of named parameters."""
+        return len(self.names)
+
+    def matrices(self, theta: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(M, K, C) at parameter values ``theta`` (SI)."""
+        coef = np.asarray(theta, float)[self.params]
+        out = []
+        for kind in (KIND_M, KIND_K, KIND_C):
+            sel = self.kinds == kind
+            out.append(np.tensordot(coef[sel], self.outers[sel], axes=1))
+        out[0] = out[0] + self.constant_M
+        return out[0], out[1], out[2]
+
+    def rows(self, bones: Sequence[str], position_m: np.ndarray,
+             direction: np.ndarray) -> np.ndarray:
+        """(n, n_dof) rows: displacement of points along directions (eq. 4.9)."""
+        return point_rows(self.model, list(bones), position_m, direction)
+
+    def reference_point(self, bone: str) -> np.ndarray:
+        """Centre of mass of ``bone`` (m), the default attachment point of effects."""
+        return np.asarray(self.model.body(bone).com_m, float)
+
+    @property
+    def bones(self) -> tuple[str, ...]:
+        """Body names in DOF order."""
+        return self.model.body_names
+
+
+def base_structure(model: PelvisModel) -> BaseStructure:
+    """Named-parameter atoms of ``model`` with design 4.5 names.
+
+    Masses ``m_<body>``, springs ``k_<group>_<side>`` (``k_<group>`` without side), dashpot
+    groups ``c_<group>_<side>``; values from the model file are the nominal values.
+    """
+    names: list[str] = []
+    nominal: list[float] = []
+    vecs: list[np.ndarray] = []
+    weights: list[float] = []
+    kinds: list[int] = []
+    params: list[int] = []
+    n = model.n_dof
+    index: dict[str, int] = {}
+
+    def param(name: str, value: float) -> int:
+        if name not in index:
+            index[name] = len(names)
+            names.append(name)
+            nominal.append(value)
+        return index[name]
+
+    for b, body in enumerate(model.bodies):
+        p = param(f"m_{body.name}", body.mass_kg)
+        for axis in range(3):
+            v = np.zeros(n)
+            v[6 * b + axis] = 1.0
+            vecs.append(v)
+            weights.append(1.0)
+            kinds.append(KIND_M)
+            params.append(p)
+        lam, vec = np.linalg.eigh(np.asarray(body.inertia_kg_m2, float) / body.mass_kg)
+        for lk, vk in zip(lam, vec.T, strict=True):
+            v = np.zeros(n)
+            v[6 * b + 3:6 * b + 6] = vk
+            vecs.append(v)
+            weights.append(float(lk))
+            kinds.append(KIND_M)
+            params.append(p)
+    for kind, items, attr, prefix in (
+        (KIND_K, model.springs, "stiffness_n_per_m", "k"),
+        (KIND_C, model.dashpots, "coefficient_n_s_per_m", "c"),
+    ):
+        for item in items:
+            name = f"{prefix}_{item.group}_{item.side}" if item.side else f"{prefix}_{item.group}"
+            p = param(name, float(getattr(item, attr)))
+            vecs.append(connector_vector(model, item))
+            weights.append(1.0)
+            kinds.append(kind)
+            params.append(p)
+    const_m = np.zeros((n, n))
+    for pm in model.point_masses:
+        rows = point_rows(model, [pm.body] * 3, np.tile(pm.position_m, (3, 1)), np.eye(3))
+        const_m += pm.mass_kg * rows.T @ rows
+    return BaseStructure(
+        model=model, names=tuple(names), nominal=np.asarray(nominal, float),
+        vectors=np.asarray(vecs, float), weights=np.asarray(weights, float),
+        kinds=np.asarray(kinds, int), params=np.asarray(params, int), constant_M=const_m,
+    )
+
+
+# ---------------------------------------------------------------------------------------
+# Evaluation context and effect terms
+# ---------------------------------------------------------------------------------------
+
+@dataclass(frozen=True, eq=False)
+class Context:
+    """Everything an effect needs: frequencies, the base structure, the channel geometry."""
+
+    base: BaseStructure
+    frequency_hz: np.ndarray
+    out_rows: np.ndarray  # (n_out, n_dof)
+    in_rows: np.ndarray  # (n_in, n_dof)
+    out_bones: tuple[str, ...]
+    out_position_m: np.ndarray
+    out_direction: np.ndarray
+    out_names: tuple[str, ...]
+    in_names: tuple[str, ...]
+    in_bones: tuple[str, ...] = ()
+    in_position_m: np.ndarray | None = None
+
+    @property
+    def omega(self) -> np.ndarray:
+        """Angular frequency (rad/s)."""
+        return 2 * np.pi * self.frequency_hz
+
+    @property
+    def omega_max(self) -> float:
+        """ω_max of eq. 7.2-7.3: the highest measured frequency (rad/s)."""
+        return float(2 * np.pi * np.max(self.frequency_hz))
+
+    def subset(self, lines: np.ndarray) -> Context:
+        """The same context on a subset of frequency lines."""
+        return Context(self.base, self.frequency_hz[lines], self.out_rows, self.in_rows,
+                       self.out_bones, self.out_position_m, self.out_direction,
+                       self.out_names, self.in_names, self.in_bones, self.in_position_m)
+
+
+@dataclass
+class EffectTerms:
+    """How one effect changes the FRF model (see the module docstring). ``None`` = unchanged."""
+
+    a_m: np.ndarray | None = None
+    a_k: np.ndarray | None = None
+    a_c: np.ndarray | None = None
+    dZ: np.ndarray | None = None  # (n_f, n, n) complex
+    out_gain: np.ndarray | None = None  # (n_f, n_out) complex
+    in_gain: np.ndarray | None = None  # (n_f, n_in) complex
+    out_rows: np.ndarray | None = None  # (n_out, n)
+
+
+def evaluate(ctx: Context, theta: np.ndarray, terms: EffectTerms | None = None,
+             jacobian: bool = False) -> tuple[np.ndarray, np.ndarray | None]:
+    """H (n_f, n_out, n_in) and, optionally, ∂H/∂log θ (n_f, n_out, n_in, n_p).
+
+    One batched solve ``Z⁻¹ [Oᵀ Iᵀ]`` per call; the Jacobian uses the atoms:
+    ``∂H/∂θ_p = −(Z⁻¹Oᵀ)ᵀ ∂Z/∂θ_p (Z⁻¹Iᵀ)`` (Z complex symmetric).
+    """
+    base = ctx.base
+    terms = terms or EffectTerms()
+    w = ctx.omega
+    a_m = -(w**2) if terms.a_m is None else terms.a_m
+    a_k = np.ones_like(w) if terms.a_k is None else terms.a_k
+    a_c = 1j * w if terms.a_c is None else terms.a_c
+    M, K, C = base.matrices(theta)
+    Z = (a_m[:, None, None] * M + a_k[:, None, None] * K + a_c[:, None, None] * C).astype(complex)
+    if terms.dZ is not None:
+        Z = Z + terms.dZ
+    o = ctx.out_rows if terms.out_rows is None else terms.out_rows
+    i = ctx.in_rows
+    n_out = o.shape[0]
+    rhs = np.concatenate([o, i]).T.astype(complex)
+    X = np.linalg.solve(Z, np.broadcast_to(rhs, (w.size, *rhs.shape)))
+    A, B = X[..., :n_out], X[..., n_out:]
+    H = o @ B
+    gain = np.ones(H.shape, complex)
+    if terms.out_gain is not None:
+        gain = gain * terms.out_gain[:, :, None]
+    if terms.in_gain is not None:
+        gain = gain * terms.in_gain[:, None, :]
+    H = H * gain
+    if not jacobian:
+        return H, None
+    a = base.vectors @ A  # (n_f, n_a, n_out)
+    b = base.vectors @ B  # (n_f, n_a, n_in)
+    coef_kind = np.stack([a_m, a_k, a_c], axis=1)  # (n_f, 3)
+    theta = np.asarray(theta, float)
+    c = base.weights * coef_kind[:, base.kinds] * theta[base.params]  # d/dlog θ
+    n_f, n_a = c.shape
+    n_in = b.shape[2]
+    outer = (a * c[:, :, None])[:, :, :, None] * b[:, :, None, :]  # (n_f, n_a, n_out, n_in)
+    P = np.zeros((n_a, base.n_params))
+    P[np.arange(n_a), base.params] = 1.0
+    dH = -(outer.reshape(n_f, n_a, n_out * n_in).transpose(0, 2, 1) @ P)
+    dH = dH.reshape(n_f, n_out, n_in, base.n_params) * gain[..., None]
+    return H, dH
+
+
+# ---------------------------------------------------------------------------------------
+# Candidate library
+# ---------------------------------------------------------------------------------------
+
+@dataclass(frozen=True, eq=False)
+class Candidate:
+    """One parametric extension at one place.
+
+    ``build(u, ctx)`` maps the internal parameter vector ``u`` (bounded by ``lower``,
+    ``upper``; several ``starts``) to :class:`EffectTerms`; ``describe(u)`` gives the
+    physical parameters (SI, named with units) for the report.
+    """
+
+    effect: str
+    variant: str
+    place: str
+    place_kind: str  # "global", "output", "input", "inputs", "bone", "joint"
+    labels: tuple[str, ...]
+    lower: np.ndarray
+    upper: np.ndarray
+    starts: tuple[np.ndarray, ...]
+    build: Callable[[np.ndarray, Context], EffectTerms]
+    describe: Callable[[np.ndarray], dict[str, float]]
+    bone: str = ""  # the bone the place belongs to ("" when not on one bone)
+
+    @property
+    def n_params(self) -> int:
+        """Number of effect parameters (the complexity of the candidate)."""
+        return len(self.labels)
+
+
+def _sdof_transmissibility(omega: np.ndarray, f_hz: float, zeta: float) -> np.ndarray:
+    """T = (k + iωc)/(k + iωc − ω²m) of a mass on a spring-damper (base excitation)."""
+    wn = 2 * np.pi * f_hz
+    num = wn**2 + 2j * zeta * wn * omega
+    return num / (num - omega**2)
+
+
+def _rank1(coef: np.ndarray, g: np.ndarray) -> np.ndarray:
+    return coef[:, None, None] * np.outer(g, g)[None]
+
+
+def _point_block(ctx: Context, bone: str, point_m: np.ndarray) -> np.ndarray:
+    """(3, n_dof) rows of the x, y, z displacement of a point on ``bone``."""
+    return ctx.base.rows([bone] * 3, np.tile(point_m, (3, 1)), np.eye(3))
+
+
+def _perp_basis(d: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    d = d / np.linalg.norm(d)
+    helper = np.eye(3)[int(np.argmin(np.abs(d)))]
+    e1 = np.cross(d, helper)
+    e1 /= np.linalg.norm(e1)
+    return e1, np.cross(d, e1)
+
+
+def _f_starts(ctx: Context, n: int = 6) -> np.ndarray:
+    """Log-spaced start frequencies (Hz) covering the measured band and a bit beyond."""
+    f = ctx.frequency_hz
+    return np.geomspace(max(f.min(), 1.0) * 1.2, f.max() * 1.1, n)
+
+
+def _global_candidates() -> list[Candidate]:
+    cands = []
+
+    def fdk_build(u: np.ndarray, ctx: Context) -> EffectTerms:
+        # eq. 7.1 and 7.3: K(ω) = K (1 + f_k ω / (4 ω_max))
+        return EffectTerms(a_k=1.0 + u[0] * ctx.omega / (4 * ctx.omega_max))
+
+    cands.append(Candidate(
+        "frequency_dependent_stiffness", "eq7.3", "all springs", "global", ("f_k",),
+        np.array([-2.0]), np.array([10.0]), (np.array([0.5]),), fdk_build,
+        lambda u: {"f_k": float(u[0])}))
+
+    def hyst_c_build(u: np.ndarray, ctx: Context) -> EffectTerms:
+        # eq. 7.1-7.2: i(ωC + D), D = f_c C ω_max / 4
+        return EffectTerms(a_c=1j * (ctx.omega + u[0] * ctx.omega_max / 4))
+
+    cands.append(Candidate(
+        "hysteretic_damping", "eq7.2 (D = f_c C w_max/4)", "all joints", "global", ("f_c",),
+        np.array([0.0]), np.array([200.0]), (np.array([0.5]), np.array([5.0])), hyst_c_build,
+        lambda u: {"f_c": float(u[0])}))
+
+    def hyst_k_build(u: np.ndarray, ctx: Context) -> EffectTerms:
+        # structural damping: K (1 + i η), loss factor η
+        return EffectTerms(a_k=np.full(ctx.omega.shape, 1.0 + 1j * u[0]))
+
+    cands.append(Candidate(
+        "hysteretic_damping", "loss factor (K(1+i eta))", "all springs", "global", ("eta",),
+        np.array([0.0]), np.array([2.0]), (np.array([0.02]), np.array([0.2])), hyst_k_build,
+        lambda u: {"loss_factor": float(u[0])}))
+    return cands
+
+
+def _tissue_candidates(ctx: Context) -> list[Candidate]:
+    """Soft tissue between skin and bone at one channel (thesis ch. 8: the probe sits on the
+    skin): a tissue mass m on a spring-damper (f_t, ζ_t) to the bone point; the channel
+    measures (output) or is driven through (input) that mass. Exact condensation of the
+    extra DOF: the bone sees ΔZ = −ω² m T g gᵀ and the channel the transmissibility T."""
+    cands = []
+    lo = np.array([np.log(1.0), np.log(0.02), np.log(1e-4)])
+    hi = np.array([np.log(5000.0), np.log(3.0), np.log(2.0)])
+    starts = tuple(np.array([np.log(f), np.log(0.3), np.log(0.02)]) for f in _f_starts(ctx))
+
+    def describe(u: np.ndarray) -> dict[str, float]:
+        return {"frequency_hz": float(np.exp(u[0])), "damping_ratio": float(np.exp(u[1])),
+                "mass_kg": float(np.exp(u[2]))}
+
+    for side, names in (("output", ctx.out_names), ("input", ctx.in_names)):
+        for j, name in enumerate(names):
+            def build(u: np.ndarray, c: Context, j: int = j, side: str = side) -> EffectTerms:
+                T = _sdof_transmissibility(c.omega, np.exp(u[0]), np.exp(u[1]))
+                if side == "output":
+                    bone, pos = c.out_bones[j], c.out_position_m[j]
+                else:
+                    bone, pos = c.in_bones[j], c.in_position_m[j]
+                # the tissue mass is coupled on every axis: it loads the bone point in 3D
+                G = _point_block(c, bone, pos)
+                dZ = (-(c.omega**2) * np.exp(u[2]) * T)[:, None, None] * (G.T @ G)[None]
+                n_ch = len(c.out_names) if side == "output" else len(c.in_names)
+                gain = np.ones((c.omega.size, n_ch), complex)
+                gain[:, j] = T
+                if side == "output":
+                    return EffectTerms(dZ=dZ, out_gain=gain)
+                return EffectTerms(dZ=dZ, in_gain=gain)
+
+            bone = ctx.out_bones[j] if side == "output" else ctx.in_bones[j]
+            cands.append(Candidate("soft_tissue", f"tissue at {side}", name, side,
+                                   ("log_f", "log_zeta", "log_m"), lo, hi, starts, build,
+                                   describe, bone))
+    return cands
+
+
+def _orientation_candidates(ctx: Context) -> list[Candidate]:
+    """Sensor misorientation at one output (thesis ch. 6.2, fig. 6.9): the probe axis is
+    tilted by (a, b) in the plane normal to the nominal direction (point target: the
+    projection of the motion on the tilted axis), or, for a flat reflector, the reading is
+    the nominal component scaled by 1/cos α (a gain)."""
+    cands = []
+    for j, name in enumerate(ctx.out_names):
+        d = ctx.out_direction[j]
+        e1, e2 = _perp_basis(d)
+
+        def build(u: np.ndarray, c: Context, j: int = j, e1: np.ndarray = e1,
+                  e2: np.ndarray = e2) -> EffectTerms:
+            d = c.out_direction[j] + u[0] * e1 + u[1] * e2
+            d = d / np.linalg.norm(d)
+            rows = c.out_rows.copy()
+            rows[j] = c.base.rows([c.out_bones[j]], c.out_position_m[j:j + 1], d[None])[0]
+            return EffectTerms(out_rows=rows)
+
+        def describe(u: np.ndarray) -> dict[str, float]:
+            return {"tilt_deg": float(np.degrees(np.arctan(np.hypot(u[0], u[1])))),
+                    "tilt_a": float(u[0]), "tilt_b": float(u[1])}
+
+        starts = tuple(np.array(s) for s in ((0.05, 0.0), (0.0, 0.05), (-0.05, 0.0),
+                                             (0.0, -0.05)))
+        cands.append(Candidate("sensor_misorientation", "tilted axis", name, "output",
+                               ("tilt_a", "tilt_b"), np.array([-1.5, -1.5]),
+                               np.array([1.5, 1.5]), starts, build, describe,
+                               ctx.out_bones[j]))
+
+        def gbuild(u: np.ndarray, c: Context, j: int = j) -> EffectTerms:
+            gain = np.ones((c.omega.size, len(c.out_names)), complex)
+            gain[:, j] = np.exp(u[0])
+            return EffectTerms(out_gain=gain)
+
+        cands.append(Candidate("sensor_misorientation", "1/cos gain", name, "output",
+                               ("log_gain",), np.array([np.log(0.3)]), np.array([np.log(3.0)]),
+                               (np.array([0.1]),), gbuild,
+                               lambda u: {"gain": float(np.exp(u[0]))}, ctx.out_bones[j]))
+    return cands
+
+
+def _mass_candidates(ctx: Context) -> list[Candidate]:
+    """A point mass rigidly attached to a bone at an unknown position (ΔM = m TᵀT, the
+    same kinematics as eq. 4.9)."""
+    cands = []
+    for bone in ctx.base.bones:
+        ref = ctx.base.reference_point(bone)
+
+        def build(u: np.ndarray, c: Context, bone: str = bone,
+                  ref: np.ndarray = ref) -> EffectTerms:
+            T = _point_block(c, bone, ref + u[1:4])
+            dM = np.exp(u[0]) * T.T @ T
+            return EffectTerms(dZ=-(c.omega**2)[:, None, None] * dM[None].astype(complex))
+
+        def describe(u: np.ndarray, ref: np.ndarray = ref) -> dict[str, float]:
+            p = ref + u[1:4]
+            return {"mass_kg": float(np.exp(u[0])), "x_m": float(p[0]), "y_m": float(p[1]),
+                    "z_m": float(p[2])}
+
+        lim = 0.08
+        starts = tuple(np.array([np.log(m), *off]) for m in (0.05, 0.2)
+                       for off in ((0, 0, 0), (0.03, 0, 0), (-0.03, 0, 0), (0, 0, 0.03)))
+        cands.append(Candidate("added_mass", "point mass", bone, "bone",
+                               ("log_m", "dx", "dy", "dz"),
+                               np.array([np.log(1e-3), -lim, -lim, -lim]),
+                               np.array([np.log(2.0), lim, lim, lim]), starts, build, describe,
+                               bone))
+    return cands
+
+
+def _ligament_candidates(ctx: Context) -> list[Candidate]:
+    """A missing ligament: one extra spring ``k n nᵀ`` (eq. 4.12-4.13, zero rest elongation)
+    between the two bones of a joint — or from a bone to ground (e.g. an iliolumbar
+    ligament to an immobile L5) — acting along a line through an unknown point ``p``
+    near the joint (only the line of action matters). Written as ``v vᵀ`` with
+    ``v = √(k/k₀) n`` so that the direction needs no angles. Thesis ch. 5.3/11: the
+    sacrotuberous, sacrospinous and iliolumbar ligaments were left out of the model."""
+    cands = []
+    k0 = 1e5
+    bones = set(ctx.base.bones)
+    lim = 0.09
+    places: list[tuple[str, str, str, np.ndarray]] = []
+    for joint, (ba, bb, centre) in JOINT_CENTRES_M.items():
+        if ba in bones and bb in bones:
+            places.append((joint, ba, bb, centre))
+    for bone in ctx.base.bones:
+        places.append((f"{bone} to ground", bone, "", ctx.base.reference_point(bone)))
+    for joint, ba, bb, centre in places:
+        def build(u: np.ndarray, c: Context, ba: str = ba, bb: str = bb,
+                  centre: np.ndarray = centre) -> EffectTerms:
+            p = centre + u[3:6]
+            G = _point_block(c, ba, p)
+            if bb:
+                G = G - _point_block(c, bb, p)  # (3, n)
+            g = u[:3] @ G
+            dK = k0 * np.outer(g, g)
+            return EffectTerms(dZ=np.broadcast_to(dK.astype(complex),
+                                                  (c.omega.size, *dK.shape)))
+
+        def describe(u: np.ndarray, centre: np.ndarray = centre) -> dict[str, float]:
+            v = u[:3]
+            k = k0 * float(v @ v)
+            n = v / np.linalg.norm(v) if k > 0 else v
+            p = centre + u[3:6]
+            return {"stiffness_n_per_m": k, "axis_x": float(n[0]), "axis_y": float(n[1]),
+                    "axis_z": float(n[2]), "x_m": float(p[0]), "y_m": float(p[1]),
+                    "z_m": float(p[2])}
+
+        offsets = ((0.0, 0.0, 0.0), (-0.04, 0.0, -0.06))
+        starts = tuple(np.array([*(s * ax), *off]) for ax in np.eye(3) for s in (1.0,)
+                       for off in offsets)
+        cands.append(Candidate("missing_ligament", "extra spring" if bb else "spring to ground",
+                               joint, "joint" if bb else "bone",
+                               ("vx", "vy", "vz", "dx", "dy", "dz"),
+                               np.array([-30, -30, -30, -lim, -lim, -lim], float),
+                               np.array([30, 30, 30, lim, lim, lim], float), starts, build,
+                               describe, ba))
+    return cands
+
+
+def _support_candidates(ctx: Context) -> list[Candidate]:
+    """Support / fixture resonances (thesis ch. 10-11: foam and frame resonances drove the
+    measured response).
+
+    * ``bed``: the pelvis touches a support body (exam bed, foam, frame) at a bone: a mass
+      m on its own suspension (f_s, ζ_s, i.e. k_s = m(2πf_s)², c_s = 2ζ_s m 2πf_s) in
+      contact through a stiffness k_c, along one axis or all three. Condensing the support
+      DOF gives the dynamic stiffness seen by the bone point
+      ``k_eff = k_c (k_s* − ω²m) / (k_c + k_s* − ω²m)``, ``k_s* = k_s + iωc_s``; the two
+      limits are a grounded spring-mass (k_c → ∞) and a resonant frame mass (k_s → 0).
+    * ``excitation fixture``: a resonance in the force path of one input (shaker on a
+      flexible fixture), H[:, :, j] × (1 + μ ω² /(ω_r² − ω² + 2iζω_rω)) — or all inputs.
+    """
+    cands = []
+    f_st = _f_starts(ctx, 6)
+    axes = {"xyz": np.eye(3), "x": np.eye(3)[:1], "y": np.eye(3)[1:2], "z": np.eye(3)[2:]}
+    lo = np.array([np.log(0.5), np.log(0.005), np.log(1e-3), np.log(1e2)])
+    hi = np.array([np.log(3000.0), np.log(3.0), np.log(50.0), np.log(1e9)])
+    starts = tuple(np.array([np.log(f), np.log(0.15), np.log(m), np.log(kc)])
+                   for f in f_st for m, kc in ((1.0, 3e5),))
+
+    def describe(u: np.ndarray) -> dict[str, float]:
+        return {"frequency_hz": float(np.exp(u[0])), "damping_ratio": float(np.exp(u[1])),
+                "mass_kg": float(np.exp(u[2])), "contact_stiffness_n_per_m": float(np.exp(u[3]))}
+
+    for bone in ctx.base.bones:
+        ref = ctx.base.reference_point(bone)
+        for axname, dirs in axes.items():
+            def build(u: np.ndarray, c: Context, bone: str = bone, ref: np.ndarray = ref,
+                      dirs: np.ndarray = dirs) -> EffectTerms:
+                G = c.base.rows([bone] * len(dirs), np.tile(ref, (len(dirs), 1)), dirs)
+                ws = 2 * np.pi * np.exp(u[0])
+                m = np.exp(u[2])
+                ks = m * ws**2 + 2j * np.exp(u[1]) * m * ws * c.omega - c.omega**2 * m
+                kc = np.exp(u[3])
+                keff = kc * ks / (kc + ks)
+                return EffectTerms(dZ=keff[:, None, None] * (G.T @ G)[None])
+
+            cands.append(Candidate(
+                "support_resonance", f"bed contact ({axname})", f"{bone} {axname}", "bone",
+                ("log_f", "log_zeta", "log_m", "log_kc"), lo, hi, starts, build, describe,
+                bone))
+    places = [(j, name) for j, name in enumerate(ctx.in_names)]
+    if len(ctx.in_names) > 1:
+        places.append((-1, "all inputs"))
+    for j, name in places:
+        def ebuild(u: np.ndarray, c: Context, j: int = j) -> EffectTerms:
+            wr = 2 * np.pi * np.exp(u[0])
+            zeta = np.exp(u[1])
+            R = 1 + np.exp(u[2]) * c.omega**2 / (wr**2 - c.omega**2 + 2j * zeta * wr * c.omega)
+            gain = np.ones((c.omega.size, len(c.in_names)), complex)
+            if j < 0:
+                gain[:] = R[:, None]
+            else:
+                gain[:, j] = R
+            return EffectTerms(in_gain=gain)
+
+        estarts = tuple(np.array([np.log(f), np.log(0.1), np.log(0.3)]) for f in f_st)
+        cands.append(Candidate(
+            "support_resonance", "excitation fixture", name, "input" if j >= 0 else "inputs",
+            ("log_f", "log_zeta", "log_mu"),
+            np.array([np.log(0.5), np.log(0.005), np.log(1e-4)]),
+            np.array([np.log(5000.0), np.log(3.0), np.log(20.0)]), estarts, ebuild,
+            lambda u: {"frequency_hz": float(np.exp(u[0])), "damping_ratio": float(np.exp(u[1])),
+                       "mass_ratio": float(np.exp(u[2]))}))
+    return cands
+
+
+EFFECT_NAMES = (
+    "support_resonance", "frequency_dependent_stiffness", "hysteretic_damping", "soft_tissue",
+    "sensor_misorientation", "added_mass", "missing_ligament",
+)
+
+
+def candidate_library(ctx: Context, effects: Sequence[str] | None = None) -> list[Candidate]:
+    """All candidate extensions at all places for the channels of ``ctx``."""
+    cands = (_global_candidates() + _support_candidates(ctx) + _tissue_candidates(ctx)
+             + _orientation_candidates(ctx) + _mass_candidates(ctx) + _ligament_candidates(ctx))
+    if effects is not None:
+        unknown = sorted(set(effects) - set(EFFECT_NAMES))
+        if unknown:
+            raise ValueError(f"unknown effect(s) {unknown}; known: {list(EFFECT_NAMES)}")
+        cands = [c for c in cands if c.effect in effects]
+    return cands

@@ -1,0 +1,263 @@
+"""Gap diagnosis (issue 10): effect physics, noise estimate, verdicts on small cases, JSON
+contract of design 4.4, CLI. Small problems only; the full self-check is the benchmark."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from pelvislab.acquisition.frfset import Channels, FrfSet, write_frf
+from pelvislab.app.cli import main
+from pelvislab.model.frf import frf
+from pelvislab.model.gap import (
+    GapOptions,
+    _context,
+    diagnose,
+    estimate_noise,
+    excess_gap,
+    prepare_data,
+)
+from pelvislab.model.gap_benchmark import BenchCase, place_correct, predicted_place
+from pelvislab.model.gap_effects import EffectTerms, candidate_library, evaluate
+from pelvislab.model.pelvis import PointMass, Spring, default_model
+
+F_HZ = np.arange(5.0, 300.1, 5.0)
+OUT = Channels(
+    ["sacrum_x", "sias_R_x", "sias_L_y"], ["sacrum", "innominate_right", "innominate_left"],
+    np.array([[-0.16, 0.0, -0.06], [0.0, -0.11, 0.0], [-0.01, 0.12, -0.01]]),
+    np.array([[-1.0, 0, 0], [1, 0, 0], [0, 1, 0]]),
+)
+IN = Channels(["sips_R_x", "sips_L_x"], ["innominate_right", "innominate_left"],
+              np.array([[-0.14, -0.045, 0.02], [-0.14, 0.045, 0.02]]),
+              np.array([[1.0, 0, 0], [1, 0, 0]]))
+
+
+def true_model():
+    """Appendix E with a few parameters moved and damping far from nominal."""
+    m = default_model()
+    m = m.with_mass("sacrum", 0.36 * 1.15)
+    m = m.replace_spring("io_R", stiffness_n_per_m=1.2e6)
+    m = m.replace_spring("pubh", stiffness_n_per_m=0.8e5)
+    for d in m.dashpots:
+        m = m.replace_dashpot(d.name, coefficient_n_s_per_m=150.0)
+    return m
+
+
+def noisy(H, rng, rel=0.005):
+    sigma = rel * np.max(np.abs(H), axis=0, keepdims=True) * np.ones(H.shape)
+    e = sigma / np.sqrt(2) * (rng.normal(size=H.shape) + 1j * rng.normal(size=H.shape))
+    return H + e, sigma
+
+
+def ctx_for(model, f=F_HZ):
+    data = prepare_data(f, np.ones((f.size, 3, 2), complex), np.ones((f.size, 3, 2)), OUT, IN)
+    return _context(model, data)
+
+
+def pick(ctx, effect, place, variant=None):
+    for c in candidate_library(ctx):
+        if c.effect == effect and c.place == place and (variant is None or c.variant == variant):
+            return c
+    raise AssertionError(f"no candidate {effect} at {place}")
+
+
+# ---------------------------------------------------------------------------------------
+# Effect physics against the model core's own extension methods (independent code paths)
+
+def test_added_mass_candidate_matches_model_point_mass():
+    m = default_model()
+    ctx = ctx_for(m)
+    cand = pick(ctx, "added_mass", "innominate_left")
+    ref = m.body("innominate_left").com_m
+    u = np.array([np.log(0.2), 0.01, -0.02, 0.015])
+    H, _ = evaluate(ctx, ctx.base.nominal, cand.build(u, ctx))
+    m2 = m.with_point_mass(PointMass("x", "innominate_left", ref + u[1:], 0.2))
+    H2 = frf(m2, F_HZ, OUT, IN)
+    np.testing.assert_allclose(H, H2, rtol=1e-5, atol=1e-9 * np.abs(H2).max())
+
+
+def test_ligament_candidate_matches_model_spring():
+    m = default_model()
+    ctx = ctx_for(m)
+    cand = pick(ctx, "missing_ligament", "sij_right")
+    n = np.array([0.3, -0.5, 0.8])
+    n /= np.linalg.norm(n)
+    k = 3e5
+    u = np.concatenate([np.sqrt(k / 1e5) * n, [0.01, 0.0, -0.03]])
+    H, _ = evaluate(ctx, ctx.base.nominal, cand.build(u, ctx))
+    p = np.array([-0.088, -0.04, 0.0]) + u[3:]
+    m2 = m.with_spring(Spring("extra", "innominate_right", p - 0.01 * n, "sacrum",
+                              p + 0.02 * n, k))
+    H2 = frf(m2, F_HZ, OUT, IN)
+    np.testing.assert_allclose(H, H2, rtol=1e-5, atol=1e-9 * np.abs(H2).max())
+
+
+def test_frequency_dependent_stiffness_matches_eq_7_3():
+    m = default_model()
+    ctx = ctx_for(m)
+    cand = pick(ctx, "frequency_dependent_stiffness", "all springs")
+    H, _ = evaluate(ctx, ctx.base.nominal, cand.build(np.array([0.7]), ctx))
+    H2 = frf(m.with_frequency_dependence(f_k=0.7, f_max_hz=F_HZ.max()), F_HZ, OUT, IN)
+    np.testing.assert_allclose(H, H2, rtol=1e-5, atol=1e-9 * np.abs(H2).max())
+
+
+def test_support_bed_limit_is_a_grounding_spring():
+    m = default_model()
+    ctx = ctx_for(m)
+    cand = pick(ctx, "support_resonance", "sacrum xyz")
+    # stiff contact, negligible mass: k_eff -> k_s + i w c_s (a grounding spring-damper)
+    f_s, zeta, mass = 40.0, 0.2, 1e-3
+    ks = mass * (2 * np.pi * f_s) ** 2
+    cs = 2 * zeta * mass * 2 * np.pi * f_s
+    u = np.log([f_s, zeta, mass, 1e12])
+    H, _ = evaluate(ctx, ctx.base.nominal, cand.build(u, ctx))
+    m2 = m.with_grounding("sacrum", ks, coefficient_n_s_per_m=cs)
+    # with a rigid contact the support mass moves with the bone point: a point mass there
+    m2 = m2.with_point_mass(PointMass("bed", "sacrum", m.body("sacrum").com_m, mass))
+    H2 = frf(m2, F_HZ, OUT, IN)
+    assert np.max(np.abs(H - H2)) < 1e-5 * np.max(np.abs(H2))
+
+
+def test_jacobian_matches_finite_differences():
+    m = true_model()
+    ctx = ctx_for(m)
+    theta = ctx.base.nominal * np.linspace(0.8, 1.2, ctx.base.n_params)
+    terms = pick(ctx, "soft_tissue", "sias_R_x").build(np.log([80.0, 0.3, 0.05]), ctx)
+    H, dH = evaluate(ctx, theta, terms, jacobian=True)
+    for j in (0, 4, 15, 17):
+        step = 1e-6
+        th = theta.copy()
+        th[j] *= np.exp(step)
+        H2, _ = evaluate(ctx, th, terms)
+        fd = (H2 - H) / step
+        assert np.max(np.abs(fd - dH[..., j])) < 1e-4 * np.max(np.abs(dH[..., j])) + 1e-30
+
+
+def test_terms_identity_is_the_base_model():
+    m = true_model()
+    ctx = ctx_for(m)
+    H, _ = evaluate(ctx, ctx.base.nominal, EffectTerms())
+    np.testing.assert_allclose(H, frf(m, F_HZ, OUT, IN), rtol=1e-9)
+
+
+# ---------------------------------------------------------------------------------------
+# Noise estimate and gap definition
+
+def test_noise_estimate_recovers_sigma():
+    rng = np.random.default_rng(3)
+    f = np.arange(5.0, 300.1, 1.5)
+    H = frf(true_model(), f, OUT, IN)
+    Hn, sigma = noisy(H, rng, rel=0.01)
+    est = estimate_noise(Hn)
+    ratio = est[0] / sigma[0]
+    assert np.all((ratio > 0.75) & (ratio < 1.35)), ratio
+
+
+def test_excess_gap_is_zero_at_noise_level_and_grows():
+    assert excess_gap(100.0, 100) == 0.0
+    assert excess_gap(90.0, 100) == 0.0
+    assert excess_gap(500.0, 100) == pytest.approx(2.0)
+
+
+# ---------------------------------------------------------------------------------------
+# Diagnosis on small cases (restricted candidate lists keep them fast)
+
+FAST = ("sensor_misorientation", "added_mass", "frequency_dependent_stiffness")
+
+
+def test_no_effect_gives_verdict_none():
+    rng = np.random.default_rng(11)
+    Hn, sigma = noisy(frf(true_model(), F_HZ, OUT, IN), rng)
+    data = prepare_data(F_HZ, Hn, sigma, OUT, IN)
+    rep = diagnose(data, default_model(), GapOptions(effects=FAST)).report
+    assert rep["verdict"] == "none", rep["verdict_reason"]
+    assert rep["gap_before"] < 0.5
+
+
+def test_misoriented_sensor_is_found_with_its_place_and_shrink():
+    rng = np.random.default_rng(5)
+    d = OUT.direction.copy()
+    t = np.radians(20.0)
+    d[1] = np.array([np.cos(t), 0.0, np.sin(t)])  # sias_R_x tilted 20 deg toward +z
+    tilted = Channels(OUT.name, OUT.bone, OUT.position_m, d)
+    Hn, sigma = noisy(frf(true_model(), F_HZ, tilted, IN), rng)
+    data = prepare_data(F_HZ, Hn, sigma, OUT, IN)
+    rep = diagnose(data, default_model(), GapOptions(effects=FAST)).report
+    assert rep["verdict"] == "sensor_misorientation", rep["verdict_reason"]
+    best = rep["candidates"][0]
+    assert best["effect"] == "sensor_misorientation" and best["place"] == "sias_R_x"
+    assert best["shrink"] > 0.7
+    assert rep["gap_before"] > 1.0
+    # design 4.4 contract: shares sum to 1, largest first
+    for key in ("bands", "outputs", "bones"):
+        shares = [x["share"] for x in rep["where"][key]]
+        assert sum(shares) == pytest.approx(1.0, abs=1e-3)
+        assert shares == sorted(shares, reverse=True)
+    assert rep["where"]["outputs"][0]["name"] == "sias_R_x"
+    for c in rep["candidates"]:
+        assert set(c) >= {"effect", "gap_after", "shrink", "params", "evidence"}
+        assert c["shrink"] == pytest.approx(1 - c["gap_after"] / rep["gap_before"], abs=1e-4)
+
+
+def test_unmodellable_effect_is_unexplained():
+    # a pure time delay on every FRF is none of the candidate effects
+    rng = np.random.default_rng(8)
+    H = frf(true_model(), F_HZ, OUT, IN) * np.exp(-2j * np.pi * F_HZ * 1.5e-3)[:, None, None]
+    Hn, sigma = noisy(H, rng)
+    data = prepare_data(F_HZ, Hn, sigma, OUT, IN)
+    rep = diagnose(data, default_model(), GapOptions(effects=FAST)).report
+    assert rep["verdict"] == "unexplained", rep["verdict_reason"]
+    assert rep["gap_before"] > 1.0
+
+
+# ---------------------------------------------------------------------------------------
+# Benchmark scoring and CLI
+
+def _case(kind, place, place_kind, bone=""):
+    return BenchCase(F_HZ, np.zeros((1, 1, 1)), None, OUT, IN, kind, place, place_kind, bone)
+
+
+def test_place_scoring_uses_verdict_candidate_then_where():
+    rep = {"verdict": "added_mass",
+           "candidates": [{"effect": "added_mass", "place": "sacrum", "place_kind": "bone",
+                           "bone": "sacrum"}],
+           "where": {"bones": [{"bone": "innominate_left", "share": 0.6}],
+                     "outputs": [{"name": "sias_L_y", "share": 0.6}], "inputs": []}}
+    assert place_correct(rep, _case("added_mass", "sacrum", "bone", "sacrum"))
+    assert not place_correct(rep, _case("added_mass", "innominate_left", "bone"))
+    rep["verdict"] = "unexplained"
+    assert predicted_place(rep, _case("soft_tissue", "sias_L_y", "output")) == "sias_L_y"
+    assert predicted_place(rep, _case("added_mass", "x", "bone")) == "innominate_left"
+
+
+def test_cli_diagnose_writes_json_and_report(tmp_path, capsys):
+    rng = np.random.default_rng(2)
+    Hn, sigma = noisy(frf(true_model(), F_HZ, OUT, IN), rng)
+    path = tmp_path / "s.h5"
+    write_frf(path, FrfSet(F_HZ, Hn, OUT, IN, H_std=sigma))
+    out = tmp_path / "gap.json"
+    code = main(["gap", "diagnose", str(path), "--json", str(out), "--no-plots",
+                 "--effects", "added_mass"])
+    assert code == 0
+    rep = json.loads(out.read_text())
+    assert set(rep) >= {"gap_before", "where", "candidates", "verdict"}
+    assert rep["verdict"] in ("none", "added_mass", "unexplained")
+    assert "verdict" in capsys.readouterr().out
+
+
+def test_cli_errors_are_one_line(tmp_path, capsys):
+    code = main(["gap", "diagnose", str(tmp_path / "missing.h5"), "--json",
+                 str(tmp_path / "o.json")])
+    assert code == 1
+    err = capsys.readouterr().err.strip()
+    assert "missing.h5" in err and "\n" not in err
+    rng = np.random.default_rng(2)
+    Hn, sigma = noisy(frf(true_model(), F_HZ, OUT, IN), rng)
+    path = tmp_path / "s.h5"
+    write_frf(path, FrfSet(F_HZ, Hn, OUT, IN, H_std=sigma))
+    code = main(["gap", "diagnose", str(path), "--json", str(tmp_path / "o.json"),
+                 "--effects", "telepathy"])
+    assert code == 1
+    assert "telepathy" in capsys.readouterr().err
