@@ -284,11 +284,22 @@ _FINE_HALF = 3  # fine pass: 7 lags around the coarse peak (the spline uses all 
 
 
 def _coarse(W: np.ndarray, ref: _Reference, L: int, step: int) -> _BlockResult:
-    """Peak lag per echo from a lag grid of ``step`` samples, parabola refined (cheap pass)."""
-    lags = np.arange(-L, L + 1, step)
-    if lags[-1] != L:
-        lags = np.append(lags, L)
-    C = W @ _toeplitz(ref.q, lags, L)
+    """Peak lag per echo from a lag grid of ``step`` samples, parabola refined (cheap pass).
+
+    W: (n, G + 2L) raw windows (any dtype). With an even ``step`` the windows are decimated
+    by 2 (the 5 MHz echo keeps 50 samples per period): half the memory traffic, and the
+    integer lag only needs to be right within +-2 samples for the fine pass.
+    """
+    if step % 2 == 0:
+        par = L % 2
+        lags = np.arange(-(L - par), L + 1, step)
+        Wd = W[:, par::2].astype(np.float32)
+        C = Wd @ _toeplitz(ref.q[::2], lags // 2, (L - par) // 2)
+    else:
+        lags = np.arange(-L, L + 1, step)
+        if lags[-1] != L:
+            lags = np.append(lags, L)
+        C = W.astype(np.float32, copy=False) @ _toeplitz(ref.q, lags, L)
     j = np.argmax(C, axis=1)
     rows = np.arange(W.shape[0])
     jj = np.clip(j, 1, lags.size - 2)
@@ -307,7 +318,7 @@ class _Groups:
     """Echo windows sorted by integer lag, so that each lag's group is a contiguous view."""
 
     order: np.ndarray  # sorted position -> original row
-    W: np.ndarray  # (n, G + 2L) sorted rows
+    W: np.ndarray  # (n, G + 2L) sorted rows, float32
     lag: np.ndarray  # sorted integer lags (clipped to the fine range)
     runs: list[tuple[int, int, int]]  # (lag, first row, end row)
 
@@ -321,7 +332,8 @@ class _Groups:
             bounds = np.searchsorted(lag_s, np.append(values, values[-1] + 1))
             runs = [(int(p), int(bounds[i]), int(bounds[i + 1]))
                     for i, p in enumerate(values) if bounds[i] < bounds[i + 1]]
-        return cls(order, W[order], lag_s, runs)
+        # Gather the (raw, e.g. int8) rows first, then convert: one float32 copy in all.
+        return cls(order, W[order].astype(np.float32, copy=False), lag_s, runs)
 
     def unsort(self, x: np.ndarray) -> np.ndarray:
         out = np.empty_like(x)
@@ -514,28 +526,26 @@ def track_echoes(codes: np.ndarray, trigger_offset_s: np.ndarray | None, sample_
     _band_sos(band.hz, band.order, fs)  # validates the band
     ref0 = _make_reference(first.mean(axis=0), band)
 
-    W = codes[:, start - L: stop + L].astype(np.float32)
+    W = codes[:, start - L: stop + L]  # a view; converted to float32 once, sorted by lag
     clipped = _clipped(codes, start - L, ref0, L)
     if np.any(clipped):
         warnings.append(f"{int(clipped.sum())} echo(es) clipped at the digitizer's full scale: "
                         "lower the receiver gain")
     res, ref, groups = _track_block(W, ref0, L, opts, band, opts.reference_iterations)
     delay = res.delay + ref.offset
-    local_delay = res.delay
     corr, snr, lost_edge = res.corr, res.snr_db, res.edge.copy()
     shift = np.zeros(n, dtype=int)
     n_reref = 0
     if np.any(lost_edge) and opts.rereference:
         # Drift beyond the lag range: let the gate follow the echo (predicted per echo).
-        delay, corr, snr, lost_edge, shift, ref, groups, local_delay = _track_predicted(
+        delay, corr, snr, lost_edge, shift, ref, groups = _track_predicted(
             codes, start, G, L, ref, opts, band)
         warnings.append(f"echo drifted beyond +-{L} samples: gate followed it over "
                         f"{int(np.ptp(shift))} samples")
     elif np.any(lost_edge):
         warnings.append(f"{int(lost_edge.sum())} echo(es) left the +-{L}-sample lag range")
     if opts.rereference and (np.any(lost_edge & (shift != 0)) or _shape_changed(
-            groups, local_delay, ~lost_edge & (corr >= opts.min_correlation),
-            opts.block_size, G, L, band)):
+            groups, ~lost_edge & (corr >= opts.min_correlation), opts.block_size, G, L, band)):
         # The echo changed shape along the record (or the drift prediction failed):
         # block-wise, rebuilding the reference whenever the correlation drops.
         delay, corr, snr, lost_edge, shift, n_reref = _track_drifting(
@@ -622,23 +632,25 @@ def _rebuild_level(rho_ref: float) -> float:
     return rho_ref - max(0.01, 1.0 - rho_ref)
 
 
-def _shape_changed(g: _Groups, delay: np.ndarray, good: np.ndarray, B: int, G: int, L: int,
-                   band: _Band) -> bool:
+def _shape_changed(g: _Groups, good: np.ndarray, B: int, G: int, L: int, band: _Band) -> bool:
     """True when the aligned mean echo of the first ``B`` good echoes and that of the last
-    ``B`` differ in shape (correlation below 0.99; two averages of the same echo at >= 15 dB
-    correlate above 0.998)."""
-    idx = np.nonzero(good)[0]
-    if idx.size < 4 * B:
+    ``B`` differ in shape: their band-passed correlation is below 0.99 (two means of 32
+    echoes of one shape correlate above 0.998 down to ~6 dB)."""
+    good_s = good[g.order]
+    if np.count_nonzero(good_s) < 4 * B:
         return False
-    first = np.zeros(good.size, dtype=bool)
-    last = np.zeros(good.size, dtype=bool)
-    first[idx[:B]] = True
-    last[idx[-B:]] = True
-    ra = _aligned_reference(g, delay, first, G, L, band, 0.0)
-    rb = _aligned_reference(g, delay, last, G, L, band, 0.0)
-    if ra is None or rb is None:
-        return False
-    return float(ra.q.astype(float) @ rb.q / (ra.norm * rb.norm)) < 0.99
+    rows = np.nonzero(good_s)[0]
+    # Sorted rows are grouped by lag: recover acquisition order to take the two ends.
+    by_time = rows[np.argsort(g.order[rows], kind="stable")]
+    windows = np.lib.stride_tricks.sliding_window_view(g.W, G, axis=1)
+    means = [windows[r, L + g.lag[r]].mean(axis=0) for r in (by_time[:B], by_time[-B:])]
+    nfft = int(sp_fft.next_fast_len(2 * G, real=True))
+    spec = np.fft.rfft(np.array(means) - np.mean(means, axis=1, keepdims=True), nfft, axis=1)
+    spec *= _power_response(band.hz, band.order, band.fs, nfft)
+    a, b = spec
+    num = np.real(np.vdot(a, b))
+    den = np.sqrt(np.real(np.vdot(a, a)) * np.real(np.vdot(b, b)))
+    return bool(den > 0 and num / den < 0.99)
 
 
 def _track_predicted(codes: np.ndarray, start: int, G: int, L: int, ref: _Reference,
@@ -669,11 +681,11 @@ def _track_predicted(codes: np.ndarray, start: int, G: int, L: int, ref: _Refere
     inside = (col0 >= 0) & (col0 + width <= m)
     col0 = np.clip(col0, 0, m - width)
     windows = np.lib.stride_tricks.sliding_window_view(codes, width, axis=1)
-    W = windows[np.arange(n), col0].astype(np.float32)
+    W = windows[np.arange(n), col0]
     res, ref, groups = _track_block(W, ref, L, opts, band, opts.reference_iterations)
     shift = col0 + L - start
     delay = np.where(inside, shift + res.delay + ref.offset, np.nan)
-    return delay, res.corr, res.snr_db, res.edge | ~inside, shift, ref, groups, res.delay
+    return delay, res.corr, res.snr_db, res.edge | ~inside, shift, ref, groups
 
 
 def _track_drifting(codes: np.ndarray, start: int, G: int, L: int, ref: _Reference,
@@ -703,7 +715,7 @@ def _track_drifting(codes: np.ndarray, start: int, G: int, L: int, ref: _Referen
             if lo < 0 or lo + G + 2 * L > m:
                 res = None
                 break  # the echo left the record: these stay lost
-            W = codes[rows, lo: lo + G + 2 * L].astype(np.float32)
+            W = codes[rows, lo: lo + G + 2 * L]
             res, _, _ = _track_block(W, ref, L, opts, band, 0)
             if attempt == 2 or not np.any(res.edge):
                 break
