@@ -16,6 +16,7 @@ Schema ``pelvislab-protocol`` version 1. Units are SI and in the key names.
 from __future__ import annotations
 
 import math
+import re
 import tomllib
 from collections.abc import Mapping
 from dataclasses import dataclass, field
@@ -496,8 +497,12 @@ def parse_protocol(text: str, source: str = "<string>", limits: BenchLimits | No
         v = _string(sub, key, "subject", p)
         if v:
             extra[key] = v
+    sid = _string(sub, "id", "subject", p) or ""
+    if not re.fullmatch(r"[A-Za-z0-9._-]{0,32}", sid):
+        p.add("subject.id", "letters, digits, '-', '_', '.' only, at most 32 characters "
+                            "(a pseudonymous ID, never a name)")
     subject = Subject(
-        id=_string(sub, "id", "subject", p) or "",
+        id=sid,
         position=_string(sub, "position", "subject", p, choices=SUBJECT_POSITIONS) or "",
         notes=_string(sub, "notes", "subject", p) or "",
         extra=extra,

@@ -198,9 +198,11 @@ class LogMessage(Event):
 
 @dataclass(frozen=True)
 class Fault(Event):
-    """An instrument (or the session writer) failed; outputs are already off."""
+    """An instrument (or the session writer) failed; outputs are already off.
+    ``fault_t_s``: when the runner caught the failure (before the safe state), same clock."""
 
     reason: str
+    fault_t_s: float = float("nan")
 
 
 @dataclass(frozen=True)
@@ -363,6 +365,12 @@ class Runner:
     def _t(self) -> float:
         return self._clock() - self._t0
 
+    @property
+    def started_clock_s(self) -> float:
+        """The clock reading (``time.monotonic`` by default) at which the run started:
+        event time ``t_s`` + this = clock time."""
+        return self._t0
+
     def _log(self, text: str, level: str = "INFO") -> None:
         self._emit(LogMessage(self._t(), level, text))
 
@@ -442,6 +450,17 @@ class Runner:
                 return
             self._wake.wait(min(left, 0.05))
             self._wake.clear()
+
+    def _settle(self, seconds: float) -> None:
+        """Wait for the response to settle: real time, except on a fast-paced simulated
+        bench, whose own clock then skips the wait (its physics sees the time pass)."""
+        clock = getattr(getattr(self.bench, "world", None), "clock", None)
+        if (self.bench.simulated and clock is not None
+                and getattr(clock, "pacing", "") == "fast" and hasattr(clock, "wait")):
+            self._check()
+            clock.wait(seconds)
+            return
+        self._sleep(seconds)
 
     def _generators(self, on: bool) -> None:
         with self._lock:
@@ -537,6 +556,7 @@ class Runner:
             self.abort("interrupted (Ctrl-C / SIGINT)", "interrupted")
             status, reason = self._abort_status, self._abort_reason
         except Exception as exc:
+            fault_t = self._t()
             self._safe_state()
             if self._abort.is_set():  # an abort made an instrument call fail: not a fault
                 status, reason = self._abort_status, self._abort_reason
@@ -544,7 +564,7 @@ class Runner:
                 status = "failed"
                 reason = f"fault: {type(exc).__name__}: {' '.join(str(exc).split())}"
                 try:
-                    self._emit(Fault(self._t(), reason))
+                    self._emit(Fault(self._t(), reason, fault_t))
                 except Exception as listener_exc:
                     log.error("listener failed on Fault: %s", listener_exc)
         finally:
@@ -618,7 +638,7 @@ class Runner:
                 if (step.n_pulses, setup_channels) != configured:
                     self._configure(step, setup_channels)
                     configured = (step.n_pulses, setup_channels)
-                self._sleep(step.settle_s)
+                self._settle(step.settle_s)
                 record_s = step.n_pulses / us.prf_hz
                 records = bench.digitizer.acquire(timeout_s=2.0 * record_s + 5.0)
                 self._check()  # an abort during the acquisition: do not keep a cut record
@@ -781,7 +801,8 @@ class PreparedSession:
 def prepare_session(protocol_path: Path | str, out_path: Path | str,
                     bench_path: Path | str | None = None, resume: bool = False,
                     auto_continue: bool = True, tracking_options: Any = None,
-                    software_version: str = "", bench: Any = None) -> PreparedSession:
+                    software_version: str = "", bench: Any = None,
+                    subject_id: str | None = None) -> PreparedSession:
     """Validate the protocol against the bench, open the bench and the session file.
 
     Checks everything that can be checked before touching an instrument or a file: the
@@ -789,13 +810,16 @@ def prepare_session(protocol_path: Path | str, out_path: Path | str,
     exist (new session) or is a readable session of the same protocol (``resume``).
     Nothing is ever written over an existing file. ``bench``: an already open bench to use
     instead of opening ``bench_path`` (its config then supplies the limits); it is closed
-    with the session.
+    with the session. ``subject_id`` overrides the protocol's ``subject.id`` in the session's
+    root attribute ``subject_id`` (the /protocol text stays as the file was).
     """
     from pelvislab.acquisition.protocol import BenchLimits, load_protocol
-    from pelvislab.acquisition.session import bench_description
+    from pelvislab.acquisition.session import bench_description, check_subject_id
     from pelvislab.drivers.bench import BenchConfig, open_bench
 
     out = Path(out_path)
+    if subject_id is not None:
+        check_subject_id(subject_id)
     bench_file = Path(bench_path) if bench_path is not None else None
     if bench is not None:
         config = bench.config
@@ -825,7 +849,8 @@ def prepare_session(protocol_path: Path | str, out_path: Path | str,
         if resume:
             writer = SessionWriter.resume(out, protocol.text)
         else:
-            writer = SessionWriter.create(out, protocol, description, software_version)
+            writer = SessionWriter.create(out, protocol, description, software_version,
+                                          subject_id)
         try:
             runner = Runner(protocol, bench, auto_continue=auto_continue,
                             tracking_options=tracking_options, skip=skip)
@@ -837,6 +862,13 @@ def prepare_session(protocol_path: Path | str, out_path: Path | str,
                        f" session, bench {description['name']!r}", flush=True)
             for problem in problems:
                 writer.log(f"resume: step {problem}; measured again", "WARNING")
+            if resume:
+                writer.repair_frf()
+            if subject_id is not None:
+                writer.log(f"subject id set to {subject_id!r} (protocol says "
+                           f"{protocol.subject.id!r})")
+                assert writer.run_group is not None
+                writer.run_group.attrs["subject_id"] = subject_id
         except BaseException:
             writer.close()
             raise
@@ -860,7 +892,7 @@ def reprocess_session(source: Path | str, target: Path | str, tracking_options: 
     import h5py
 
     from pelvislab.acquisition.frfset import write_frf
-    from pelvislab.acquisition.session import SESSION_SCHEMA, SESSION_SCHEMA_VERSION
+    from pelvislab.acquisition.session import SESSION_SCHEMA, SESSION_SCHEMA_VERSION, create_log
 
     source, target = Path(source), Path(target)
     if target.exists():
@@ -880,10 +912,9 @@ def reprocess_session(source: Path | str, target: Path | str, tracking_options: 
             for group in ("protocol", "bench", "runs"):
                 if group in reader.handle:
                     reader.handle.copy(reader.handle[group], out, name=group)
-            out.create_dataset("log", data=np.array(reader.log_lines() + [
+            create_log(out, reader.log_lines() + [
                 f"reprocessed from {source} with tracking options {tracking_options!r}"
-                + (f", speed of sound {speed_of_sound_m_s} m/s" if speed_of_sound_m_s else "")],
-                dtype=object), maxshape=(None,), chunks=True, dtype=h5py.string_dtype())
+                + (f", speed of sound {speed_of_sound_m_s} m/s" if speed_of_sound_m_s else "")])
             steps_out = out.create_group("steps")
             done: list[StepData] = []
             for n, step in enumerate(reader.steps()):

@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import datetime as _dt
 import os
+import re
 import time
 from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
@@ -49,11 +50,44 @@ SESSION_SCHEMA = "pelvislab-session"
 SESSION_SCHEMA_VERSION = 1
 STATUS_COMPLETE = "complete"
 STATUS_FAILED = "failed"
-ECHO_COMPRESSION = {"compression": "gzip", "compression_opts": 4, "shuffle": True}
+ECHO_COMPRESSION = {"compression": "gzip", "compression_opts": 1}
+"""Raw echoes: gzip level 1 (measured on simulated 8-bit echoes: 74 % of the raw size at
+~60 ns/sample; level 4 + shuffle was slower and larger for 1-byte codes)."""
 
 
 class SessionFileError(ValueError):
     """Not a usable session file; the one-line message says which file and why."""
+
+
+SUBJECT_ID_PATTERN = re.compile(r"[A-Za-z0-9._-]{0,32}")
+
+
+def check_subject_id(subject_id: str) -> str:
+    """A pseudonymous subject ID: letters, digits, ``-_.``, at most 32 characters (an ID,
+    never a name: no spaces)."""
+    if not isinstance(subject_id, str) or not SUBJECT_ID_PATTERN.fullmatch(subject_id):
+        raise ValueError(f"subject id {subject_id!r}: use letters, digits, '-', '_', '.' only, "
+                         "at most 32 characters (a pseudonymous ID, never a name)")
+    return subject_id
+
+
+LOG_LINE_BYTES = 400
+"""Session log lines are fixed-length UTF-8 strings (longer lines are cut): unlike
+variable-length strings they need no global heap, whose on-disk state a kill -9 can leave
+behind the log's own chunks (measured: "bad heap index" when resuming such a file)."""
+
+
+def create_log(group: h5py.Group, lines: Sequence[str] = ()) -> h5py.Dataset:
+    """The ``/log`` dataset: resizable, fixed-length UTF-8 lines."""
+    data = np.array([log_entry(line) for line in lines], dtype=f"S{LOG_LINE_BYTES}")
+    return group.create_dataset("log", data=data, maxshape=(None,), chunks=(256,),
+                                dtype=f"S{LOG_LINE_BYTES}")
+
+
+def log_entry(line: str) -> np.bytes_:
+    """``line`` as UTF-8, cut to :data:`LOG_LINE_BYTES` on a character boundary."""
+    raw = str(line).encode("utf-8")[:LOG_LINE_BYTES]
+    return np.bytes_(raw.decode("utf-8", "ignore").encode("utf-8"))
 
 
 def _utc_now() -> str:
@@ -169,7 +203,7 @@ def frf_from_steps(steps: Sequence[StepData], frequencies_hz: Sequence[float] | 
             continue
         j = inputs.index(s.input.name)
         for c in s.channels:
-            if c.phasor_m is None:
+            if c.phasor_m is None or not _usable(c):
                 continue
             o = outputs.index(c.output.name)
             H[i, o, j] = c.phasor_m / s.force_phasor_n
@@ -177,6 +211,13 @@ def frf_from_steps(steps: Sequence[StepData], frequencies_hz: Sequence[float] | 
                 H_std[i, o, j] = c.phasor_std_m / abs(s.force_phasor_n)
             at[i] = s.started_at_s
     return FrfSet(f, H, outputs, inputs, H_std=H_std, acquired_at_s=at)
+
+
+def _usable(channel: ChannelData) -> bool:
+    """A channel's phasor goes into /frf unless its tracking quality was judged bad
+    (``quality['ok']`` False); its raw echoes stay in /steps for reprocessing."""
+    ok = channel.quality.get("ok", True)
+    return bool(ok) if not isinstance(ok, str) else ok.lower() in ("true", "1")
 
 
 # --------------------------------------------------------------------------- writer
@@ -218,48 +259,57 @@ class SessionWriter:
     # -------------------------------------------------------------- open / create
     @classmethod
     def create(cls, path: Path | str, protocol: Protocol, bench: Mapping[str, Any],
-               software_version: str = "") -> SessionWriter:
+               software_version: str = "", subject_id: str | None = None) -> SessionWriter:
         """A new session file at ``path``; refuses to touch an existing file.
 
         ``bench``: see :func:`bench_description` (identities, resources, calibration).
+        ``subject_id`` overrides the protocol's ``subject.id`` (see :func:`check_subject_id`).
         """
+        if subject_id is not None:
+            check_subject_id(subject_id)
         path = Path(path)
         if path.exists():
             raise FileExistsError(f"{path} exists; not overwriting it (use --resume to "
                                   "continue that session, or choose another --out)")
         if not path.parent.is_dir():
             raise FileNotFoundError(f"folder {path.parent} does not exist")
+        # Built under a temporary name and linked into place when complete: a kill during
+        # creation must not leave a half-made file at ``path`` (measured: "truncated file").
+        tmp = path.with_name(f".{path.name}.{os.getpid()}.partial")
         try:
-            handle = h5py.File(path, "w-", libver=("earliest", "v110"))
-        except (OSError, FileExistsError) as exc:
+            handle = h5py.File(tmp, "w", libver=("earliest", "v110"))
+        except OSError as exc:
             raise SessionFileError(f"cannot create {path}: {exc}") from None
         try:
-            handle.attrs["schema"] = SESSION_SCHEMA
-            handle.attrs["schema_version"] = SESSION_SCHEMA_VERSION
-            handle.attrs["created_utc"] = _utc_now()
-            handle.attrs["created_unix_s"] = time.time()
-            handle.attrs["software_version"] = software_version
-            handle.attrs["protocol_name"] = protocol.name
-            handle.attrs["subject_id"] = protocol.subject.id
-            handle.attrs["subject_position"] = protocol.subject.position
-            g = handle.create_group("protocol")
-            g.attrs["toml"] = protocol.text
-            g.attrs["source"] = protocol.source
-            _write_bench(handle.create_group("bench"), bench)
-            handle.create_group("steps")
-            handle.create_group("runs")
-            handle.create_dataset("log", shape=(0,), maxshape=(None,), chunks=(256,),
-                                  dtype=h5py.string_dtype())
-            frequencies, outputs, inputs = plan_channels(protocol)
-            shape = (len(frequencies), len(outputs), len(inputs))
-            write_frf(handle, FrfSet(frequencies, np.full(shape, np.nan + 1j * np.nan),
-                                     outputs, inputs, H_std=np.full(shape, np.nan),
-                                     acquired_at_s=np.full(len(frequencies), np.nan)))
-            handle.flush()
-        except BaseException:
-            handle.close()
-            path.unlink(missing_ok=True)  # ours, just created, holds nothing yet
-            raise
+            with handle:
+                handle.attrs["schema"] = SESSION_SCHEMA
+                handle.attrs["schema_version"] = SESSION_SCHEMA_VERSION
+                handle.attrs["created_utc"] = _utc_now()
+                handle.attrs["created_unix_s"] = time.time()
+                handle.attrs["software_version"] = software_version
+                handle.attrs["protocol_name"] = protocol.name
+                handle.attrs["subject_id"] = (protocol.subject.id if subject_id is None
+                                              else subject_id)
+                handle.attrs["subject_position"] = protocol.subject.position
+                g = handle.create_group("protocol")
+                g.attrs["toml"] = protocol.text
+                g.attrs["source"] = protocol.source
+                _write_bench(handle.create_group("bench"), bench)
+                handle.create_group("steps")
+                handle.create_group("runs")
+                create_log(handle)
+                frequencies, outputs, inputs = plan_channels(protocol)
+                shape = (len(frequencies), len(outputs), len(inputs))
+                write_frf(handle, FrfSet(frequencies, np.full(shape, np.nan + 1j * np.nan),
+                                         outputs, inputs, H_std=np.full(shape, np.nan),
+                                         acquired_at_s=np.full(len(frequencies), np.nan)))
+            _publish(tmp, path)
+        finally:
+            tmp.unlink(missing_ok=True)
+        try:
+            handle = h5py.File(path, "r+")
+        except OSError as exc:
+            raise SessionFileError(f"cannot open the new session {path}: {exc}") from None
         writer = cls(handle, path, time.monotonic(), 0.0)
         return writer
 
@@ -305,8 +355,6 @@ class SessionWriter:
         g.attrs["software_version"] = software_version
         _write_bench(g.create_group("bench"), bench)
         self.run_group = g
-        self._h5.attrs["status"] = "running"
-        self._h5.attrs["status_reason"] = ""
         self._h5.flush()
 
     def finish_run(self, status: str, reason: str = "",
@@ -323,8 +371,6 @@ class SessionWriter:
                 lg.create_dataset("time_s", data=np.array([t for t, _ in entries], dtype=float))
                 lg.create_dataset("text", data=np.array([s for _, s in entries], dtype=object),
                                   dtype=h5py.string_dtype())
-        self._h5.attrs["status"] = status
-        self._h5.attrs["status_reason"] = reason
         self._h5.flush()
 
     def log(self, message: str, level: str = "INFO", flush: bool = False) -> None:
@@ -332,7 +378,7 @@ class SessionWriter:
         ds = self._h5["log"]
         n = ds.shape[0]
         ds.resize((n + 1,))
-        ds[n] = f"{self.elapsed_s():10.3f} {level} {' '.join(str(message).split())}"
+        ds[n] = log_entry(f"{self.elapsed_s():10.3f} {level} {' '.join(str(message).split())}")
         if flush:
             self._h5.flush()
 
@@ -374,10 +420,31 @@ class SessionWriter:
                 p = ph.create_dataset(c.name, data=np.complex128(c.phasor_m))
                 p.attrs["std_m"] = float(np.nan if c.phasor_std_m is None else c.phasor_std_m)
         g.attrs["status"] = step.status  # last: a group without it was cut short
+        self._h5.flush()  # the step is on disk before /frf mentions it
         if step.status == STATUS_COMPLETE:
             self._write_frf_lines(step)
-        self._h5.flush()
+            self._h5.flush()
         return index
+
+    def repair_frf(self) -> int:
+        """Rewrite every /frf line from the complete steps in place (after a kill between a
+        step's flush and its /frf lines); returns the number of lines written."""
+        if self._frf_index is None:
+            return 0
+        reader = SessionReader.__new__(SessionReader)
+        reader.path, reader._h5, reader.damaged, reader.incomplete = self.path, self._h5, [], []
+        steps = list(reader.steps(with_echoes=False))
+        frf = self._h5["frf"]
+        freqs, outs, ins = self._frf_index
+        rebuilt = frf_from_steps(steps, freqs, _channels_like(frf["outputs"], outs),
+                                 _channels_like(frf["inputs"], ins))
+        frf["H"][...] = rebuilt.H
+        if "H_std" in frf:
+            frf["H_std"][...] = rebuilt.H_std
+        if "acquired_at_s" in frf and rebuilt.acquired_at_s is not None:
+            frf["acquired_at_s"][...] = rebuilt.acquired_at_s
+        self._h5.flush()
+        return int(np.isfinite(rebuilt.H).sum())
 
     def _write_frf_lines(self, step: StepData) -> None:
         if self._frf_index is None or step.force_phasor_n == 0:
@@ -391,7 +458,7 @@ class SessionWriter:
         j = ins.index(step.input.name)
         frf = self._h5["frf"]
         for c in step.channels:
-            if c.phasor_m is None or c.output.name not in outs:
+            if c.phasor_m is None or c.output.name not in outs or not _usable(c):
                 continue
             o = outs.index(c.output.name)
             frf["H"][i, o, j] = np.complex128(c.phasor_m / step.force_phasor_n)
@@ -415,6 +482,24 @@ class SessionWriter:
 
     def __exit__(self, *exc: object) -> None:
         self.close()
+
+
+def _publish(tmp: Path, path: Path) -> None:
+    """Give the finished file ``tmp`` the name ``path``, never replacing an existing file."""
+    fsync_path(tmp)
+    try:
+        os.link(tmp, path)  # atomic, and fails if path exists
+    except FileExistsError:
+        raise FileExistsError(f"{path} exists; not overwriting it") from None
+    except OSError:  # a file system without hard links
+        if path.exists():
+            raise FileExistsError(f"{path} exists; not overwriting it") from None
+        os.rename(tmp, path)
+
+
+def _channels_like(group: h5py.Group, names: list[str]) -> Channels:
+    return Channels(names, [_text(b) for b in group["bone"][()]], group["position_m"][()],
+                    group["direction"][()])
 
 
 def _write_bench(g: h5py.Group, bench: Mapping[str, Any]) -> None:
@@ -507,15 +592,23 @@ class SessionReader:
 
     @property
     def status(self) -> tuple[str, str]:
-        """(status, reason) of the last run: completed, aborted, failed or running (killed)."""
-        return (_text(self._h5.attrs.get("status", "unknown")),
-                _text(self._h5.attrs.get("status_reason", "")))
+        """(status, reason) of the last run (``/runs``): completed, aborted, interrupted,
+        failed, or running (the process ended without closing the session: killed)."""
+        runs = self._h5.get("runs")
+        names = sorted(runs) if runs is not None else []
+        if not names:
+            return ("unknown", "")
+        a = runs[names[-1]].attrs
+        return (_text(a.get("status", "unknown")), _text(a.get("reason", "")))
 
     def log_lines(self) -> list[str]:
         """The session log."""
         if "log" not in self._h5:
             return []
-        return [_text(v) for v in self._h5["log"][()]]
+        try:
+            return [_text(v) for v in self._h5["log"][()]]
+        except Exception as exc:  # a damaged log must not hide the data
+            return [f"(session log unreadable: {' '.join(str(exc).split())})"]
 
     def bench(self) -> dict[str, Any]:
         """/bench attributes, roles as nested dicts."""

@@ -34,6 +34,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                    help="continue the interrupted session in --out (same protocol)")
     p.add_argument("--wait-prompts", action="store_true",
                    help="wait for Enter at each operator prompt (default: auto-continue)")
+    p.add_argument("--subject-id", metavar="ID", help="pseudonymous subject ID for this "
+                   "session (overrides the protocol's subject.id)")
     p.add_argument("--quiet", action="store_true", help="no progress output")
     p.set_defaults(handler=run_command)
 
@@ -124,7 +126,8 @@ def run_command(args: argparse.Namespace) -> int:
 
     prepared = prepare_session(args.protocol, args.out, args.bench, resume=args.resume,
                                auto_continue=not args.wait_prompts,
-                               software_version=package_version())
+                               software_version=package_version(),
+                               subject_id=args.subject_id)
     with prepared:
         for warning in prepared.protocol.warnings:
             print(f"warning: {warning}", file=sys.stderr)
