@@ -48,8 +48,10 @@ def run_demo(args: argparse.Namespace) -> int:
     """Run every built stage; exit non-zero only when a built stage fails."""
     from pelvislab.app.cli import build_parser
 
-    out = Path(args.out)
+    out = _fresh_folder(Path(args.out))
     out.mkdir(parents=True, exist_ok=True)
+    print(f"demo results go to {out}", flush=True)
+    demo_started = time.perf_counter()
     protocol_resource = resources.files("pelvislab.protocols") / DEMO_PROTOCOL
     protocol = Path(str(protocol_resource))
     parser = build_parser()
@@ -85,4 +87,16 @@ def run_demo(args: argparse.Namespace) -> int:
                 have_session = True
         else:
             print(f"   done in {elapsed:.1f} s")
+    print(f"demo finished in {time.perf_counter() - demo_started:.1f} s; results in {out}")
     return 1 if failed else 0
+
+
+def _fresh_folder(out: Path) -> Path:
+    """``out``, or ``out/run-N`` when ``out`` already holds a demo session: sessions are
+    never overwritten, so a second ``make demo`` writes next to the first."""
+    if not (out / "session.h5").exists():
+        return out
+    n = 2
+    while (out / f"run-{n}").exists():
+        n += 1
+    return out / f"run-{n}"

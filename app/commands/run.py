@@ -97,7 +97,7 @@ class ConsoleProgress:
             return
         elif isinstance(event, r.RunStarted):
             self._line(f"run {event.protocol!r}: {event.n_steps - event.n_done} steps to go "
-                       f"(~{event.estimated_s:.0f} s + processing) on the "
+                       f"(~{event.estimated_s:.0f} s of bench time + processing) on the "
                        f"{'simulated' if event.simulated else 'real'} bench")
         elif isinstance(event, r.Progress) and self.tty:
             width = 30
