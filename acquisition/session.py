@@ -588,7 +588,11 @@ class SessionReader:
     @property
     def protocol_text(self) -> str:
         """The protocol TOML the session was run with."""
-        return _text(self._h5["protocol"].attrs.get("toml", ""))
+        try:
+            return _text(self._h5["protocol"].attrs.get("toml", ""))
+        except Exception as exc:
+            raise SessionFileError(f"{self.path}: /protocol is unreadable: "
+                                   f"{' '.join(str(exc).split())[:160]}") from None
 
     @property
     def status(self) -> tuple[str, str]:
@@ -623,7 +627,11 @@ class SessionReader:
 
     def step_names(self) -> list[str]:
         """Names of every step group, in acquisition order."""
-        return sorted(n for n in self._h5["steps"] if n.isdigit())
+        try:
+            return sorted(n for n in self._h5["steps"] if n.isdigit())
+        except Exception as exc:
+            raise SessionFileError(f"{self.path}: /steps is unreadable (damaged file?): "
+                                   f"{' '.join(str(exc).split())[:160]}") from None
 
     def steps(self, include_incomplete: bool = False, with_echoes: bool = True,
               ) -> Iterator[StepData]:
@@ -688,7 +696,13 @@ class SessionReader:
         """The stored /frf set."""
         if "frf" not in self._h5:
             raise SessionFileError(f"{self.path} holds no /frf group")
-        return read_frf_group(self._h5["frf"])
+        try:
+            return read_frf_group(self._h5["frf"])
+        except ValueError:
+            raise
+        except Exception as exc:
+            raise SessionFileError(f"{self.path}: /frf is unreadable (damaged file?): "
+                                   f"{' '.join(str(exc).split())[:160]}") from None
 
     def frf_layout(self) -> tuple[list[float], Channels, Channels] | None:
         """(frequencies, outputs, inputs) of the stored /frf, or None."""

@@ -223,3 +223,46 @@ def test_reprocess_refuses_existing_output(tmp_path, protocol):
     out.write_bytes(b"keep")
     assert main(["reprocess", str(path), "--out", str(out)]) == 1
     assert out.read_bytes() == b"keep"
+
+
+# --------------------------------------------------------------------------- corrupted files
+from hypothesis import HealthCheck, given, settings  # noqa: E402
+from hypothesis import strategies as st  # noqa: E402
+
+_CORRUPT_SOURCE: dict[str, bytes] = {}
+
+
+def _valid_bytes(tmp_path_factory) -> bytes:
+    if "data" not in _CORRUPT_SOURCE:
+        path = tmp_path_factory.mktemp("src") / "s.h5"
+        write_session(path, parse_protocol(TEXT, "t.toml", None, POINTS), 3)
+        _CORRUPT_SOURCE["data"] = path.read_bytes()
+    return _CORRUPT_SOURCE["data"]
+
+
+@settings(max_examples=25, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(st.lists(st.tuples(st.floats(0, 1), st.binary(min_size=1, max_size=16)),
+                min_size=1, max_size=4),
+       st.one_of(st.none(), st.floats(0.05, 1.0)))
+def test_corrupted_files_give_one_line_errors_or_readable_steps(tmp_path_factory, patches, keep):
+    data = bytearray(_valid_bytes(tmp_path_factory))
+    for where, junk in patches:
+        at = int(where * (len(data) - len(junk)))
+        data[at:at + len(junk)] = junk
+    if keep is not None:
+        data = data[: int(keep * len(data))]
+    path = tmp_path_factory.mktemp("bad") / "bad.h5"
+    path.write_bytes(bytes(data))
+    try:
+        reader = SessionReader(path)
+    except SessionFileError as exc:
+        assert "\n" not in str(exc)
+        return
+    with reader:
+        steps = list(reader.steps())  # damaged groups are reported, not raised
+        assert len(steps) + len(reader.damaged) + len(reader.incomplete) <= 3
+        reader.log_lines()
+        try:
+            reader.frf()
+        except ValueError as exc:  # FrfFileError / SessionFileError, one line
+            assert "\n" not in str(exc)
