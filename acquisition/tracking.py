@@ -236,7 +236,7 @@ def _subsample(C: np.ndarray, Ch: np.ndarray, half: int, omega: float,
     """
     n = C.shape[0]
     rows = np.arange(n)
-    m = np.clip(np.argmax(C, axis=1), 1, 2 * half - 1)
+    m = np.minimum(np.maximum(np.argmax(C, axis=1), 1), 2 * half - 1)
     y0, y1, y2 = (C[rows, m - 1].astype(float), C[rows, m].astype(float),
                   C[rows, m + 1].astype(float))
     if estimator == "parabolic":
@@ -245,7 +245,7 @@ def _subsample(C: np.ndarray, Ch: np.ndarray, half: int, omega: float,
             frac = np.where(den < 0, 0.5 * (y0 - y2) / den, 0.0)
     elif estimator == "cosine":
         with np.errstate(divide="ignore", invalid="ignore"):
-            w = np.arccos(np.clip((y0 + y2) / (2.0 * y1), -1.0, 1.0))
+            w = np.arccos(np.minimum(np.maximum((y0 + y2) / (2.0 * y1), -1.0), 1.0))
             theta = np.arctan2(y0 - y2, 2.0 * y1 * np.sin(w))
             frac = np.where(w > 0, -theta / w, 0.0)
     elif estimator == "phase":
@@ -263,7 +263,8 @@ def _subsample(C: np.ndarray, Ch: np.ndarray, half: int, omega: float,
         return _SPLINE_GRID[k] + ref * step
     else:
         raise ValueError(f"unknown estimator {estimator!r}; choose one of {ESTIMATORS}")
-    frac = np.clip(np.nan_to_num(frac), -1.0, 1.0)
+    # np.clip / nan_to_num are slow on small arrays; plain ufuncs do the same.
+    frac = np.minimum(np.maximum(np.where(np.isfinite(frac), frac, 0.0), -1.0), 1.0)
     return (m - half) + frac
 
 
@@ -302,12 +303,13 @@ def _coarse(W: np.ndarray, ref: _Reference, L: int, step: int) -> _BlockResult:
         C = W.astype(np.float32, copy=False) @ _toeplitz(ref.q, lags, L)
     j = np.argmax(C, axis=1)
     rows = np.arange(W.shape[0])
-    jj = np.clip(j, 1, lags.size - 2)
+    jj = np.minimum(np.maximum(j, 1), lags.size - 2)
     y0, y1, y2 = C[rows, jj - 1], C[rows, jj], C[rows, jj + 1]
     den = y0 - 2.0 * y1 + y2
     with np.errstate(divide="ignore", invalid="ignore"):
         frac = np.where(den < 0, 0.5 * (y0 - y2) / den, 0.0)
-    est = lags[jj] + np.clip(np.nan_to_num(frac), -1.0, 1.0) * step
+    frac = np.minimum(np.maximum(np.where(np.isfinite(frac), frac, 0.0), -1.0), 1.0)
+    est = lags[jj] + frac * step
     edge = (j == 0) | (j == lags.size - 1)
     n = W.shape[0]
     return _BlockResult(est, np.rint(est).astype(int), np.ones(n), np.zeros(n), edge)
