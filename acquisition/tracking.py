@@ -659,21 +659,23 @@ def _track_predicted(codes: np.ndarray, start: int, G: int, L: int, ref: _Refere
                      opts: TrackingOptions, band: _Band) -> tuple:
     """Track echoes that drift beyond the lag range, all at once.
 
-    1. every 8th echo: correlation over every position in the record (lag step
-       ``coarse_lag_step``), whole-period hops removed against the neighbours' median;
-    2. per-echo gate offset = that trajectory interpolated and rounded;
+    1. every echo: correlation over every position in the record (every 4th lag, on
+       2x-decimated samples), whole-period hops removed against the neighbours' median;
+    2. per-echo gate offset = that trajectory rounded;
     3. each echo's window is cut at its own offset and the usual pipeline runs on them
        (reference rebuilt from the drift-aligned echoes).
     Echoes whose window leaves the record are lost.
     """
     n, m = codes.shape
     stop = start + G
-    step = max(1, int(opts.coarse_lag_step))
-    rows = np.unique(np.r_[np.arange(0, n, 8), n - 1])
-    lags = np.arange(-start, m - stop + 1, step)
-    T = _toeplitz(ref.q, lags, start)
-    C = codes[rows, : T.shape[0]].astype(np.float32) @ T
+    # Every echo (vibration can be fast), every 4th lag, on 2x-decimated samples: lags are
+    # even offsets from the gate start, sample index start + lag + k for even k.
+    par = start % 2
+    lags = np.arange(-(start - par), m - stop + 1, 4)
+    T = _toeplitz(ref.q[::2], lags // 2, (start - par) // 2)
+    C = codes[:, par: par + 2 * T.shape[0]: 2].astype(np.float32) @ T
     coarse = lags[np.argmax(C, axis=1)].astype(float)
+    rows = np.arange(n)
     period = 2.0 * np.pi / ref.omega
     local = _local_median(coarse)
     coarse = coarse - np.rint((coarse - local) / period) * period
