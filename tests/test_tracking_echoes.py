@@ -116,6 +116,18 @@ def test_drift_beyond_gate_is_rereferenced():
     assert np.abs(fixed.displacement_m[ok] - (d - d[0])[ok]).max() < 1e-6
 
 
+def test_large_fast_vibration_beyond_the_lag_range():
+    # 15 um at 280 Hz = +-9.7 samples per 0.7 ms: the gate must follow every echo.
+    rng = np.random.default_rng(12)
+    n = 500
+    d = 15e-6 * np.sin(2 * np.pi * 280 * np.arange(n) / PRF)
+    codes, off = synth_echoes(_arrival(d), snr_db=30.0, rng=rng)
+    res = track_echoes(codes, off, FS, C)
+    assert not res.lost.any()
+    err = res.displacement_m - (d - d[0])
+    assert np.std(err) < 0.15e-6 and np.abs(err).max() < 0.8e-6
+
+
 def test_shape_change_rebuilds_the_reference():
     # Drift, and halfway the echo changes shape (lower centre frequency, as after a change
     # of the tissue path): the reference is rebuilt, the displacement stays right.
