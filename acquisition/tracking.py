@@ -564,7 +564,11 @@ def track_echoes(codes: np.ndarray, trigger_offset_s: np.ndarray | None, sample_
         delay = np.where(hops, delay - np.rint((delay - local) / period) * period, delay)
         warnings.append(f"{int(hops.sum())} peak hop(s) corrected by whole carrier periods")
 
-    lost = lost_edge | (corr < opts.min_correlation) | ~np.isfinite(delay)
+    bad_offset = ~np.isfinite(trigger_offset_s)
+    if np.any(bad_offset):
+        warnings.append(f"{int(bad_offset.sum())} segment(s) without a finite trigger offset: "
+                        "marked lost")
+    lost = lost_edge | (corr < opts.min_correlation) | ~np.isfinite(delay) | bad_offset
     if np.any(lost & ~lost_edge):
         warnings.append(f"{int(np.sum(lost & ~lost_edge))} echo(es) with correlation below "
                         f"{opts.min_correlation}")

@@ -163,9 +163,10 @@ def test_noise_only_segments_are_lost():
     d = _sine_displacement(n, 1e-6)
     codes, off = synth_echoes(_arrival(d), snr_db=30.0, rng=rng)
     codes[[10, 55]] = rng.normal(0, 3.0, (2, codes.shape[1])).astype(np.int8)
+    off[70] = np.nan  # a segment whose trigger offset the digitizer did not report
     res = track_echoes(codes, off, FS, C)
-    assert res.lost[[10, 55]].all() and res.lost.sum() == 2
-    assert np.isnan(res.displacement_m[[10, 55]]).all()
+    assert res.lost[[10, 55, 70]].all() and res.lost.sum() == 3
+    assert np.isnan(res.displacement_m[[10, 55, 70]]).all()
     assert res.correlation[[10, 55]].max() < 0.5
 
 
