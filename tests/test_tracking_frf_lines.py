@@ -100,3 +100,21 @@ def test_end_to_end_two_channels_phase_shift():
     frf = assemble_frf([frf_line(pa, F, "a", "s"), frf_line(pb, F, "b", "s")],
                        _channels(["a", "b"]), _channels(["s"]))
     assert frf.H[0, 1, 0] == pytest.approx(Xb / 2.0, abs=4 * frf.H_std[0, 1, 0])
+
+
+def test_phasor_std_from_tracked_echoes_predicts_the_scatter():
+    # Whole chain: echoes -> tracking -> phasor; the residual-based std of the displacement
+    # phasor must predict the actual error (calibrated within a factor 1.4).
+    rng = np.random.default_rng(4)
+    f, n = 180.0, 500
+    t = np.arange(n) / PRF
+    errs, stds = [], []
+    for _ in range(24):
+        X = 0.5e-6 * np.exp(1j * rng.uniform(-np.pi, np.pi))
+        d = np.real(X * np.exp(2j * np.pi * f * t))
+        codes, off = synth_echoes(0.5e-6 - 2 * d / C, snr_db=25.0, rng=rng)
+        p = displacement_phasor(track_echoes(codes, off, FS, C), PRF, f)
+        errs.append(p.value - X)
+        stds.append(p.std)
+    ratio = np.sqrt(np.mean(np.abs(np.array(errs)) ** 2)) / np.mean(stds)
+    assert 1 / 1.4 < ratio < 1.4
