@@ -766,14 +766,26 @@ def _track_drifting(codes: np.ndarray, start: int, G: int, L: int, ref: _Referen
             if rho_ref is None:
                 rho_ref = rho
             elif rho < _rebuild_level(rho_ref):
-                # The echo no longer looks like the reference: rebuild it from this block.
-                new = _aligned_reference(_Groups.build(W, res.lag), res.delay, good, G, L, band,
-                                         ref.offset)
+                # The echo no longer looks like the reference: rebuild it from the newer half
+                # of this block (closest to what follows), then re-track the block with it
+                # and keep, per echo, the better-correlated estimate.
+                recent = good & (np.arange(good.size) >= good.size // 2)
+                if np.count_nonzero(recent) < 4:
+                    recent = good
+                new = _aligned_reference(_Groups.build(W, res.lag), res.delay, recent, G, L,
+                                         band, ref.offset)
                 if new is not None:
                     # Its position relative to the old one (mean residual) is in its offset;
                     # gate moves are carried by offset_gate, so delays stay on one scale.
                     ref, rho_ref = new, None
                     n_reref += 1
+                    res2, _, _ = _track_block(W, ref, L, opts, band, 0)
+                    better = ~res2.edge & (res2.corr > corr[rows])
+                    d2 = offset_gate + res2.delay + ref.offset
+                    delay[rows] = np.where(better, d2, delay[rows])
+                    snr[rows] = np.where(better, res2.snr_db, snr[rows])
+                    lost[rows] = np.where(better, False, lost[rows])
+                    corr[rows] = np.where(better, res2.corr, corr[rows])
             # Follow the echo to where the block ENDS (a steady drift keeps going). An
             # integer gate move leaves the reference valid: no rebuild, no error added.
             tail = np.nonzero(good)[0][-max(4, B // 8):]
