@@ -726,9 +726,11 @@ class SessionRecorder:
 
     def __call__(self, event: Event) -> None:
         if isinstance(event, StepFinished):
+            ok = all(bool(c.quality.get("ok", False)) for c in event.data.channels)
             self.writer.log(f"step {event.step.index} setup {event.step.setup!r} "
-                            f"{event.step.frequency_hz:g} Hz: {event.data.channels and 'ok'}",
-                            "DEBUG")
+                            f"{event.step.frequency_hz:g} Hz: "
+                            f"{'ok' if ok else 'quality warning'} "
+                            f"({event.duration_s:.3f} s)", "DEBUG")
             self.writer.append_step(event.data)  # flushes
             self.steps_written += 1
         elif isinstance(event, LogMessage):
@@ -764,16 +766,29 @@ class PreparedSession:
     """Damaged or incomplete step groups found when resuming (kept; measured again)."""
     final: RunFinished | None = None
     _closed: bool = False
+    _running: threading.Event = field(default_factory=threading.Event)
+    _done: threading.Event = field(default_factory=threading.Event)
 
     def run(self) -> RunFinished:
-        """Execute the plan (see :meth:`Runner.run`)."""
-        self.final = self.runner.run()
+        """Execute the plan (see :meth:`Runner.run`); call it once, from any one thread."""
+        self._running.set()
+        try:
+            self.final = self.runner.run()
+        finally:
+            self._done.set()
         return self.final
 
-    def close(self) -> None:
-        """Outputs off, session flushed and closed, instruments released. Safe twice."""
+    def close(self, timeout_s: float = 30.0) -> None:
+        """Outputs off, session flushed and closed, instruments released. Safe twice.
+
+        Called while :meth:`run` is still going in another thread, it aborts the run and
+        waits (up to ``timeout_s``) for it to end before closing the file.
+        """
         if self._closed:
             return
+        if self._running.is_set() and not self._done.is_set():
+            self.runner.abort("session closed while running")
+            self._done.wait(timeout_s)
         self._closed = True
         try:
             self.bench.safe_state()

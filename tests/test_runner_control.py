@@ -402,3 +402,18 @@ def test_reprocess_from_raw_echoes(tmp_path):
         assert "parabolic" in b.log_lines()[-1]
         sa, sb = next(a.steps()), next(b.steps())
         np.testing.assert_array_equal(sa.channels[0].codes, sb.channels[0].codes)
+
+
+def test_close_while_running_aborts_then_closes(tmp_path):
+    bench = make_bench(pace=1.0)
+    session = prepare(tmp_path, bench)
+    thread = threading.Thread(target=session.run)
+    thread.start()
+    while bench.digitizer.n_acquired < 2:
+        time.sleep(0.005)
+    session.close()
+    thread.join(5)
+    assert session.final.status == "aborted" and not bench.drive.enabled
+    session.close()  # idempotent
+    with SessionReader(tmp_path / "s.h5") as reader:
+        assert reader.status == ("aborted", "session closed while running")

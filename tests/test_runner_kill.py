@@ -179,3 +179,19 @@ def test_truncated_session_is_refused_cleanly(tmp_path):
     cut.write_bytes(data[: len(data) // 3])
     with pytest.raises(SessionFileError):
         SessionReader(cut)
+
+
+def test_wait_prompts_answered_then_stdin_closed_aborts(tmp_path):
+    protocol = tmp_path / "p.toml"
+    protocol.write_text(PROTOCOL)
+    out = tmp_path / "s.h5"
+    proc = subprocess.run([sys.executable, "-m", "pelvislab.app", "run", str(protocol),
+                           "--out", str(out), "--wait-prompts"],
+                          input="\n", capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 4, proc.stderr
+    last = proc.stderr.strip().splitlines()[-1]
+    assert last.startswith("pelvislab run: aborted: operator prompt") and "4 of 8" in last
+    assert "Traceback" not in proc.stderr
+    with SessionReader(out) as reader:
+        assert [s.setup for s in reader.steps()] == ["a"] * 4  # setup a confirmed and kept
+        assert reader.status[0] == "aborted"
