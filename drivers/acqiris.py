@@ -160,11 +160,13 @@ def _declare_prototypes(lib: Any) -> None:
         "AcqrsD1_readData": [ViSession, ViInt32, p(AqReadParameters), ctypes.c_void_p,
                              p(AqDataDescriptor), ctypes.c_void_p],
         "AcqrsD1_getInstrumentInfo": [ViSession, ctypes.c_char_p, ctypes.c_void_p],
+        "AcqrsD1_getInstrumentData": [ViSession, ctypes.c_char_p, p(ViInt32), p(ViInt32),
+                                      p(ViInt32)],
         "AcqrsD1_errorMessage": [ViSession, ViStatus, ctypes.c_char_p],
         "AcqrsD1_close": [ViSession],
     }
     for name, argtypes in sig.items():
-        fn = getattr(lib, name, None)
+        fn = getattr(lib, name, None) or getattr(lib, name.replace("AcqrsD1_", "Acqrs_"), None)
         if fn is None:
             continue
         fn.argtypes = argtypes
@@ -211,6 +213,14 @@ class AcqirisDigitizer:
                    ctypes.c_char_p(options.encode()), ctypes.byref(session))
         self._id = int(session.value)
         try:
+            name = ctypes.create_string_buffer(64)
+            serial, bus, slot = ViInt32(0), ViInt32(0), ViInt32(0)
+            self._call("AcqrsD1_getInstrumentData", self._session(), name,
+                       ctypes.byref(serial), ctypes.byref(bus), ctypes.byref(slot))
+            model = name.value.decode("latin-1", "replace").strip()
+            self.identity = f"Acqiris {model} serial {serial.value} at {resource}"
+            if "235" not in model:
+                log.warning("%s is a %r, the driver was written for a DP235", resource, model)
             pad = ViInt32(0)
             try:
                 self._call("AcqrsD1_getInstrumentInfo", self._session(),
@@ -248,7 +258,9 @@ class AcqirisDigitizer:
     def _call(self, name: str, *args: Any) -> None:
         """Call a D1 function; any non-zero status raises with the vendor's message."""
         self.command_log.append((time.monotonic(), name))
-        fn = getattr(self.lib, name, None)
+        # Newer AqDrv4 releases deprecate some AcqrsD1_* names in favour of Acqrs_*.
+        fn = getattr(self.lib, name, None) or \
+            getattr(self.lib, name.replace("AcqrsD1_", "Acqrs_"), None)
         if fn is None:
             raise InstrumentConnectionError(f"the Acqiris library has no function {name}")
         try:

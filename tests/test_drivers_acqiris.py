@@ -66,6 +66,11 @@ class FakeD1:
         session._obj.value = self.SESSION
         return 0
 
+    def _getInstrumentData(self, s, name, serial, bus, slot):
+        ctypes.memmove(name, b"DP235", 5)
+        serial._obj.value = 1234
+        return 0
+
     def _getInstrumentInfo(self, s, key, out):
         out._obj.value = self.pad
         return 0
@@ -126,7 +131,8 @@ def test_open_configure_acquire_exact_call_sequence():
         dig.configure_sequence([1, 2], 500e6, 500, 2000, 20e-6, 1.0, 0.1)
         recs = dig.acquire(timeout_s=2.0)
     assert fake.names() == [
-        "AcqrsD1_InitWithOptions", "AcqrsD1_getInstrumentInfo", "AcqrsD1_configExtClock",
+        "AcqrsD1_InitWithOptions", "AcqrsD1_getInstrumentData", "AcqrsD1_getInstrumentInfo",
+        "AcqrsD1_configExtClock",
         "AcqrsD1_configHorizontal", "AcqrsD1_configVertical", "AcqrsD1_configVertical",
         "AcqrsD1_configMemory", "AcqrsD1_configTrigClass", "AcqrsD1_configTrigSource",
         "AcqrsD1_acquire", "AcqrsD1_waitForEndOfAcquisition", "AcqrsD1_readData",
@@ -142,6 +148,7 @@ def test_open_configure_acquire_exact_call_sequence():
     assert [a[1:] for n, a in fake.calls if n == "AcqrsD1_configVertical"] == [
         [1, 1.0, 0.1, 3, 0], [2, 1.0, 0.1, 3, 0]]
     assert all(a[0] == FakeD1.SESSION for n, a in fake.calls[1:])
+    assert dig.identity == "Acqiris DP235 serial 1234 at PCI::INSTR0"
     assert set(recs) == {1, 2}
     r = recs[2]
     assert r.codes.dtype == np.int8 and r.codes.shape == (2000, 500)
