@@ -935,6 +935,11 @@ def reprocess_session(source: Path | str, target: Path | str, tracking_options: 
             for n, step in enumerate(reader.steps()):
                 for c in step.channels:
                     process_channel(c, step.frequency_hz, tracking_options, speed_of_sound_m_s)
+                failed = [str(c.quality.get("message", "")) for c in step.channels
+                          if str(c.quality.get("message", "")).startswith("tracking failed")]
+                if not done and step.channels and len(failed) == len(step.channels):
+                    raise ValueError(f"with tracking options {tracking_options!r}: "
+                                     f"{failed[0]} (first step)")
                 src = reader.handle["steps"][f"{step.index:06d}"]
                 g = steps_out.create_group(src.name.split("/")[-1])
                 for k in src.attrs:

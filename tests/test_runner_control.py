@@ -417,3 +417,15 @@ def test_close_while_running_aborts_then_closes(tmp_path):
     session.close()  # idempotent
     with SessionReader(tmp_path / "s.h5") as reader:
         assert reader.status == ("aborted", "session closed while running")
+
+
+def test_reprocess_with_unusable_options_fails_and_writes_nothing(tmp_path):
+    bench = make_bench()
+    with prepare(tmp_path, bench) as session:
+        session.run()
+    from pelvislab.acquisition.tracking import TrackingOptions
+
+    out = tmp_path / "bad.h5"
+    with pytest.raises(ValueError, match="tracking failed"):
+        r.reprocess_session(tmp_path / "s.h5", out, TrackingOptions(estimator="nonsense"))
+    assert not out.exists()

@@ -176,6 +176,10 @@ def _tracking_options(args: argparse.Namespace) -> Any:
     fields = {f.name: f for f in dataclasses.fields(TrackingOptions)}
     values: dict[str, Any] = {}
     if args.estimator is not None:
+        from pelvislab.acquisition.tracking import ESTIMATORS
+
+        if args.estimator not in ESTIMATORS:
+            raise ValueError(f"--estimator {args.estimator!r}: one of {list(ESTIMATORS)}")
         values["estimator"] = args.estimator
     if args.max_lag_samples is not None:
         values["max_lag_samples"] = args.max_lag_samples
