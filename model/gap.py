@@ -35,6 +35,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.optimize import least_squares
 
+from pelvislab.model.correlation import comac, frac
 from pelvislab.model.gap_effects import (
     Candidate,
     Context,
@@ -44,6 +45,7 @@ from pelvislab.model.gap_effects import (
     evaluate,
 )
 from pelvislab.model.pelvis import PelvisModel
+from pelvislab.model.rigid_body import filter_bones, filter_global
 
 Progress = Callable[[str], None]
 
@@ -69,7 +71,7 @@ class GapOptions:
     near_noise_gap: float = 1.0
     min_shrink: float = 0.6
     significance: float = 25.0
-    significance_rel: float = 0.1
+    significance_rel: float = 0.02
     places_per_variant: int = 1
     extra_places_top: int = 3
     joint_variants: int = 6
@@ -495,27 +497,19 @@ def band_edges(frequency_hz: np.ndarray, n_bands: int = 6) -> np.ndarray:
     return np.linspace(float(frequency_hz.min()), float(frequency_hz.max()), n_bands + 1)
 
 
-def frac(H_meas: np.ndarray, H_model: np.ndarray) -> float:
-    """Frequency response assurance criterion of one FRF (MAC of eq. 4.49 over frequency)."""
-    ok = np.isfinite(H_meas) & np.isfinite(H_model)
-    a, b = H_meas[ok], H_model[ok]
-    den = float(np.vdot(a, a).real * np.vdot(b, b).real)
-    return float(abs(np.vdot(a, b)) ** 2 / den) if den > 0 else float("nan")
-
-
-def rigid_content(x: np.ndarray, R: np.ndarray) -> float:
-    """Rigid-body content (‖x‖ − ‖x − R α‖)/‖x‖ of eq. 11.4/11.7, α by least squares (11.2)."""
-    nx = float(np.linalg.norm(x))
-    if nx == 0:
-        return float("nan")
-    alpha, *_ = np.linalg.lstsq(R, x, rcond=None)
-    return float((nx - np.linalg.norm(x - R @ alpha)) / nx)
+def normalised_residual(data: GapData, H_model: np.ndarray, fill: float = np.nan
+                        ) -> np.ndarray:
+    """(H − H_model)/σ on usable lines, ``fill`` elsewhere (n_f, n_out, n_in), complex."""
+    out = np.full(data.H.shape, fill, dtype=complex)
+    m = data.mask
+    out[m] = (data.H[m] - H_model[m]) / data.sigma[m]
+    return out
 
 
 def where_analysis(data: GapData, H_base: np.ndarray, n_bands: int = 6) -> dict[str, object]:
-    """Shares of the excess normalised residual by band, output and bone, plus FRAC, COMAC
-    and rigid-body content of the residual deflection shapes (eq. 11.4, 11.7)."""
-    r = np.where(data.mask, (data.H - H_base) / data.sigma, 0)
+    """Shares of the excess normalised residual by band, output, bone and input, with FRAC
+    per FRF and COMAC per output (:mod:`pelvislab.model.correlation`) to back them."""
+    r = normalised_residual(data, H_base, fill=0.0)
     e2 = np.abs(r) ** 2
     excess = np.where(data.mask, np.clip(e2 - 1.0, 0, None), 0)
     if excess.sum() <= 0:
@@ -534,20 +528,18 @@ def where_analysis(data: GapData, H_base: np.ndarray, n_bands: int = 6) -> dict[
     for o, b in enumerate(data.out_bones):
         by_bone[b or "(none)"] = by_bone.get(b or "(none)", 0.0) + by_out[data.out_names[o]]
     by_in = {n: float(excess[:, :, i].sum()) for i, n in enumerate(data.in_names)}
-    fracs = []
-    for o, on in enumerate(data.out_names):
-        for i, inn in enumerate(data.in_names):
-            m = data.mask[:, o, i]
-            if m.sum() >= 3:
-                fracs.append({"output": on, "input": inn,
-                              "frac": _round(frac(data.H[m, o, i], H_base[m, o, i]), 4)})
-    comac = []
-    for o, on in enumerate(data.out_names):
-        m = data.mask[:, o, :]
-        a, b = data.H[:, o, :][m], H_base[:, o, :][m]
-        den = float(np.sum(np.abs(a) ** 2) * np.sum(np.abs(b) ** 2))
-        val = float(np.sum(np.abs(a * np.conj(b))) ** 2 / den) if den > 0 else float("nan")
-        comac.append({"name": on, "comac": _round(val, 4)})
+    Hm = np.where(data.mask, data.H, np.nan)
+    Hb = np.where(data.mask, H_base, np.nan)
+    fr = frac(Hm, Hb)
+    fracs = [{"output": on, "input": inn, "frac": _round(fr[o, i], 4)}
+             for o, on in enumerate(data.out_names) for i, inn in enumerate(data.in_names)
+             if np.isfinite(fr[o, i])]
+    # COMAC over all (line, input) columns where every output is measured
+    a = np.nan_to_num(np.moveaxis(Hm, 1, 0).reshape(len(data.out_names), -1))
+    b = np.nan_to_num(np.moveaxis(Hb, 1, 0).reshape(len(data.out_names), -1))
+    keep = np.any(a != 0, axis=0)
+    cm = comac(a[:, keep], b[:, keep]) if keep.any() else np.full(len(data.out_names), np.nan)
+    comacs = [{"name": on, "comac": _round(cm[o], 4)} for o, on in enumerate(data.out_names)]
     peak = int(np.argmax(excess.sum(axis=(1, 2))))
     return {
         "bands": bands,
@@ -556,55 +548,44 @@ def where_analysis(data: GapData, H_base: np.ndarray, n_bands: int = 6) -> dict[
         "inputs": _shares(by_in, "name"),
         "peak_hz": _round(data.frequency_hz[peak], 5),
         "frac": fracs,
-        "comac": comac,
+        "comac": comacs,
     }
 
 
-def rigidity_of_residual(data: GapData, H_base: np.ndarray, rows_fn: Callable[..., np.ndarray]
-                         ) -> dict[str, object]:
+def rigidity_of_residual(data: GapData, H_base: np.ndarray) -> dict[str, object]:
     """Global (eq. 11.4) and per-bone (eq. 11.7) rigid-body content of the residual
-    deflection shapes, weighted by residual energy. Needs more measured directions than 6
-    (per bone, resp. in total); otherwise ``null`` with the reason."""
-    r = np.where(data.mask, (data.H - H_base) / data.sigma, 0)
-    out: dict[str, object] = {}
+    deflection shapes (one shape per line and input), weighted by residual energy, via
+    :mod:`pelvislab.model.rigid_body`. A figure needs more measured directions than rigid
+    motions (rank 6 and > 6 channels); otherwise it is ``null`` with the reason."""
+    r = normalised_residual(data, H_base, fill=0.0)
+    shapes = np.moveaxis(r, 1, 0).reshape(len(data.out_names), -1)  # (n_out, n_f * n_in)
+    w = np.sum(np.abs(shapes) ** 2, axis=0)
+    keep = w > 0
+    out: dict[str, object] = {"global": None, "bones": {}}
     n_out = len(data.out_names)
+    if not keep.any():
+        return out
+    shapes, w = shapes[:, keep], w[keep]
 
-    def rigid_rows(idx: list[int], frame_bone: str | None) -> np.ndarray:
-        # 6 rigid motions (unit translations, unit rotations about the origin) at the points
-        cols = []
-        for o in idx:
-            p, d = data.out_position_m[o], data.out_direction[o]
-            cols.append(np.concatenate([d, np.cross(p, d)]))
-        return np.array(cols)
+    def mean(values: np.ndarray) -> float:
+        ok = np.isfinite(values)
+        return _round(float(np.sum(values[ok] * w[ok]) / np.sum(w[ok])), 4) if ok.any() else None
 
-    def content(idx: list[int]) -> float | None:
-        if len(idx) <= 6:
-            return None
-        R = rigid_rows(idx, None)
-        num, den = 0.0, 0.0
-        for f in range(r.shape[0]):
-            for i in range(r.shape[2]):
-                x = r[f, idx, i]
-                w = float(np.sum(np.abs(x) ** 2))
-                if w == 0:
-                    continue
-                xr = np.concatenate([x.real, x.imag])
-                Rr = np.block([[R, np.zeros_like(R)], [np.zeros_like(R), R]])
-                num += w * rigid_content(xr, Rr)
-                den += w
-        return _round(num / den, 4) if den > 0 else None
-
-    g = content(list(range(n_out)))
-    out["global"] = g
-    if g is None:
-        out["global_note"] = f"not determined: {n_out} output directions <= 6"
-    per = {}
-    for b in sorted(set(data.out_bones) - {""}):
-        idx = [o for o in range(n_out) if data.out_bones[o] == b]
-        v = content(idx)
-        per[b] = v if v is not None else f"not determined: {len(idx)} directions <= 6"
+    g = filter_global(shapes, data.out_position_m, data.out_direction)
+    if g.rank == 6 and n_out > 6:
+        out["global"] = mean(np.asarray(g.rigid_content))
+    else:
+        out["global_note"] = f"not determined: {n_out} output directions, rank {g.rank} < 7"
+    bf = filter_bones(g.x_el if out["global"] is not None else shapes, list(data.out_bones),
+                      data.out_position_m, data.out_direction)
+    per: dict[str, object] = {}
+    for bone in bf.bones:
+        n_b = sum(1 for b in data.out_bones if b == bone)
+        if bf.rank[bone] == 6 and n_b > 6:
+            per[bone] = mean(np.asarray(bf.rigidity[bone]))
+        else:
+            per[bone] = f"not determined: {n_b} directions on this bone (need > 6)"
     out["bones"] = per
-    del rows_fn
     return out
 
 
@@ -693,14 +674,18 @@ def diagnose(data: GapData, model: PelvisModel, options: GapOptions | None = Non
     gap_before = held.gap(H_held_base)
     chi2_base = held.chi2(H_held_base)
     where = where_analysis(data, H_base)
-    where["rigidity"] = rigidity_of_residual(data, H_base, ctx.base.rows)
+    where["rigidity"] = rigidity_of_residual(data, H_base)
 
     # Which: screen every place, then joint fits of the best places per variant
     t1 = time.perf_counter()
     cands = candidate_library(ctx, opt.effects)
     by_variant: dict[tuple[str, str], list[tuple[float, Candidate, np.ndarray]]] = {}
+    # screening on every other fitted line: ranking places needs less than fitting
+    fit_mask = ~held_lines
+    coarse_mask = fit_mask & (np.cumsum(fit_mask) % 2 == 1)
+    coarse = _Lines.build(ctx, data, coarse_mask) if coarse_mask.sum() >= 20 else fit
     for cand in cands:
-        cost, u = _screen(cand, fit, theta, opt)
+        cost, u = _screen(cand, coarse, theta, opt)
         by_variant.setdefault((cand.effect, cand.variant), []).append((cost, cand, u))
     timing["screen_s"] = time.perf_counter() - t1
     if progress:
@@ -787,7 +772,7 @@ def diagnose(data: GapData, model: PelvisModel, options: GapOptions | None = Non
     H_best = None
     if best is not None:
         H_best, _ = evaluate(ctx, best.theta, best.candidate.build(best.u, ctx))
-    residual_map = np.where(data.mask, (data.H - H_base) / data.sigma, np.nan)
+    residual_map = normalised_residual(data, H_base, fill=np.nan)
     timing["total_s"] = time.perf_counter() - t0
     report: dict[str, object] = {
         "gap_before": _round(gap_before),

@@ -164,14 +164,15 @@ def test_excess_gap_is_zero_at_noise_level_and_grows():
 # ---------------------------------------------------------------------------------------
 # Diagnosis on small cases (restricted candidate lists keep them fast)
 
-FAST = ("sensor_misorientation", "added_mass", "frequency_dependent_stiffness")
+FAST = ("sensor_misorientation", "frequency_dependent_stiffness")
+OPTS = GapOptions(effects=FAST, base_starts=1, max_nfev_joint=20)
 
 
 def test_no_effect_gives_verdict_none():
     rng = np.random.default_rng(11)
     Hn, sigma = noisy(frf(true_model(), F_HZ, OUT, IN), rng)
     data = prepare_data(F_HZ, Hn, sigma, OUT, IN)
-    rep = diagnose(data, default_model(), GapOptions(effects=FAST)).report
+    rep = diagnose(data, default_model(), OPTS).report
     assert rep["verdict"] == "none", rep["verdict_reason"]
     assert rep["gap_before"] < 0.5
 
@@ -184,7 +185,7 @@ def test_misoriented_sensor_is_found_with_its_place_and_shrink():
     tilted = Channels(OUT.name, OUT.bone, OUT.position_m, d)
     Hn, sigma = noisy(frf(true_model(), F_HZ, tilted, IN), rng)
     data = prepare_data(F_HZ, Hn, sigma, OUT, IN)
-    rep = diagnose(data, default_model(), GapOptions(effects=FAST)).report
+    rep = diagnose(data, default_model(), OPTS).report
     assert rep["verdict"] == "sensor_misorientation", rep["verdict_reason"]
     best = rep["candidates"][0]
     assert best["effect"] == "sensor_misorientation" and best["place"] == "sias_R_x"
@@ -207,7 +208,7 @@ def test_unmodellable_effect_is_unexplained():
     H = frf(true_model(), F_HZ, OUT, IN) * np.exp(-2j * np.pi * F_HZ * 1.5e-3)[:, None, None]
     Hn, sigma = noisy(H, rng)
     data = prepare_data(F_HZ, Hn, sigma, OUT, IN)
-    rep = diagnose(data, default_model(), GapOptions(effects=FAST)).report
+    rep = diagnose(data, default_model(), OPTS).report
     assert rep["verdict"] == "unexplained", rep["verdict_reason"]
     assert rep["gap_before"] > 1.0
 
@@ -238,13 +239,30 @@ def test_cli_diagnose_writes_json_and_report(tmp_path, capsys):
     path = tmp_path / "s.h5"
     write_frf(path, FrfSet(F_HZ, Hn, OUT, IN, H_std=sigma))
     out = tmp_path / "gap.json"
-    code = main(["gap", "diagnose", str(path), "--json", str(out), "--no-plots",
-                 "--effects", "added_mass"])
+    code = main(["gap", "diagnose", str(path), "--json", str(out), "--effects", "added_mass"])
     assert code == 0
     rep = json.loads(out.read_text())
     assert set(rep) >= {"gap_before", "where", "candidates", "verdict"}
     assert rep["verdict"] in ("none", "added_mass", "unexplained")
     assert "verdict" in capsys.readouterr().out
+    assert len(rep["plots"]) == 2
+    for p in rep["plots"]:
+        assert open(p, "rb").read(8) == b"\x89PNG\r\n\x1a\n"
+
+
+def test_unmeasured_lines_and_estimated_noise():
+    # drive-point layout: some output/input pairs never measured (NaN), no H_std in the file
+    rng = np.random.default_rng(4)
+    f = np.arange(5.0, 300.1, 2.5)
+    Hn, _ = noisy(frf(true_model(), f, OUT, IN), rng)
+    Hn[:, 0, 1] = np.nan
+    data = prepare_data(f, Hn, None, OUT, IN)
+    assert data.noise_source.startswith("estimated")
+    with np.errstate(all="raise"):
+        rep = diagnose(data, default_model(), OPTS).report
+    assert rep["verdict"] == "none", rep["verdict_reason"]
+    assert all(x["output"] != "sacrum_x" or x["input"] != "sips_L_x"
+               for x in rep["where"]["frac"])
 
 
 def test_cli_errors_are_one_line(tmp_path, capsys):

@@ -41,6 +41,10 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     b.add_argument("--source", choices=("auto", "sim", "model"), default="auto",
                    help="data generator: the simulator's effect_frf ('sim'), the test-side "
                    "model generator ('model'), or sim when available ('auto')")
+    b.add_argument("--kinds", metavar="LIST",
+                   help="comma-separated kinds to generate (default: none and every effect)")
+    b.add_argument("--progress", dest="verbose_progress", action="store_true",
+                   help="print one line per data set on stderr even when not a terminal")
     b.set_defaults(handler=_benchmark)
 
 
@@ -50,7 +54,16 @@ def _progress() -> object:
     return None
 
 
+def _one_blas_thread() -> None:
+    """The diagnosis makes many small LAPACK calls (SVDs inside least squares); a
+    multi-threaded OpenBLAS on a busy 2-core machine was measured ~2x slower overall than
+    one thread. Only effective before numpy is first imported, which the CLI guarantees."""
+    for var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
+        os.environ.setdefault(var, "1")
+
+
 def _diagnose(args: argparse.Namespace) -> int:
+    _one_blas_thread()
     from pelvislab.acquisition.frfset import read_frf
     from pelvislab.model.gap import diagnose, prepare_data
     from pelvislab.model.gap_effects import EFFECT_NAMES
@@ -129,7 +142,10 @@ def _plots(result: object, out: Path) -> list[str]:
     paths = []
     stem = out.with_suffix("")
     # 1. residual map: frequency x (output, input), |r| in noise units, log colour
-    plot = pg.PlotItem(title="normalised residual |H - H_base| / sigma (log10)")
+    widget = pg.PlotWidget()
+    widget.resize(1000, 500)
+    plot = widget.getPlotItem()
+    plot.setTitle("normalised residual |H - H_base| / sigma (log10)")
     image = pg.ImageItem(np.log10(np.maximum(img, 1e-2)))
     image.setColorMap(pg.colormap.get("viridis"))
     f = data.frequency_hz
@@ -146,8 +162,11 @@ def _plots(result: object, out: Path) -> list[str]:
     # 2. the FRF with the largest residual: measured, base model, best candidate
     energy = np.nansum(rmap**2, axis=0)
     o, i = np.unravel_index(int(np.argmax(energy)), energy.shape)
-    plot = pg.PlotItem(title=f"|H| {data.out_names[o]} / {data.in_names[i]}: measured (white), "
-                       "base (red), best candidate (green)")
+    widget2 = pg.PlotWidget()
+    widget2.resize(1000, 500)
+    plot = widget2.getPlotItem()
+    plot.setTitle(f"|H| {data.out_names[o]} / {data.in_names[i]}: measured (white), "
+                  "base (red), best candidate (green)")
     plot.setLogMode(y=True)
     plot.plot(f, np.abs(data.H[:, o, i]), pen=None, symbol="o", symbolSize=3)
     plot.plot(f, np.abs(result.H_base[:, o, i]), pen=pg.mkPen("r", width=2))  # type: ignore
@@ -164,6 +183,7 @@ def _plots(result: object, out: Path) -> list[str]:
 
 
 def _benchmark(args: argparse.Namespace) -> int:
+    _one_blas_thread()
     from pelvislab.model.gap_benchmark import format_summary, run_benchmark
 
     if args.cases < 1:
@@ -172,7 +192,12 @@ def _benchmark(args: argparse.Namespace) -> int:
     from pelvislab.tests.benchmarks.bench_gap import make_generator
 
     generator, source = make_generator(args.source, seed=args.seed)
-    result = run_benchmark(generator, cases_per_kind=args.cases, progress=_progress())
+    kinds = None
+    if args.kinds:
+        kinds = [k.strip() for k in args.kinds.split(",") if k.strip()]
+    result = run_benchmark(generator, kinds=kinds, cases_per_kind=args.cases,
+                           progress=_progress() if not args.verbose_progress else
+                           (lambda m: print(f"  {m}", file=sys.stderr, flush=True)))
     result["generator"] = source
     out = Path(args.json)
     out.parent.mkdir(parents=True, exist_ok=True)

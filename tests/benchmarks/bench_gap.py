@@ -8,13 +8,14 @@ for the check to be blind. When the simulator's effect module is not available, 
 model-based generator built here from ``pelvislab.model.pelvis`` (``with_point_mass``,
 ``with_spring``, ...) and ``pelvislab.model.frf`` is used instead.
 
-Data sets: the thesis face-up scenario (table 6.3: 3 excitation points x 5 pick-ups = 15
-FRFs), 5-300 Hz in 1.5 Hz steps (197 lines); every mass and spring drawn within +-30 % of
-appendix E (left and right independently), every dashpot group log-uniform in
-[10, 3000] N s/m (far from appendix E's 0.8); complex Gaussian noise of 0.3-2 % of each
-FRF's peak, ``H_std`` given in two of three sets (else the diagnosis estimates the noise).
-One hidden effect per set, random kind, size and place; an effect too small to be seen
-(rms change < 3 sigma) is redrawn.
+Data sets: the thesis face-up scenario (table 6.3 / protocols/face_up.toml, landmark
+catalogue geometry: 3 excitation points x 5 pick-ups = 15 FRFs), 5-300 Hz in 1.5 Hz
+steps (197 lines); every mass and spring drawn within +-30 % of appendix E (left and
+right independently), every dashpot group log-uniform in [10, 3000] N s/m (far from
+appendix E's 0.8); complex Gaussian noise of 0.3-2 % of each FRF's peak, ``H_std`` given
+in two of three sets (else the diagnosis estimates the noise). One hidden effect per set,
+random kind, size and place; an effect too small to be seen (rms change < 3 sigma on the
+measured lines) is redrawn.
 """
 
 from __future__ import annotations
@@ -27,25 +28,29 @@ import numpy as np
 from pelvislab.acquisition.frfset import Channels
 from pelvislab.model.frf import frf
 from pelvislab.model.gap_benchmark import BenchCase, format_summary, run_benchmark
+from pelvislab.model.landmarks import load_landmarks
 from pelvislab.model.pelvis import GROUND, PelvisModel, PointMass, Spring, default_model
 from pelvislab.tests.benchmarks.harness import Result
 
 FREQUENCY_HZ = np.arange(5.0, 300.01, 1.5)
 
-# Face-up scenario of thesis table 6.3 (fig. 6.8 points; approximate palpable landmarks in
-# the model frame of design 4.1, metres). Directions point from the bone toward the sensor.
-OUTPUTS = Channels(
-    ["sacrum_x", "sias_R_x", "sias_L_x", "sias_R_y", "sias_L_y"],
-    ["sacrum", "innominate_right", "innominate_left", "innominate_right", "innominate_left"],
-    np.array([[-0.160, 0.0, -0.060], [0.0, -0.110, 0.0], [0.0, 0.110, 0.0],
-              [-0.010, -0.120, -0.010], [-0.010, 0.120, -0.010]]),
-    np.array([[-1.0, 0, 0], [1, 0, 0], [1, 0, 0], [0, -1, 0], [0, 1, 0]]),
-)
-INPUTS = Channels(
-    ["sacrum_x", "sips_R_x", "sips_L_x"], ["sacrum", "innominate_right", "innominate_left"],
-    np.array([[-0.160, 0.0, -0.060], [-0.140, -0.045, 0.020], [-0.140, 0.045, 0.020]]),
-    np.array([[1.0, 0, 0], [1, 0, 0], [1, 0, 0]]),
-)
+# Face-up scenario of thesis table 6.3 as in protocols/face_up.toml: excitation at S4 and
+# both SIPS (x, force into the bone), pick-ups at the drive point and the four SIAS points;
+# geometry from the shipped landmark catalogue. 7 outputs x 3 inputs, 15 measured FRFs, the
+# other drive-point combinations are NaN (not measured), as in a real session's /frf.
+_CAT = load_landmarks()
+_OUT_NAMES = ["sacrum_x", "SIPS_R_x", "SIPS_L_x", "SIAS_R_x", "SIAS_L_x", "SIAS_R_y", "SIAS_L_y"]
+_IN_NAMES = ["sacrum_x", "SIPS_R_x", "SIPS_L_x"]
+OUTPUTS = Channels(_OUT_NAMES, [_CAT[n].bone for n in _OUT_NAMES],
+                   np.array([_CAT[n].position_m for n in _OUT_NAMES]),
+                   np.array([_CAT[n].direction for n in _OUT_NAMES]))
+INPUTS = Channels(_IN_NAMES, [_CAT[n].bone for n in _IN_NAMES],
+                  np.array([_CAT[n].position_m for n in _IN_NAMES]),
+                  -np.array([_CAT[n].direction for n in _IN_NAMES]))
+MEASURED = np.ones((len(_OUT_NAMES), len(_IN_NAMES)), bool)
+for _j, _name in enumerate(_IN_NAMES):  # a drive point is picked up only for its own input
+    for _o, _oname in enumerate(_OUT_NAMES[:3]):
+        MEASURED[_o, _j] = _oname == _name
 BONES = ("innominate_right", "innominate_left", "sacrum")
 PAIR_JOINT = {frozenset({"innominate_right", "sacrum"}): "sij_right",
               frozenset({"innominate_left", "sacrum"}): "sij_left",
@@ -230,11 +235,14 @@ def make_generator(source: str = "auto", seed: int = 1
                     H = effect_frf(model, eff, FREQUENCY_HZ, OUTPUTS, INPUTS)
                 else:
                     H, place, place_kind, bone, params = _model_effect_frf(kind, rng, model)
-                if np.sqrt(np.mean(np.abs(H - H0) ** 2 / sigma**2)) >= 3.0:
+                change = (np.abs(H - H0) ** 2 / sigma**2)[:, MEASURED]
+                if np.sqrt(np.mean(change)) >= 3.0:
                     break
         noise = sigma / np.sqrt(2) * (rng.normal(size=H.shape) + 1j * rng.normal(size=H.shape))
         with_std = index % 3 != 2
-        return BenchCase(FREQUENCY_HZ.copy(), H + noise, sigma if with_std else None,
+        Hm = np.where(MEASURED[None], H + noise, np.nan + 0j)
+        sm = np.where(MEASURED[None], sigma, np.nan)
+        return BenchCase(FREQUENCY_HZ.copy(), Hm, sm if with_std else None,
                          OUTPUTS, INPUTS, kind, place, place_kind, bone,
                          {k: float(v) for k, v in params.items()})
 
