@@ -1,20 +1,106 @@
-"""``pelvislab export-uff`` / ``import-uff``: FRF interchange via UFF 58 (+ geometry)."""
+"""``pelvislab export-uff`` / ``import-uff``: FRF interchange via UFF 58 (+ geometry, modes)."""
 
 from __future__ import annotations
 
 import argparse
-
-from pelvislab.app.commands._common import not_implemented
+import json
+import sys
+from pathlib import Path
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
     """Add ``export-uff`` and ``import-uff`` to the CLI."""
-    e = subparsers.add_parser("export-uff", help="write a session's FRFs as UFF 58 with geometry")
+    e = subparsers.add_parser(
+        "export-uff", help="write a session's FRFs as UFF 58 with geometry",
+        description="Write /frf as UFF: 164 (SI units), geometry (2411 or 15), one binary "
+        "dataset 58 per measured FRF (receptance, exact round trip), modes as 55 when given.",
+    )
     e.add_argument("session", metavar="S.h5", help="session or FRF-only file")
-    e.add_argument("out", metavar="OUT.uff", help="UFF file to write")
-    e.set_defaults(handler=not_implemented("export-uff"))
-    i = subparsers.add_parser("import-uff", help="read UFF 58 FRFs into an FRF-only session file")
+    e.add_argument("out", metavar="OUT.uff", help="UFF file to write (must not exist)")
+    modes = e.add_mutually_exclusive_group()
+    modes.add_argument("--modes", metavar="EMA.json",
+                       help="add the modes of a `pelvislab ema --json` result as dataset 55")
+    modes.add_argument("--ema", action="store_true",
+                       help="run the automatic modal analysis now and add its modes")
+    e.add_argument("--ascii", action="store_true",
+                   help="ASCII dataset 58 (12 significant digits; not an exact round trip)")
+    e.add_argument("--geometry", type=int, choices=(2411, 15), default=2411,
+                   help="geometry dataset (default 2411, double precision)")
+    e.set_defaults(handler=run_export)
+    i = subparsers.add_parser(
+        "import-uff", help="read UFF 58 FRFs into an FRF-only session file",
+        description="Read every FRF dataset 58 (receptance, mobility or accelerance; the latter "
+        "two converted to receptance) with node geometry into an FRF-only file.",
+    )
     i.add_argument("uff", metavar="IN.uff", help="UFF file to read")
     i.add_argument("--out", required=True, metavar="S.h5", help="FRF-only file to write")
     i.add_argument("--points", metavar="POINTS.toml", help="map UFF nodes to landmarks and bones")
-    i.set_defaults(handler=not_implemented("import-uff"))
+    i.set_defaults(handler=run_import)
+
+
+def _modes_from_json(path: Path, frf: object) -> object:
+    import numpy as np
+
+    from pelvislab.acquisition.uff import UffModes
+
+    try:
+        doc = json.loads(path.read_text(encoding="utf-8"))
+    except FileNotFoundError:
+        raise FileNotFoundError(f"no such file: {path}") from None
+    except json.JSONDecodeError as exc:
+        raise ValueError(f"{path} is not JSON ({exc})") from None
+    try:
+        names = [o["name"] for o in doc["outputs"]]
+        modes = doc["modes"]
+        shapes = np.array([np.array(m["shape"]["re"]) + 1j * np.array(m["shape"]["im"])
+                           for m in modes]).T.reshape(len(names), len(modes))
+        freq = np.array([m["frequency_hz"] for m in modes], dtype=float)
+        zeta = np.array([m["damping_ratio"] for m in modes], dtype=float)
+    except (KeyError, TypeError, ValueError) as exc:
+        raise ValueError(f"{path} is not a `pelvislab ema` result with shapes ({exc})") from None
+    missing = [n for n in frf.outputs.name if n not in names]
+    if missing:
+        raise ValueError(f"{path} has no shape entries for output(s) {missing}")
+    order = [names.index(n) for n in frf.outputs.name]
+    return UffModes(freq, zeta, shapes[order])
+
+
+def run_export(args: argparse.Namespace) -> int:
+    """Handler of ``pelvislab export-uff``."""
+    from pelvislab.acquisition.frfset import read_frf
+    from pelvislab.acquisition.uff import UffModes, write_uff
+
+    frf = read_frf(Path(args.session))
+    out = Path(args.out)
+    if out.exists():
+        raise FileExistsError(f"{out} exists; not overwriting")
+    modes = None
+    if args.modes:
+        modes = _modes_from_json(Path(args.modes), frf)
+    elif args.ema:
+        from pelvislab.model.ema import ema
+
+        result = ema(frf.frequency_hz, frf.H, H_std=frf.H_std)
+        modes = UffModes(result.frequency_hz, result.damping_ratio, result.shapes)
+    n = write_uff(out, frf, modes, binary=not args.ascii, geometry=args.geometry)
+    n_modes = 0 if modes is None else len(modes.frequency_hz)
+    print(f"wrote {out}: {n} datasets ({n_modes} modes)", file=sys.stderr)
+    return 0
+
+
+def run_import(args: argparse.Namespace) -> int:
+    """Handler of ``pelvislab import-uff``."""
+    from pelvislab.acquisition.frfset import write_frf
+    from pelvislab.acquisition.uff import read_points_file, read_uff
+
+    out = Path(args.out)
+    if out.exists():
+        raise FileExistsError(f"{out} exists; not overwriting")
+    points = read_points_file(Path(args.points)) if args.points else None
+    frf, notes = read_uff(Path(args.uff), points)
+    write_frf(out, frf)
+    for note in notes:
+        print(f"note: {note}", file=sys.stderr)
+    print(f"wrote {out}: {frf.H.shape[0]} lines, {len(frf.outputs)} outputs, "
+          f"{len(frf.inputs)} inputs", file=sys.stderr)
+    return 0

@@ -1,0 +1,81 @@
+"""Evidence on the pelvis model (appendix E): synthetic FRFs with 1 % noise, 5-300 Hz.
+
+Outputs: the thesis' ch. 11 layout (13 landmarks, triaxial, 39 channels); inputs: the ch. 7
+drive on the left iliac fossa and the sacrum. Reference: the model's state-space modes.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from pelvislab.model.assembly import point_rows
+from pelvislab.model.ema import ema
+from pelvislab.model.frf import Points, frf
+from pelvislab.model.landmarks import load_landmarks
+from pelvislab.model.modal import mac, model_modes
+from pelvislab.model.pelvis import load_model
+from pelvislab.tests.test_ema_rigid_body import triaxial_geometry
+
+
+@pytest.fixture(scope="module")
+def pelvis():
+    model = load_model()
+    modes = model_modes(model)
+    bones, pos, dirs = triaxial_geometry()
+    cat = load_landmarks()
+    drive = cat["iliac_fossa_drive_L"]
+    inputs = Points((drive.bone, "sacrum"), [drive.position_m, cat["sacrum_x"].position_m],
+                    [-drive.direction, [1.0, 0.0, 0.0]])
+    outputs = Points(tuple(bones), pos, dirs)
+    shapes = point_rows(model, bones, pos, dirs) @ modes.shapes
+    inband = (modes.natural_frequencies_hz >= 5) & (modes.natural_frequencies_hz <= 300)
+    assert inband.sum() == 5  # appendix E: 10.4, 38.1, 112.0, 174.9, 231.9 Hz
+    return model, outputs, inputs, modes, shapes, np.flatnonzero(inband)
+
+
+def _noisy(model, outputs, inputs, step_hz, seed):
+    f = np.arange(5.0, 300.0 + 1e-9, step_hz)
+    H = frf(model, f, outputs, inputs)
+    rng = np.random.default_rng(seed)
+    noise = (rng.normal(size=H.shape) + 1j * rng.normal(size=H.shape)) / np.sqrt(2)
+    return f, H * (1 + 0.01 * noise)
+
+
+def _errors(result, modes, shapes, inband):
+    fe, ze, macs = [], [], []
+    for r in inband:
+        j = int(np.argmin(np.abs(result.frequency_hz - modes.natural_frequencies_hz[r])))
+        fe.append(result.frequency_hz[j] / modes.natural_frequencies_hz[r] - 1)
+        ze.append(result.damping_ratio[j] / modes.damping_ratios[r] - 1)
+        macs.append(mac(shapes[:, r], result.shapes[:, j])[0, 0])
+    return np.abs(fe), np.abs(ze), np.array(macs)
+
+
+def test_pelvis_quarter_hertz_grid_meets_the_targets(pelvis):
+    """Every mode in band, frequency <= 0.3 %, damping <= 10 %, MAC >= 0.98. The 0.25 Hz grid
+    is what the 0.06 % damped 38 Hz mode needs (measured, 3 seeds: damping errors <= 6.3 % at
+    0.25 Hz, <= 13.7 % at 0.5 Hz, <= 1.1 % at 0.1 Hz; see docs/ema.md)."""
+    model, outputs, inputs, modes, shapes, inband = pelvis
+    f, H = _noisy(model, outputs, inputs, 0.25, 2)
+    result = ema(f, H)
+    assert result.frequency_hz.size == inband.size, result.frequency_hz
+    fe, ze, macs = _errors(result, modes, shapes, inband)
+    assert fe.max() <= 0.003, fe
+    assert ze.max() <= 0.10, ze
+    assert macs.min() >= 0.98, macs
+
+
+def test_pelvis_stepped_sine_grid(pelvis):
+    """Thesis stepped sine (2.5 Hz). Appendix E damping is tiny (0.02-0.5 %): half-power
+    bandwidths of 0.05-2 Hz, below the line spacing. Frequencies and shapes still meet the
+    targets; damping meets 10 % for the modes with zeta >= 0.2 % only (the 0.06 % and
+    0.02 % modes are not resolved: errors of 10-130 % measured)."""
+    model, outputs, inputs, modes, shapes, inband = pelvis
+    f, H = _noisy(model, outputs, inputs, 2.5, 3)
+    result = ema(f, H)
+    assert result.frequency_hz.size == inband.size, result.frequency_hz
+    fe, ze, macs = _errors(result, modes, shapes, inband)
+    assert fe.max() <= 0.003 and macs.min() >= 0.98, (fe, macs)
+    resolved = modes.damping_ratios[inband] >= 0.002
+    assert ze[resolved].max() <= 0.10, ze

@@ -1,0 +1,74 @@
+"""Real measured data: the pyuff beam FRFs (accelerance, nobody here made them), end to end.
+
+Text FRFs -> UFF 58 (as a modal tool would write them) -> ``pelvislab import-uff`` ->
+``pelvislab ema``. The beam's resonances are located independently here by peak picking on the
+summed accelerance magnitude; EMA must find each of them and nothing else.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+import pyuff
+from scipy.signal import find_peaks
+
+from pelvislab.app.cli import main
+
+BEAM = Path(__file__).resolve().parents[1] / ".." / "shared" / "data" / "real" / "pyuff_beam"
+pytestmark = pytest.mark.skipif(
+    not BEAM.is_dir(), reason=f"real beam data not found at {BEAM} (shared/ beside the clone)"
+)
+
+
+def _beam() -> tuple[np.ndarray, np.ndarray]:
+    A = np.stack([np.loadtxt(BEAM / f"meas_point_{k}.txt", dtype=complex) for k in (1, 2, 3)])
+    return np.arange(A.shape[1], dtype=float), A
+
+
+def _peaks(f: np.ndarray, A: np.ndarray, lo: float, hi: float) -> np.ndarray:
+    """Resonances by plain peak picking: prominent maxima of log sum |A| (independent check)."""
+    mag = np.log(np.sum(np.abs(A), axis=0))
+    idx, _ = find_peaks(mag, prominence=1.0)
+    found = f[idx]
+    return found[(found >= lo) & (found <= hi)]
+
+
+@pytest.fixture(scope="module")
+def beam_session(tmp_path_factory):
+    tmp = tmp_path_factory.mktemp("beam")
+    f, A = _beam()
+    uff = pyuff.UFF(str(tmp / "beam.uff"))
+    uff.write_sets(pyuff.prepare_2411(
+        node_nums=np.array([1, 2, 3]), def_cs=np.zeros(3, int), disp_cs=np.zeros(3, int),
+        color=np.ones(3, int), x=np.array([0.1, 0.3, 0.5]), y=np.zeros(3), z=np.zeros(3)),
+        mode="add")
+    for k in range(3):
+        uff.write_sets(pyuff.prepare_58(
+            binary=1, func_type=4, rsp_node=k + 1, rsp_dir=3, ref_node=1, ref_dir=3,
+            abscissa_spacing=0, abscissa_spec_data_type=18, ordinate_spec_data_type=12,
+            orddenom_spec_data_type=13, x=f, data=A[k]), mode="add")
+    assert main(["import-uff", str(tmp / "beam.uff"), "--out", str(tmp / "beam.h5")]) == 0
+    return tmp
+
+
+@pytest.mark.parametrize("band", [(10.0, 1000.0)])
+def test_beam_resonances_found_and_nothing_else(beam_session, band):
+    out = beam_session / f"ema_{band[0]:g}.json"
+    argv = ["ema", str(beam_session / "beam.h5"), "--band", str(band[0]), str(band[1]),
+            "--json", str(out)]
+    assert main(argv) == 0
+    doc = json.loads(out.read_text())
+    found = np.array([m["frequency_hz"] for m in doc["modes"]])
+    f, A = _beam()
+    expected = _peaks(f, A, *band)
+    assert expected.size == 6  # 52, 142, 279, 460, 687, 959 Hz
+    assert found.size == expected.size, (found, expected)
+    # every resonance found within one line (1 Hz); no spurious mode (same count)
+    assert np.all(np.abs(found - expected) <= 1.0), (found, expected)
+    for m in doc["modes"]:
+        assert 0 < m["damping_ratio"] < 0.01  # a lightly damped metal beam
+        assert m["complexity"] < 0.05  # and its modes are essentially real
+    assert doc["fit_error"] < 0.1

@@ -1,0 +1,58 @@
+"""``pelvislab export-uff`` / ``import-uff`` end to end."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pyuff
+
+from pelvislab.acquisition.frfset import read_frf, write_frf
+from pelvislab.app.cli import main
+from pelvislab.tests.test_uff_roundtrip import sample_frfset
+
+
+def test_export_import_round_trip_exact(tmp_path):
+    frf = sample_frfset(5)
+    write_frf(tmp_path / "s.h5", frf)
+    assert main(["export-uff", str(tmp_path / "s.h5"), str(tmp_path / "s.uff")]) == 0
+    assert main(["import-uff", str(tmp_path / "s.uff"), "--out", str(tmp_path / "b.h5")]) == 0
+    back = read_frf(tmp_path / "b.h5")
+    np.testing.assert_array_equal(back.frequency_hz, frf.frequency_hz)
+    np.testing.assert_array_equal(back.H, frf.H)
+    np.testing.assert_array_equal(back.outputs.direction, frf.outputs.direction)
+    np.testing.assert_array_equal(back.inputs.position_m, frf.inputs.position_m)
+    assert back.outputs.bone == frf.outputs.bone
+
+
+def test_export_with_modes_from_ema_json(tmp_path):
+    frf = sample_frfset(6)
+    write_frf(tmp_path / "s.h5", frf)
+    doc = {"outputs": [{"name": n} for n in reversed(frf.outputs.name)],
+           "modes": [{"frequency_hz": 50.0, "damping_ratio": 0.02,
+                      "shape": {"re": [0.0, 0.5, 1.0], "im": [0.0, 0.0, 0.1]}}]}
+    (tmp_path / "e.json").write_text(json.dumps(doc))
+    argv = ["export-uff", str(tmp_path / "s.h5"), str(tmp_path / "m.uff"), "--modes",
+            str(tmp_path / "e.json"), "--ascii", "--geometry", "15"]
+    assert main(argv) == 0
+    types = list(pyuff.UFF(str(tmp_path / "m.uff")).get_set_types())
+    assert types.count(55) == 1 and 15 in types
+
+
+def test_import_with_points_and_errors(tmp_path, capsys):
+    frf = sample_frfset(7)
+    write_frf(tmp_path / "s.h5", frf)
+    assert main(["export-uff", str(tmp_path / "s.h5"), str(tmp_path / "s.uff")]) == 0
+    assert main(["export-uff", str(tmp_path / "s.h5"), str(tmp_path / "s.uff")]) == 1
+    assert "not overwriting" in capsys.readouterr().err
+    (tmp_path / "p.toml").write_text('[[point]]\nnode = 1\nname = "x"\nbone = "sacrum"\n')
+    argv = ["import-uff", str(tmp_path / "s.uff"), "--out", str(tmp_path / "b.h5"),
+            "--points", str(tmp_path / "p.toml")]
+    assert main(argv) == 0
+    back = read_frf(tmp_path / "b.h5")
+    assert back.outputs.bone[0] == "sacrum"  # node 1 (the first output) re-mapped
+    assert main(["import-uff", str(tmp_path / "none.uff"), "--out", str(tmp_path / "c.h5")]) == 1
+    assert "no such file" in capsys.readouterr().err
+    assert main(["export-uff", str(tmp_path / "s.h5"), str(tmp_path / "z.uff"), "--modes",
+                 str(tmp_path / "p.toml")]) == 1
+    assert "not JSON" in capsys.readouterr().err
