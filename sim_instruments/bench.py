@@ -31,6 +31,9 @@ over a built-in responder; no YAML parsing, faster to open).
 ``digitizer`` ("python"): the Python ``SimDigitizer`` (fast timeouts), or "acqiris": the
 product's ``AcqirisDigitizer`` driver over a simulated D1 library (``SimD1Library``; its
 timeouts take wall-clock time, like the driver's).
+``pulsers`` ("panametrics"): the product's ``Panametrics5077PR`` driver over a simulated
+serial port (``SimSerialPort``, answering the driver's declared command table), or
+"python": the ``SimPulserReceiver`` class.
 ``trigger_source`` ("drive_sync"): bursts start on the drive's SYNC edge; "internal": at a
 random drive phase. ``trigger_latency_s`` (0), ``trigger_jitter_s`` (0): SYNC-to-first-pulse
 delay and unmeasured trigger timing noise (RMS).
@@ -68,7 +71,8 @@ SIM_RESOURCES = {
 
 _OPTIONS = {"seed", "pacing", "model", "effects", "faults", "snr_db", "excitation",
             "excitation_direction", "channels", "acoustics", "bone_depth_m", "generators",
-            "trigger_source", "trigger_latency_s", "trigger_jitter_s", "digitizer"}
+            "trigger_source", "trigger_latency_s", "trigger_jitter_s", "digitizer",
+            "pulsers"}
 
 
 @dataclass
@@ -186,11 +190,23 @@ def open_simulated_bench(config: BenchConfig | None = None, **sim_options: Any) 
         else:
             raise ValueError(f"digitizer must be 'python' or 'acqiris', got {dig_kind!r}")
         opened.append(digitizer)
-        pulsers = [SimPulserReceiver(world, ch,
-                                     cfg.pulsers[ch - 1].resource if len(cfg.pulsers) >= ch
-                                     else "")
-                   for ch in (1, 2)]
-        opened.extend(pulsers)
+        pul_kind = opt.get("pulsers", "panametrics")
+        if pul_kind not in ("panametrics", "python"):
+            raise ValueError(f"pulsers must be 'panametrics' or 'python', got {pul_kind!r}")
+        pulsers: list[Any] = []
+        for ch in (1, 2):
+            resource = (cfg.pulsers[ch - 1].resource if len(cfg.pulsers) >= ch
+                        else f"sim://5077pr/{ch}")
+            if pul_kind == "python":
+                pulsers.append(SimPulserReceiver(world, ch, resource))
+            else:
+                from pelvislab.drivers.panametrics5077 import Panametrics5077PR
+                from pelvislab.sim_instruments.panametrics_sim import SimSerialPort
+
+                port = SimSerialPort(world, ch)
+                pulsers.append(Panametrics5077PR(port, resource, channel=ch))
+                port.opened = True
+            opened.append(pulsers[-1])
     except BaseException:
         for inst in reversed(opened):
             try:

@@ -5,8 +5,9 @@ are named by role: ``"drive"``, ``"trigger"`` (the two 33220A), ``"digitizer"``,
 ``"pulser1"``, ``"pulser2"`` (pulser/receiver of digitizer channel 1, 2).
 
 Counting: generator faults count the SCPI commands the driver sends through its transport
-(writes and queries, from 0 after the bench is open); digitizer faults count ``acquire``
-calls (0 = the first acquisition); pulser faults count ``configure`` calls.
+(writes and queries, from 0 when the driver starts talking); digitizer faults count
+acquisitions (0 = the first); pulser faults count exchanges after the bench opened (serial
+lines with the real driver, ``configure``/``safe_state`` calls with the Python pulser).
 """
 
 from __future__ import annotations
@@ -76,10 +77,15 @@ class LostConnection:
 
 @dataclass(frozen=True)
 class PulserSilent:
-    """A pulser/receiver that does not answer: ``configure`` times out
-    (``InstrumentTimeoutError``) and the transducer stays quiet (noise-only records)."""
+    """A pulser/receiver that does not answer: from its ``at_call``-th exchange after the
+    bench opened, every exchange times out (``configure`` raises
+    ``InstrumentTimeoutError``) and the transducer stays as it was (quiet if never
+    configured: noise-only records). ``during_open``: silent from the start, so opening the
+    bench fails (the driver identifies the instrument when it opens it)."""
 
     channel: int = 1
+    at_call: int = 0
+    during_open: bool = False
 
 
 Fault = InstrumentTimeout | ScpiError | DigitizerTimeout | LostConnection | PulserSilent
@@ -150,13 +156,17 @@ class FaultBook:
                    and index >= f.at_acquisition for f in self.faults)
 
     # -- pulsers ---------------------------------------------------------------------------
-    def pulser_fault(self, channel: int, call: int) -> Any | None:
-        """The fault (if any) that hits pulser ``channel``'s ``call``-th configure."""
+    def pulser_fault(self, channel: int, call: int, opening: bool = False) -> Any | None:
+        """The fault (if any) that hits pulser ``channel``'s ``call``-th exchange after the
+        bench opened (``opening``: an exchange while the bench opens)."""
         role = f"pulser{channel}"
         for f in self.faults:
-            if isinstance(f, PulserSilent) and f.channel == channel:
+            if isinstance(f, PulserSilent) and f.channel == channel and (
+                    f.during_open if opening else call >= f.at_call):
                 self._fire(role, "no answer")
                 return f
+            if opening:
+                continue
             if isinstance(f, LostConnection) and f.instrument == role and call >= f.at_call:
                 self._fire(role, "lost connection")
                 return f

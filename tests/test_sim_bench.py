@@ -329,3 +329,29 @@ def test_real_acqiris_driver_timeout_and_lost_connection():
         b.digitizer.acquire(2.0)
         with pytest.raises(InstrumentConnectionError):
             b.digitizer.acquire(2.0)
+
+
+def test_real_pulser_driver_over_the_simulated_serial_port():
+    records = {}
+    for kind in ("python", "panametrics"):
+        with open_simulated_bench(generators="python", pulsers=kind, seed=9) as b:
+            _arm(b, n=100)
+            records[kind] = b.digitizer.acquire(2.0)[1].codes
+            if kind == "panametrics":
+                sent = [text for _, text in b.pulsers[0].command_log]
+                assert {"GAIN 40", "TRIG EXT", "VOLT 100"} <= set(sent)
+                with pytest.raises(LimitError):
+                    b.pulsers[0].configure(40.0, "huge", 50.0, None, None)
+    assert np.array_equal(records["python"], records["panametrics"])
+
+
+def test_pulser_faults_with_the_real_driver():
+    with pytest.raises(InstrumentTimeoutError, match="no answer"):
+        open_simulated_bench(generators="python", faults=[PulserSilent(1, during_open=True)])
+    faults = [LostConnection("pulser2", at_call=0)]
+    with open_simulated_bench(generators="python", faults=faults) as b:
+        b.pulsers[0].configure(40.0, "low", 50.0, None, None)
+        with pytest.raises(InstrumentConnectionError):
+            b.pulsers[1].configure(40.0, "low", 50.0, None, None)
+        b.safe_state()  # never raises
+        assert b.pulsers[1].safe_state_errors
