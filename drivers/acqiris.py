@@ -213,14 +213,7 @@ class AcqirisDigitizer:
                    ctypes.c_char_p(options.encode()), ctypes.byref(session))
         self._id = int(session.value)
         try:
-            name = ctypes.create_string_buffer(64)
-            serial, bus, slot = ViInt32(0), ViInt32(0), ViInt32(0)
-            self._call("AcqrsD1_getInstrumentData", self._session(), name,
-                       ctypes.byref(serial), ctypes.byref(bus), ctypes.byref(slot))
-            model = name.value.decode("latin-1", "replace").strip()
-            self.identity = f"Acqiris {model} serial {serial.value} at {resource}"
-            if "235" not in model:
-                log.warning("%s is a %r, the driver was written for a DP235", resource, model)
+            self._identify(resource)
             pad = ViInt32(0)
             try:
                 self._call("AcqrsD1_getInstrumentInfo", self._session(),
@@ -242,6 +235,22 @@ class AcqirisDigitizer:
         except BaseException:
             self.close()
             raise
+
+    def _identify(self, resource: str) -> None:
+        """Model and serial number into ``identity`` (informational: a library without
+        getInstrumentData, or a failing call, leaves the generic identity)."""
+        name = ctypes.create_string_buffer(64)
+        serial, bus, slot = ViInt32(0), ViInt32(0), ViInt32(0)
+        try:
+            self._call("AcqrsD1_getInstrumentData", self._session(), name,
+                       ctypes.byref(serial), ctypes.byref(bus), ctypes.byref(slot))
+        except (AcqirisError, InstrumentConnectionError) as exc:
+            log.info("%s: no instrument data (%s)", resource, exc)
+            return
+        model = name.value.decode("latin-1", "replace").strip()
+        self.identity = f"Acqiris {model} serial {serial.value} at {resource}"
+        if "235" not in model:
+            log.warning("%s is a %r, the driver was written for a DP235", resource, model)
 
     @classmethod
     def open(cls, resource: str, *, library: str | None = None, **kwargs: Any

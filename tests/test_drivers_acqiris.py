@@ -253,3 +253,15 @@ def test_library_is_loaded_lazily_and_missing_library_is_clear(tmp_path):
     assert subprocess.run([sys.executable, "-c", code], timeout=60).returncode == 0
     with pytest.raises(InstrumentConnectionError, match="cannot load the Acqiris D1 library"):
         AcqirisDigitizer.open("PCI::INSTR0", library=str(tmp_path / "libAqDrv4.so"))
+
+
+def test_library_without_instrument_data_still_opens():
+    class Old(FakeD1):
+        def __getattr__(self, name):
+            if name == "AcqrsD1_getInstrumentData":
+                raise AttributeError(name)
+            return super().__getattr__(name)
+
+    dig = AcqirisDigitizer(Old(), "PCI::INSTR0")
+    assert dig.identity == "Acqiris DP235 at PCI::INSTR0"
+    dig.close()
