@@ -194,3 +194,19 @@ def test_cli_frf_json_and_errors(capsys, tmp_path):
     assert main(["model", "modes", "--model", str(bad)]) == 1
     err = capsys.readouterr().err
     assert "body #1 'x'" in err and "Traceback" not in err
+
+
+def test_docs_examples_run():
+    """The usage and extension examples of docs/model-api.md execute as written."""
+    import re
+    from pathlib import Path
+
+    doc = Path(__file__).resolve().parents[1] / "docs" / "model-api.md"
+    blocks = re.findall(r"```python\n(.*?)```", doc.read_text(encoding="utf-8"), re.S)
+    runnable = [b for b in blocks if "import" in b]
+    assert len(runnable) >= 2
+    namespace: dict = {}
+    for block in runnable:
+        exec(compile(block, str(doc), "exec"), namespace)
+    assert namespace["dH"].shape[-1] == len(namespace["space"])
+    assert namespace["m5"].n_dof == 24
