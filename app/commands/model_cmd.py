@@ -104,6 +104,8 @@ def _frf(args: argparse.Namespace) -> int:
                             points.direction)
 
         write_frf(args.out, FrfSet(f, H, channels(outputs), channels(inputs)))
+        print(f"wrote {H.shape[1]} x {H.shape[2]} FRFs, {f.size} lines to {args.out}",
+              file=sys.stderr)
     if args.json:
         json.dump({
             "model": model.name,
