@@ -508,6 +508,7 @@ class Agilent33220A(SCPIInstrument):
         """Output off. Never raises (failures are logged and kept in safe_state_errors)."""
         if self._closed or not self._identified:
             return
+        self.clear_if_interrupted()  # so that a late answer cannot be mistaken later
         try:
             self.write("OUTP OFF")
         except BaseException as exc:  # the caller is already handling a failure

@@ -167,6 +167,15 @@ class VisaTransport:
         except (self._errors.Error, OSError) as exc:
             raise self._translate(exc, command) from exc
 
+    def clear(self) -> None:
+        """VISA device clear: flushes the instrument's input and output buffers."""
+        if self._res is None:
+            return
+        try:
+            self._res.clear()
+        except (self._errors.Error, OSError, NotImplementedError) as exc:
+            raise self._translate(exc, "<device clear>") from exc
+
     def close(self) -> None:
         res, self._res = self._res, None
         if res is not None:
@@ -212,6 +221,10 @@ class ScriptedTransport:
         answer = self._next(command, True)
         assert answer is not None
         return answer
+
+    def clear(self) -> None:
+        """Device clear: recorded as ``"<clear>"`` in ``sent`` (not part of the script)."""
+        self.sent.append("<clear>")
 
     def close(self) -> None:
         self.closed = True
@@ -324,6 +337,7 @@ class SCPIInstrument:
         self.transport = transport
         self.resource = resource
         self.command_log: list[tuple[float, str]] = []
+        self.query_interrupted = False
 
     # raw I/O ---------------------------------------------------------------------------
     def write(self, command: str) -> None:
@@ -334,7 +348,26 @@ class SCPIInstrument:
     def ask(self, command: str) -> str:
         """Send a query (logged) and return its answer."""
         self.command_log.append((time.monotonic(), command))
-        return self.transport.query(command)
+        # If this query is interrupted (timeout, KeyboardInterrupt), its answer may still
+        # arrive later and be read as the answer to the next query: remember it.
+        self.query_interrupted = True
+        answer = self.transport.query(command)
+        self.query_interrupted = False
+        return answer
+
+    def clear_if_interrupted(self) -> None:
+        """Device clear (flush both I/O buffers) after an interrupted query. Never raises."""
+        if not getattr(self, "query_interrupted", False):
+            return
+        self.query_interrupted = False
+        clear = getattr(self.transport, "clear", None)
+        if clear is None:
+            return
+        self.command_log.append((time.monotonic(), "<device clear>"))
+        try:
+            clear()
+        except Exception as exc:
+            log.error("%s %s: device clear failed: %s", self.model, self.resource, exc)
 
     # error queue -----------------------------------------------------------------------
     def read_errors(self) -> list[tuple[int, str]]:

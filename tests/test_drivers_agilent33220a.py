@@ -363,3 +363,19 @@ def test_amplitude_offset_ordering_never_passes_an_invalid_state(old_amp, old_fr
             off = float(value)
         assert abs(off) + amp / 2 <= 5.0 + 1e-9, (cmd, amp, off)
     assert amp == pytest.approx(new_amp) and off == pytest.approx(new_off)
+
+
+def test_interrupted_query_gets_a_device_clear_before_output_off():
+    g, t = make([("FREQ 12", None), ("SYST:ERR?", KeyboardInterrupt()), ("OUTP OFF", None)])
+    with pytest.raises(KeyboardInterrupt):
+        g.set_frequency(12.0)
+    assert t.sent[-3:] == ["SYST:ERR?", "<clear>", "OUTP OFF"]
+    t.assert_done()
+
+
+def test_sim_device_clear_is_harmless():
+    with sim_gen() as g:
+        g.query_interrupted = True
+        g.safe_state()
+        assert g.command_log[-2][1] == "<device clear>"
+        assert g.output_enabled is False
