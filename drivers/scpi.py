@@ -133,8 +133,14 @@ class VisaTransport:
         self._errors = pyvisa.errors
         try:
             self._rm = pyvisa.ResourceManager(visa_library)
+        except (pyvisa.errors.Error, OSError, ValueError) as exc:
+            raise InstrumentConnectionError(
+                f"cannot load the VISA library {visa_library or '(system default)'!r} for "
+                f"{resource_name!r}: {exc}") from exc
+        try:
             self._res = self._rm.open_resource(resource_name)
         except (pyvisa.errors.Error, OSError, ValueError) as exc:
+            self._rm.close()
             raise InstrumentConnectionError(
                 f"cannot open VISA resource {resource_name!r}: {exc}") from exc
         self._res.timeout = timeout_s * 1000.0  # pyvisa wants ms

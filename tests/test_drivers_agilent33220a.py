@@ -379,3 +379,8 @@ def test_sim_device_clear_is_harmless():
         g.safe_state()
         assert g.command_log[-2][1] == "<device clear>"
         assert g.output_enabled is False
+
+
+def test_missing_visa_library_is_a_clear_connection_error(tmp_path):
+    with pytest.raises(InstrumentConnectionError, match="cannot"):
+        Agilent33220A.open(RES1, visa_library=f"{tmp_path / 'missing.yaml'}@sim")
