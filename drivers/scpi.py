@@ -100,6 +100,14 @@ def parse_error(text: str) -> tuple[int, str]:
     return code, message.strip().strip('"') if sep else ""
 
 
+def _one_line(exc: BaseException) -> str:
+    """The last meaningful line of an exception text (some backends embed a traceback)."""
+    text = str(exc).replace("\\n", "\n").replace("\\'", "'")
+    parts = [p.strip(" '\"\\") for p in text.splitlines()]
+    parts = [p for p in parts if p]
+    return parts[-1] if parts else type(exc).__name__
+
+
 # --------------------------------------------------------------------------- transports
 class Transport(Protocol):
     """What an SCPI instrument needs from its connection."""
@@ -136,13 +144,13 @@ class VisaTransport:
         except (pyvisa.errors.Error, OSError, ValueError) as exc:
             raise InstrumentConnectionError(
                 f"cannot load the VISA library {visa_library or '(system default)'!r} for "
-                f"{resource_name!r}: {exc}") from exc
+                f"{resource_name!r}: {_one_line(exc)}") from exc
         try:
             self._res = self._rm.open_resource(resource_name)
         except (pyvisa.errors.Error, OSError, ValueError) as exc:
             self._rm.close()
             raise InstrumentConnectionError(
-                f"cannot open VISA resource {resource_name!r}: {exc}") from exc
+                f"cannot open VISA resource {resource_name!r}: {_one_line(exc)}") from exc
         self._res.timeout = timeout_s * 1000.0  # pyvisa wants ms
         self._res.read_termination = read_termination
         self._res.write_termination = write_termination
