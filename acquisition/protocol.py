@@ -396,7 +396,13 @@ def _unknown(table: Mapping[str, Any], known: set[str], where: str, p: _Problems
     for key in table:
         if key not in known:
             full = f"{where}.{key}" if where else str(key)
-            p.add(full, f"unknown key (known: {', '.join(sorted(known))})")
+            stem = str(key).split("_")[0]
+            twins = sorted(k for k in known if k.split("_")[0] == stem and "_" in k)
+            if twins and "_" in str(key):
+                p.add(full, f"unknown key; did you mean {' or '.join(twins)}? (SI units, "
+                            "named in the key)")
+            else:
+                p.add(full, f"unknown key (known: {', '.join(sorted(known))})")
 
 
 def _table(data: Mapping[str, Any], key: str, p: _Problems,

@@ -125,6 +125,9 @@ def test_down_order_and_list():
     [
         (lambda d: d["sweep"].update(stpe_hz=1.0), "sweep.stpe_hz", "unknown key"),
         (lambda d: d.update(colour="red"), "colour", "unknown key"),
+        (lambda d: d["sweep"].update(start_khz=0.005), "sweep.start_khz", "did you mean start_hz"),
+        (lambda d: d["ultrasound"].update(delay_us=10), "ultrasound.delay_us",
+         "did you mean delay_s"),
         (lambda d: d["sweep"].update(stop_hz="300 Hz"), "sweep.stop_hz", "must be a number"),
         (lambda d: d["sweep"].update(drive_vpp=True), "sweep.drive_vpp", "must be a number"),
         (lambda d: d["sweep"].update(drive_vpp=5.0), "sweep.drive_vpp", "bench limit"),
