@@ -73,7 +73,7 @@ class SessionControl:
 
     def _run(self) -> None:
         try:
-            self.runner.run()
+            self.prepared.run()
         finally:
             self.prepared.close()
             self.finished.set()
@@ -95,6 +95,7 @@ class OperatorWindow(QtWidgets.QMainWindow):
         self.setWindowTitle("pelvislab — operator")
         self.bench_path = bench_path
         self.control: SessionControl | None = None
+        self.fault_dialog: QtWidgets.QMessageBox | None = None
         self._latest_step: Any = None
         self._frf_lines: dict[tuple[str, str], dict[float, complex]] = {}
         self._channel_labels: list[str] = []
@@ -119,6 +120,7 @@ class OperatorWindow(QtWidgets.QMainWindow):
 
         side = QtWidgets.QWidget()
         side.setFixedWidth(360)
+        self.side_panel = side
         side_layout = QtWidgets.QVBoxLayout(side)
         side_layout.setContentsMargins(0, 0, 0, 0)
         outer.addWidget(side)
@@ -248,7 +250,13 @@ class OperatorWindow(QtWidgets.QMainWindow):
 
         self.replay = ReplayView()
         self.tabs.addTab(self.replay, "Replay")
+        self.tabs.currentChanged.connect(self._tab_changed)
         self.statusBar().showMessage("ready")
+
+    def _tab_changed(self, index: int) -> None:
+        """Replay gets the whole width unless a run is going (STOP stays visible then)."""
+        running = self.control is not None and not self.control.finished.is_set()
+        self.side_panel.setVisible(running or self.tabs.widget(index) is not self.replay)
 
     # ------------------------------------------------------------------ set-up
     def _browse_protocol(self) -> None:
@@ -427,7 +435,8 @@ class OperatorWindow(QtWidgets.QMainWindow):
                 latest_step = event.data
                 self._add_frf_lines(event.data)
             elif isinstance(event, r.OperatorPrompt):
-                self.prompt_label.setText(event.message)
+                placement = ", ".join(self._channel_labels)
+                self.prompt_label.setText(f"{event.message}\nPlace: {placement}")
                 self.prompt_label.setVisible(True)
                 self.confirm_button.setVisible(not event.auto_continue)
                 self._say(f"PROMPT: {event.message}")
@@ -466,8 +475,13 @@ class OperatorWindow(QtWidgets.QMainWindow):
             text += f" — {event.reason}"
         self._say(text)
         self.statusBar().showMessage(text)
-        if event.status != "completed":
-            QtWidgets.QMessageBox.information(self, "Run ended", text)
+        if event.status == "failed":
+            # Non-modal: the event loop (and STOP, and the plots) must keep running.
+            box = QtWidgets.QMessageBox(QtWidgets.QMessageBox.Icon.Critical, "Run failed",
+                                        text, QtWidgets.QMessageBox.StandardButton.Ok, self)
+            box.setModal(False)
+            box.show()
+            self.fault_dialog = box
 
     def _add_frf_lines(self, step: Any) -> None:
         force = complex(step.force_phasor_n)

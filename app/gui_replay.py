@@ -59,10 +59,11 @@ class ReplayView(QtWidgets.QWidget):
 
         retrack = QtWidgets.QGroupBox("Re-track selected step")
         form = QtWidgets.QFormLayout(retrack)
-        from pelvislab.acquisition.tracking import ESTIMATORS
+        from pelvislab.acquisition.tracking import ESTIMATORS, TrackingOptions
 
         self.estimator_combo = QtWidgets.QComboBox()
         self.estimator_combo.addItems(list(ESTIMATORS))
+        self.estimator_combo.setCurrentText(TrackingOptions().estimator)
         form.addRow("estimator", self.estimator_combo)
         self.gate_start = QtWidgets.QSpinBox()
         self.gate_stop = QtWidgets.QSpinBox()
@@ -171,8 +172,9 @@ class ReplayView(QtWidgets.QWidget):
         self.file_label.setText(text)
         self.step_list.clear()
         for step in steps:
+            flag = "" if step.status == "complete" else f"  [{step.status}]"
             self.step_list.addItem(
-                f"{step.index:06d}  {step.setup}  {step.frequency_hz:7.2f} Hz  {step.status}")
+                f"{step.index:4d}  {step.setup}  {step.frequency_hz:g} Hz{flag}")
         self._show_frf()
         if steps:
             self.step_list.setCurrentRow(0)

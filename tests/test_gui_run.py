@@ -1,0 +1,99 @@
+"""The operator runs a protocol from the window, sees the plots update and presses STOP
+(offscreen, simulated bench). Evidence from the simulated instruments' own command logs."""
+
+from __future__ import annotations
+
+import time
+
+from PySide6 import QtCore
+
+from pelvislab.acquisition.session import SessionReader
+
+
+def _output_commands(log):
+    return [(t, text) for t, text in log if text.replace(" ", "").upper().startswith("OUTP")
+            and text.replace(" ", "").upper() in ("OUTPON", "OUTPOFF", "OUTP1", "OUTP0")]
+
+
+def _start(window, tmp_path, protocol="face_up"):
+    window.subject_edit.setText("T001")
+    index = window.protocol_combo.findText(protocol)
+    assert index >= 0, f"protocol {protocol} not offered"
+    window.protocol_combo.setCurrentIndex(index)
+    out = tmp_path / "gui.h5"
+    window.out_edit.setText(str(out))
+    window.start_run()
+    assert window.control is not None, "the run did not start"
+    return out
+
+
+def test_run_from_window_plots_update_and_stop_turns_outputs_off(operator_window, qtbot,
+                                                                   tmp_path):
+    window = operator_window()
+    out = _start(window, tmp_path)
+    # The first setup asks the operator to place the transducers; outputs stay off meanwhile.
+    qtbot.waitUntil(window.confirm_button.isVisible, timeout=30_000)
+    assert "Place: ch1 → sacrum_x, ch2 → SIAS_R_x" in window.prompt_label.text()
+    qtbot.mouseClick(window.confirm_button, QtCore.Qt.MouseButton.LeftButton)
+    # Live plots fill up: FRF lines and a displacement trace.
+    qtbot.waitUntil(lambda: sum(len(v) for v in window._frf_lines.values()) >= 4,
+                    timeout=120_000)
+    assert window.progress.value() >= 0
+    assert window.frames_drawn > 5
+    bench = window.control.prepared.bench
+    # STOP from the keyboard.
+    window.activateWindow()
+    stop_pressed = time.monotonic()
+    qtbot.keyClick(window, QtCore.Qt.Key.Key_Escape)
+    qtbot.waitUntil(window.control.finished.is_set, timeout=30_000)
+    qtbot.waitUntil(window.start_button.isEnabled, timeout=10_000)
+    for role in ("drive", "trigger"):
+        commands = _output_commands(bench.__getattribute__(role).command_log)
+        after = [(t, c) for t, c in commands if t >= stop_pressed]
+        assert after, f"{role}: no output command after STOP"
+        first_t, first_c = after[0]
+        assert first_c.replace(" ", "").upper() in ("OUTPOFF", "OUTP0"), (role, after)
+        assert first_t - stop_pressed < 0.1, f"{role}: output off {first_t - stop_pressed:.3f} s"
+        assert all(c.replace(" ", "").upper() in ("OUTPOFF", "OUTP0") for _, c in after)
+    with SessionReader(out) as reader:
+        status, reason = reader.status
+        assert status == "aborted", (status, reason)
+        assert "STOP" in reason
+        assert len(list(reader.steps(with_echoes=False))) >= 2
+
+
+def test_note_is_saved_into_the_session(operator_window, qtbot, tmp_path):
+    window = operator_window()
+    out = _start(window, tmp_path, protocol="demo")
+    qtbot.waitUntil(window.confirm_button.isVisible, timeout=30_000)
+    window.note_edit.setText("subject coughed during setup 1")
+    window.add_note()
+    window.confirm_prompt()
+    qtbot.waitUntil(lambda: sum(len(v) for v in window._frf_lines.values()) >= 2,
+                    timeout=120_000)
+    window.stop_run()
+    qtbot.waitUntil(window.control.finished.is_set, timeout=30_000)
+    with SessionReader(out) as reader:
+        assert any("subject coughed" in line for line in reader.log_lines())
+
+
+def test_replay_steps_through_a_recorded_session(operator_window, qtbot, tmp_path):
+    window = operator_window()
+    out = _start(window, tmp_path, protocol="demo")
+    qtbot.waitUntil(window.confirm_button.isVisible, timeout=30_000)
+    window.confirm_prompt()
+    qtbot.waitUntil(lambda: sum(len(v) for v in window._frf_lines.values()) >= 6,
+                    timeout=120_000)
+    window.stop_run()
+    qtbot.waitUntil(window.control.finished.is_set, timeout=30_000)
+    assert window.open_replay(out)
+    replay = window.replay
+    n = replay.step_list.count()
+    assert n >= 2
+    for row in range(min(n, 3)):
+        replay.step_list.setCurrentRow(row)
+        assert f"step {replay.steps[row].index}:" in replay.step_info.text()
+    # Re-tracking with another estimator runs off the UI thread and updates the view.
+    replay.estimator_combo.setCurrentText("parabolic")
+    replay.retrack_step()
+    qtbot.waitUntil(lambda: "re-tracked: parabolic" in replay.step_info.text(), timeout=60_000)
