@@ -111,6 +111,8 @@ class Sweep:
     """...and at least this many drive periods."""
     periods_per_step: float | None
     """Record length in drive periods (thesis: 10); None: ``ultrasound.pulses`` per record."""
+    repeats: int = 1
+    """Acquisitions per frequency, one after the other (ch. 8 validation: 4-6)."""
 
 
 @dataclass(frozen=True)
@@ -163,11 +165,13 @@ class PlannedStep:
     frequency_hz: float
     n_pulses: int
     settle_s: float
+    repeat: int = 0
+    """0 .. sweep.repeats - 1."""
 
     @property
-    def key(self) -> tuple[str, float]:
-        """(setup name, frequency) identifies a step across resumed runs."""
-        return (self.setup, round(self.frequency_hz, 9))
+    def key(self) -> tuple[str, float, int]:
+        """(setup name, frequency, repeat) identifies a step across resumed runs."""
+        return (self.setup, round(self.frequency_hz, 9), self.repeat)
 
 
 @dataclass(frozen=True)
@@ -222,7 +226,8 @@ class Protocol:
 
     def sweep_duration_s(self) -> float:
         """Duration of one setup's sweep (what the subject must keep still for), s."""
-        return float(sum(self.step_duration_s(f) for f in self.sweep.frequencies_hz))
+        return float(sum(self.step_duration_s(f) for f in self.sweep.frequencies_hz)
+                     * self.sweep.repeats)
 
     def estimated_duration_s(self) -> float:
         """Settle + record time of the whole protocol (operator repositioning excluded), s."""
@@ -233,8 +238,9 @@ class Protocol:
         out: list[PlannedStep] = []
         for si, setup in enumerate(self.setups):
             for f in self.sweep.frequencies_hz:
-                out.append(PlannedStep(len(out), si, setup.name, float(f), self.n_pulses(f),
-                                       self.settle_s(f)))
+                for r in range(self.sweep.repeats):
+                    out.append(PlannedStep(len(out), si, setup.name, float(f),
+                                           self.n_pulses(f), self.settle_s(f), r))
         return out
 
     @property
@@ -250,7 +256,9 @@ class Protocol:
         lines = [
             f"protocol {self.name!r} ({self.source}), schema {PROTOCOL_SCHEMA} "
             f"v{PROTOCOL_SCHEMA_VERSION}",
-            f"  sweep: {len(f)} steps {lo:g}-{hi:g} Hz ({self.sweep.order}), drive "
+            f"  sweep: {len(f)} steps {lo:g}-{hi:g} Hz ({self.sweep.order}"
+            + (f", each {self.sweep.repeats} times" if self.sweep.repeats > 1 else "")
+            + "), drive "
             f"{self.sweep.drive_vpp:g} Vpp, {min(pulses)}-{max(pulses)} pulses per step at "
             f"{self.ultrasound.prf_hz:g} Hz PRF",
             f"  setups: {len(self.setups)} ("
@@ -302,6 +310,7 @@ def load_landmarks(path: Path | str | None = None) -> dict[str, Point]:
 _TOP = {"schema", "schema_version", "name", "description", "subject", "sweep", "ultrasound",
         "setups", "points"}
 _SWEEP = {"start_hz", "stop_hz", "step_hz", "frequencies_hz", "order", "drive_vpp", "settle_s",
+          "repeats",
           "settle_periods", "periods_per_step"}
 _US_FLOAT = {"prf_hz", "sample_rate_hz", "delay_s", "speed_of_sound_m_s", "full_scale_v",
              "offset_v", "trigger_width_s", "trigger_high_v", "gain_db", "damping_ohm",
@@ -605,10 +614,12 @@ def parse_protocol(text: str, source: str = "<string>", limits: BenchLimits | No
         p.add("sweep.periods_per_step", "give either sweep.periods_per_step or "
                                         "ultrasound.pulses, not both")
 
+    repeats = _integer(sw, "repeats", "sweep", p, 1, 1, 100)
     sweep = None
-    if freqs is not None and None not in (order, drive, settle, settle_periods):
+    if freqs is not None and None not in (order, drive, settle, settle_periods, repeats):
         ordered = tuple(freqs if order == "up" else reversed(freqs))
-        sweep = Sweep(ordered, order, drive, settle, settle_periods, periods)  # type: ignore
+        sweep = Sweep(ordered, order, drive, settle, settle_periods, periods,  # type: ignore
+                      repeats)
         if ultrasound is not None:
             nyquist = ultrasound.prf_hz / 2
             if max(freqs) >= nyquist:

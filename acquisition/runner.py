@@ -308,18 +308,19 @@ def process_channel(channel: ChannelData, frequency_hz: float, options: Any = No
 class Runner:
     """Runs ``protocol`` on an open ``bench`` (see module docstring).
 
-    ``skip``: step keys ``(setup, frequency)`` already in the session (resume).
+    ``skip``: step keys ``(setup, frequency, repeat)`` already in the session (resume).
     ``auto_continue``: answer operator prompts automatically (headless runs).
     """
 
     def __init__(self, protocol: Protocol, bench: Any, *, auto_continue: bool = True,
-                 tracking_options: Any = None, skip: Iterable[tuple[str, float]] = (),
+                 tracking_options: Any = None, skip: Iterable[tuple[Any, ...]] = (),
                  clock: Callable[[], float] = time.monotonic) -> None:
         self.protocol = protocol
         self.bench = bench
         self.auto_continue = auto_continue
         self.tracking_options = tracking_options
-        self._skip = {(s, round(float(f), 9)) for s, f in skip}
+        self._skip = {(k[0], round(float(k[1]), 9), int(k[2]) if len(k) > 2 else 0)
+                      for k in skip}
         self._clock = clock
         self._listeners: list[tuple[Listener, bool]] = []
         self._abort = threading.Event()
@@ -696,7 +697,8 @@ class Runner:
                         channels=chans, force_phasor_n=force, drive_vpp=proto.sweep.drive_vpp,
                         status=STATUS_COMPLETE,
                         extra={"plan_index": step.index, "setup_index": step.setup_index,
-                               "n_pulses": step.n_pulses, "quality_ok": ok})
+                               "repeat": step.repeat, "n_pulses": step.n_pulses,
+                               "quality_ok": ok})
 
 
 # --------------------------------------------------------------------------- recorder
@@ -843,7 +845,7 @@ def prepare_session(protocol_path: Path | str, out_path: Path | str,
     else:
         config = BenchConfig.default()
     protocol = load_protocol(protocol_path, BenchLimits.from_config(config))
-    skip: list[tuple[str, float]] = []
+    skip: list[tuple[str, float, int]] = []
     problems: list[str] = []
     if resume:
         if not out.is_file():

@@ -144,9 +144,9 @@ class StepData:
     """Further step attributes (plan index, quality summary, failure reason)."""
 
     @property
-    def key(self) -> tuple[str, float]:
-        """(setup, frequency) as in :attr:`PlannedStep.key`."""
-        return (self.setup, round(float(self.frequency_hz), 9))
+    def key(self) -> tuple[str, float, int]:
+        """(setup, frequency, repeat) as in :attr:`PlannedStep.key`."""
+        return (self.setup, round(float(self.frequency_hz), 9), int(self.extra.get("repeat", 0)))
 
 
 def plan_channels(protocol: Protocol) -> tuple[list[float], Channels, Channels]:
@@ -195,6 +195,7 @@ def frf_from_steps(steps: Sequence[StepData], frequencies_hz: Sequence[float] | 
     H = np.full(shape, np.nan + 1j * np.nan)
     H_std = np.full(shape, np.nan)
     at = np.full(f.size, np.nan)
+    lines: dict[tuple[int, int, int], list[tuple[complex, float]]] = {}
     for s in steps:
         if s.status != STATUS_COMPLETE or s.force_phasor_n == 0:
             continue
@@ -206,11 +207,25 @@ def frf_from_steps(steps: Sequence[StepData], frequencies_hz: Sequence[float] | 
             if c.phasor_m is None or not _usable(c):
                 continue
             o = outputs.index(c.output.name)
-            H[i, o, j] = c.phasor_m / s.force_phasor_n
-            if c.phasor_std_m is not None:
-                H_std[i, o, j] = c.phasor_std_m / abs(s.force_phasor_n)
+            std = np.nan if c.phasor_std_m is None else c.phasor_std_m / abs(s.force_phasor_n)
+            lines.setdefault((i, o, j), []).append((c.phasor_m / s.force_phasor_n, std))
             at[i] = s.started_at_s
+    for (i, o, j), values in lines.items():
+        H[i, o, j], H_std[i, o, j] = combine_lines(values)
     return FrfSet(f, H, outputs, inputs, H_std=H_std, acquired_at_s=at)
+
+
+def combine_lines(values: Sequence[tuple[complex, float]]) -> tuple[complex, float]:
+    """One FRF value from repeated measurements (H, std): inverse-variance mean and its
+    standard uncertainty; the plain mean (std NaN) when any std is unknown."""
+    h = np.array([v for v, _ in values], dtype=complex)
+    s = np.array([e for _, e in values], dtype=float)
+    if h.size == 1:
+        return complex(h[0]), float(s[0])
+    if np.all(np.isfinite(s) & (s > 0)):
+        w = 1.0 / s**2
+        return complex(np.sum(w * h) / w.sum()), float(1.0 / np.sqrt(w.sum()))
+    return complex(h.mean()), float("nan")
 
 
 def _usable(channel: ChannelData) -> bool:
@@ -255,6 +270,7 @@ class SessionWriter:
                                [_text(n) for n in g["outputs/name"][()]],
                                [_text(n) for n in g["inputs/name"][()]])
         self.run_group: h5py.Group | None = None
+        self._lines: dict[tuple[int, int, int], list[tuple[complex, float]]] = {}
 
     # -------------------------------------------------------------- open / create
     @classmethod
@@ -438,6 +454,21 @@ class SessionWriter:
         freqs, outs, ins = self._frf_index
         rebuilt = frf_from_steps(steps, freqs, _channels_like(frf["outputs"], outs),
                                  _channels_like(frf["inputs"], ins))
+        self._lines = {}
+        for s in steps:
+            if s.status != STATUS_COMPLETE or s.force_phasor_n == 0:
+                continue
+            i = int(np.argmin(np.abs(freqs - s.frequency_hz)))
+            if s.input.name not in ins:
+                continue
+            j = ins.index(s.input.name)
+            for c in s.channels:
+                if c.phasor_m is None or c.output.name not in outs or not _usable(c):
+                    continue
+                std = (np.nan if c.phasor_std_m is None
+                       else c.phasor_std_m / abs(s.force_phasor_n))
+                self._lines.setdefault((i, outs.index(c.output.name), j), []).append(
+                    (c.phasor_m / s.force_phasor_n, std))
         frf["H"][...] = rebuilt.H
         if "H_std" in frf:
             frf["H_std"][...] = rebuilt.H_std
@@ -461,9 +492,14 @@ class SessionWriter:
             if c.phasor_m is None or c.output.name not in outs or not _usable(c):
                 continue
             o = outs.index(c.output.name)
-            frf["H"][i, o, j] = np.complex128(c.phasor_m / step.force_phasor_n)
-            if "H_std" in frf and c.phasor_std_m is not None:
-                frf["H_std"][i, o, j] = c.phasor_std_m / abs(step.force_phasor_n)
+            std = (np.nan if c.phasor_std_m is None
+                   else c.phasor_std_m / abs(step.force_phasor_n))
+            values = self._lines.setdefault((i, o, j), [])
+            values.append((c.phasor_m / step.force_phasor_n, std))
+            h, h_std = combine_lines(values)  # repeats and re-measured lines are merged
+            frf["H"][i, o, j] = np.complex128(h)
+            if "H_std" in frf:
+                frf["H_std"][i, o, j] = h_std
         if "acquired_at_s" in frf:
             frf["acquired_at_s"][i] = step.started_at_s
 

@@ -429,3 +429,28 @@ def test_reprocess_with_unusable_options_fails_and_writes_nothing(tmp_path):
     with pytest.raises(ValueError, match="tracking failed"):
         r.reprocess_session(tmp_path / "s.h5", out, TrackingOptions(estimator="nonsense"))
     assert not out.exists()
+
+
+def test_repeats_are_merged_by_inverse_variance_and_resumable(tmp_path):
+    from pelvislab.acquisition.session import combine_lines
+
+    text = PROTOCOL.replace("drive_vpp = 0.4", "drive_vpp = 0.4\nrepeats = 2")
+    bench = make_bench(fail_at=6)
+    with prepare(tmp_path, bench, text=text) as session:
+        assert len(session.protocol.steps()) == 16
+        assert session.run().status == "failed"
+    with r.prepare_session(tmp_path / "p.toml", tmp_path / "s.h5", bench=make_bench(),
+                           resume=True) as session:
+        assert session.run().status == "completed"
+    with SessionReader(tmp_path / "s.h5") as reader:
+        steps = list(reader.steps())
+        frf = reader.frf()
+    assert sorted(s.key for s in steps) == sorted(p.key for p in session.protocol.steps())
+    first = [s for s in steps if s.setup == "s1" and s.frequency_hz == 60.0]
+    assert sorted(int(s.extra["repeat"]) for s in first) == [0, 1]
+    values = [(s.channels[0].phasor_m / s.force_phasor_n,
+               s.channels[0].phasor_std_m / abs(s.force_phasor_n)) for s in first]
+    h, h_std = combine_lines(values)
+    i, o, j = 0, frf.outputs.index("a"), frf.inputs.index("a")
+    assert frf.H[i, o, j] == pytest.approx(h) and frf.H_std[i, o, j] == pytest.approx(h_std)
+    assert h_std < min(v[1] for v in values)
