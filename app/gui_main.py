@@ -417,23 +417,23 @@ class OperatorWindow(QtWidgets.QMainWindow):
         started = time.perf_counter()
         from pelvislab.acquisition import runner as r
 
+        # Drain everything first, then draw once: a burst of events costs one redraw.
         latest_step = None
+        latest_progress = None
+        changed_frfs: set[tuple[str, str]] = set()
         while True:
             try:
                 event = self.control.events.get_nowait()
             except queue.Empty:
                 break
             if isinstance(event, r.Progress):
-                self.progress.setValue(int(round(100 * event.fraction)))
-                self.eta_label.setText(
-                    f"{event.n_done}/{event.n_steps} steps, {event.elapsed_s:.0f} s elapsed, "
-                    f"about {event.eta_s:.0f} s left")
+                latest_progress = event
             elif isinstance(event, r.StepStarted):
                 self.statusBar().showMessage(
                     f"setup {event.step.setup}: {event.step.frequency_hz:g} Hz")
             elif isinstance(event, r.StepFinished):
                 latest_step = event.data
-                self._add_frf_lines(event.data)
+                changed_frfs |= self._add_frf_lines(event.data)
             elif isinstance(event, r.OperatorPrompt):
                 placement = ", ".join(self._channel_labels)
                 self.prompt_label.setText(f"{event.message}\nPlace: {placement}")
@@ -459,6 +459,14 @@ class OperatorWindow(QtWidgets.QMainWindow):
                 self._say(f"FAULT: {event.reason}")
             elif isinstance(event, r.RunFinished):
                 self._run_finished(event)
+        if latest_progress is not None:
+            event = latest_progress
+            self.progress.setValue(int(round(100 * event.fraction)))
+            self.eta_label.setText(
+                f"{event.n_done}/{event.n_steps} steps, {event.elapsed_s:.0f} s elapsed, "
+                f"about {event.eta_s:.0f} s left")
+        if changed_frfs:
+            self._draw_frf_lines(changed_frfs)
         if latest_step is not None:
             self._show_step(latest_step)
         self.frames_drawn += 1
@@ -483,16 +491,24 @@ class OperatorWindow(QtWidgets.QMainWindow):
             box.show()
             self.fault_dialog = box
 
-    def _add_frf_lines(self, step: Any) -> None:
+    def _add_frf_lines(self, step: Any) -> set[tuple[str, str]]:
+        """Record the step's FRF lines (displacement / force phasor); returns the FRFs changed."""
         force = complex(step.force_phasor_n)
+        changed = set()
         for ch in step.channels:
             if ch.phasor_m is None or force == 0:
                 continue
             key = (ch.output.name, step.input.name)
             self._frf_lines.setdefault(key, {})[float(step.frequency_hz)] = ch.phasor_m / force
-        for i, (key, lines) in enumerate(sorted(self._frf_lines.items())):
+            changed.add(key)
+        return changed
+
+    def _draw_frf_lines(self, keys: set[tuple[str, str]]) -> None:
+        order = sorted(self._frf_lines)
+        for key in keys:
+            lines = self._frf_lines[key]
             freq = np.array(sorted(lines))
-            self.frf.show_measured(f"{key[0]} / {key[1]}", i, freq,
+            self.frf.show_measured(f"{key[0]} / {key[1]}", order.index(key), freq,
                                    np.array([lines[f] for f in freq]))
 
     def _show_step(self, step: Any) -> None:

@@ -16,7 +16,8 @@ from PySide6 import QtCore, QtGui, QtWidgets
 CHANNEL_PENS = ("#1f77b4", "#d62728", "#2ca02c", "#9467bd")
 MODEL_PEN = pg.mkPen("#444444", width=1.5, style=QtCore.Qt.PenStyle.DashLine)
 
-pg.setConfigOptions(antialias=True, background="w", foreground="k")
+# Antialiasing costs several ms per 2000-point trace; the live view must redraw at >= 10 fps.
+pg.setConfigOptions(antialias=False, background="w", foreground="k")
 
 
 def channel_pen(index: int, width: float = 1.5) -> QtGui.QPen:
@@ -73,6 +74,8 @@ class DisplacementPanel(pg.PlotWidget):
         self.setLabel("left", "displacement", units="m")
         self.showGrid(x=True, y=True, alpha=0.2)
         self.addLegend(offset=(10, 10))
+        self.setDownsampling(auto=True, mode="peak")
+        self.setClipToView(True)
         self._curves: list[pg.PlotDataItem] = []
 
     def set_channels(self, names: Sequence[str]) -> None:
