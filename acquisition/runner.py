@@ -550,6 +550,10 @@ class Runner:
                                       for s in todo), bool(self.bench.simulated)))
             if n_done:
                 self._log(f"resuming: {n_done} of {n_total} steps already in the session")
+            off_bone = sorted(n for n, pt in self.protocol.points.items() if not pt.bone)
+            if self.bench.simulated and off_bone:
+                self._log(f"the simulated bench models the pelvis only: points on no bone "
+                          f"({', '.join(off_bone)}) give no echo there", "WARNING")
             n_done = self._run_plan(todo, n_done, n_total)
         except _Stop as exc:
             status, reason = self._abort_status, str(exc) or "aborted"
