@@ -60,9 +60,9 @@ class GapOptions:
     * ``min_shrink``: a candidate that removes at least this fraction of the gap explains
       it even when the rest is not yet at noise level (its form differs from reality);
     * ``significance``: held-out χ² drop (per line units) a candidate must achieve;
-    * ``joint_variants``: how many of the best-screened variants get a joint fit with the
-      base parameters (global variants always do); ``places_per_variant`` places each, plus
-      one more place for each of the ``extra_places_top`` best.
+    * ``variants_per_effect``: best-screened variants of each effect that get a joint fit
+      with the base parameters (global ones always), at ``places_per_variant`` best places
+      plus the place carrying the largest residual share.
     """
 
     holdout_every: int = 4
@@ -73,13 +73,14 @@ class GapOptions:
     significance: float = 25.0
     significance_rel: float = 0.02
     places_per_variant: int = 1
-    extra_places_top: int = 3
-    joint_variants: int = 6
+    variants_per_effect: int = 2
     clean_share: float = 0.35
     base_starts: int = 2
     max_nfev_base: int = 60
     max_nfev_screen: int = 12
-    max_nfev_joint: int = 25
+    max_nfev_joint: int = 40
+    max_nfev_short: int = 20
+    finish_jobs: int = 6
     robust_scale: float = 3.0
     effects: tuple[str, ...] | None = None
     seed: int = 0
@@ -457,23 +458,33 @@ def _screen(cand: Candidate, fit: _Lines, theta: np.ndarray, options: GapOptions
     return best
 
 
-def _joint(cand: Candidate, fit: _Lines, held: _Lines, thetas: Sequence[np.ndarray],
-           u0: np.ndarray, bounds: _Bounds, options: GapOptions
-           ) -> tuple[np.ndarray, np.ndarray, float, float]:
-    """Joint fit of base and effect parameters from each base start; the best on the fitted
-    lines is scored on the held-out lines."""
+def _joint_start(cand: Candidate, fit: _Lines, thetas: Sequence[np.ndarray], u0: np.ndarray,
+                 bounds: _Bounds, options: GapOptions) -> tuple[float, np.ndarray]:
+    """Short joint fit (base + effect) from each base start; the best (robust cost, x)."""
     n = len(thetas[0])
     model = _Model(fit, cand, None, n)
     lo = np.concatenate([bounds.lo, cand.lower])
     hi = np.concatenate([bounds.hi, cand.upper])
-    best = (float("inf"), None)
+    best = (float("inf"), np.concatenate([np.log(thetas[0]), u0]))
     for theta in thetas:
         x0 = np.concatenate([np.log(theta), u0])
-        x, cost = _lsq(model, x0, lo, hi, options.max_nfev_joint, options.robust_scale)
+        x, cost = _lsq(model, x0, lo, hi, options.max_nfev_short, options.robust_scale)
         if cost < best[0]:
             best = (cost, x)
-    x = best[1] if best[1] is not None else np.concatenate([np.log(thetas[0]), u0])
-    th, u = np.exp(x[:n]), x[n:]
+    return best
+
+
+def _joint_finish(cand: Candidate, fit: _Lines, held: _Lines, x0: np.ndarray,
+                  bounds: _Bounds, options: GapOptions, nfev: int
+                  ) -> tuple[np.ndarray, np.ndarray, float, float]:
+    """Continue a joint fit; returns (θ, u, fitted-line gap, held-out χ²)."""
+    n = bounds.lo.size
+    if nfev > 0:
+        model = _Model(fit, cand, None, n)
+        lo = np.concatenate([bounds.lo, cand.lower])
+        hi = np.concatenate([bounds.hi, cand.upper])
+        x0, _ = _lsq(model, x0, lo, hi, nfev, options.robust_scale)
+    th, u = np.exp(x0[:n]), x0[n:]
     Hf, _ = evaluate(fit.ctx, th, cand.build(u, fit.ctx))
     Hh, _ = evaluate(held.ctx, th, cand.build(u, held.ctx))
     return th, u, fit.gap(Hf), held.chi2(Hh)
@@ -696,21 +707,24 @@ def diagnose(data: GapData, model: PelvisModel, options: GapOptions | None = Non
     jobs = []
     for items in by_variant.values():
         items.sort(key=lambda t: t[0])
-    order = sorted(by_variant.values(), key=lambda items: items[0][0])
-    for rank, items in enumerate(order):
-        # joint fits for the best-screened variants; global (1-parameter) variants always,
-        # because parameter updating can absorb or reveal them only in the joint fit
-        if rank >= opt.joint_variants and items[0][1].place_kind != "global":
-            continue
-        n_places = opt.places_per_variant + (1 if rank < opt.extra_places_top else 0)
-        chosen = items[:n_places]
-        # "where" guides "which": also fit the variant at the place carrying most residual
-        top = _top_place(where, items[0][1].place_kind)
-        for item in items[n_places:]:
-            if top and top in (item[1].place, item[1].bone) and item[1].place_kind != "global":
-                chosen.append(item)
-                break
-        jobs.extend((cand, u, len(items)) for _cost, cand, u in chosen)
+    # joint fits: for every effect its best-screened variants (global ones all), each at
+    # its best-screened place and at the place where the residual is largest ("where"
+    # guides "which": screening with a base fit that absorbed part of the effect can
+    # misrank places)
+    by_effect: dict[str, list[list[tuple[float, Candidate, np.ndarray]]]] = {}
+    for items in by_variant.values():
+        by_effect.setdefault(items[0][1].effect, []).append(items)
+    for variants in by_effect.values():
+        variants.sort(key=lambda items: items[0][0])
+        for rank, items in enumerate(variants):
+            if rank >= opt.variants_per_effect and items[0][1].place_kind != "global":
+                continue
+            chosen = items[:opt.places_per_variant]
+            top = _top_place(where, items[0][1].place_kind)
+            for item in items[opt.places_per_variant:]:
+                if top and top in (item[1].place, item[1].bone):
+                    chosen.append(item)  # every place on that channel or bone
+            jobs.extend((cand, u, len(items)) for _cost, cand, u in chosen)
     # a local effect drags the base fit; refit the base without the output (input) that
     # carries most of the residual and use it as a second start for candidates there
     clean: dict[tuple[str, str], np.ndarray] = {}
@@ -728,11 +742,22 @@ def diagnose(data: GapData, model: PelvisModel, options: GapOptions | None = Non
         clean[(kind, items[0]["name"])] = fit_base(lines, start, names, opt,
                                                    initial=inits).values
     timing["clean_refit_s"] = time.perf_counter() - t2
+    # stage 1: short joint fits from every base start; stage 2: the most promising jobs
+    # (and every global one) are fitted to convergence
+    starts_out = []
     for cand, u, n_screened in jobs:
-        thetas = [theta]
+        # second start: the best grid point before least squares, not yet contorted by the
+        # base fit's attempt to absorb the effect
+        thetas = [theta] + ([np.exp(base.grid_start)] if base.grid_start is not None else [])
         if (cand.place_kind, cand.place) in clean:
             thetas.append(clean[(cand.place_kind, cand.place)])
-        th, uu, gfit, chi2 = _joint(cand, fit, held, thetas, u, bounds, opt)
+        cost, x = _joint_start(cand, fit, thetas, u, bounds, opt)
+        starts_out.append((cost + opt.robust_scale**2 * cand.n_params, cand, x, n_screened))
+    starts_out.sort(key=lambda t: t[0])
+    for rank, (_cost, cand, x, n_screened) in enumerate(starts_out):
+        full = rank < opt.finish_jobs or cand.place_kind == "global"
+        th, uu, gfit, chi2 = _joint_finish(cand, fit, held, x, bounds, opt,
+                                           opt.max_nfev_joint if full else 0)
         gap_after = excess_gap(chi2, held.n)
         results.append(CandidateResult(cand, uu, th, gfit, gap_after, chi2,
                                        chi2 + 2 * cand.n_params, n_screened))

@@ -550,7 +550,7 @@ def _support_candidates(ctx: Context) -> list[Candidate]:
                 return EffectTerms(dZ=keff[:, None, None] * (G.T @ G)[None])
 
             cands.append(Candidate(
-                "support_resonance", f"bed contact ({axname})", f"{bone} {axname}", "bone",
+                "support_resonance", "bed contact", f"{bone} {axname}", "bone",
                 ("log_f", "log_zeta", "log_m", "log_kc"), lo, hi, starts, build, describe,
                 bone))
     places = [(j, name) for j, name in enumerate(ctx.in_names)]

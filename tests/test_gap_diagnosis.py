@@ -165,7 +165,7 @@ def test_excess_gap_is_zero_at_noise_level_and_grows():
 # Diagnosis on small cases (restricted candidate lists keep them fast)
 
 FAST = ("sensor_misorientation", "frequency_dependent_stiffness")
-OPTS = GapOptions(effects=FAST, base_starts=1, max_nfev_joint=20)
+OPTS = GapOptions(effects=FAST, base_starts=1, max_nfev_joint=20, max_nfev_short=8, finish_jobs=2)
 
 
 def test_no_effect_gives_verdict_none():
