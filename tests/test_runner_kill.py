@@ -144,13 +144,15 @@ def test_kill_minus_9_at_random_moments_loses_nothing(tmp_path):
 
 def test_ctrl_c_via_cli_outputs_off_within_100_ms(tmp_path):
     protocol = tmp_path / "p.toml"
-    protocol.write_text(PROTOCOL.replace("pulses = 250", "pulses = 2000"))
+    many = ", ".join(f"{f:.1f}" for f in range(40, 240, 10))  # 2 x 20 steps: seconds
+    protocol.write_text(PROTOCOL.replace("pulses = 250", "pulses = 2000").replace(
+        "60.0, 120.0, 180.0, 240.0", many))
     out = tmp_path / "s.h5"
     proc = subprocess.Popen([sys.executable, "-m", "pelvislab.app", "run", str(protocol),
                              "--out", str(out)], stderr=subprocess.PIPE, text=True)
     first = proc.stderr.readline()  # "run ...: N steps to go" once the run has started
     assert first.startswith("run "), first
-    time.sleep(1.0)
+    time.sleep(0.5)
     t_sigint = time.monotonic()
     proc.send_signal(signal.SIGINT)
     rest = proc.stderr.read()
@@ -158,6 +160,7 @@ def test_ctrl_c_via_cli_outputs_off_within_100_ms(tmp_path):
     assert code == 130
     final = [ln for ln in rest.splitlines() if ln.startswith("pelvislab run:")]
     assert len(final) == 1 and "interrupted" in final[0] and "Traceback" not in rest
+    assert "of 40 steps" in final[0]
     with SessionReader(out) as reader:
         assert reader.status[0] == "interrupted"
         logs = reader.handle["runs/000/command_logs"]
