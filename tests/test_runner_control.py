@@ -454,3 +454,22 @@ def test_repeats_are_merged_by_inverse_variance_and_resumable(tmp_path):
     i, o, j = 0, frf.outputs.index("a"), frf.inputs.index("a")
     assert frf.H[i, o, j] == pytest.approx(h) and frf.H_std[i, o, j] == pytest.approx(h_std)
     assert h_std < min(v[1] for v in values)
+
+
+def test_console_progress_bar_on_a_terminal(tmp_path):
+    import io
+
+    from pelvislab.app.commands.run import ConsoleProgress
+
+    class Tty(io.StringIO):
+        def isatty(self):
+            return True
+
+    stream = Tty()
+    bench = make_bench()
+    with prepare(tmp_path, bench) as session:
+        session.runner.subscribe(ConsoleProgress(session.runner, stream))
+        session.run()
+    text = stream.getvalue()
+    assert "\r[" in text and "8/8 steps" in text and "ETA" in text
+    assert "prompt (auto-continue)" in text
