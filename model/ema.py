@@ -176,8 +176,9 @@ def _prepare(
         if per_line:
             weights = np.where(ok, 1.0 / np.maximum(np.nan_to_num(std, nan=1.0), floor), 0.0)
         else:
-            with np.errstate(invalid="ignore"):
-                rms = np.sqrt(np.nanmean(std**2, axis=0))
+            count = ok.sum(axis=0)
+            rms = np.sqrt(np.where(ok, std**2, 0.0).sum(axis=0) / np.maximum(count, 1))
+            rms = np.where(count > 0, rms, np.nan)
             scale = 1.0 / np.maximum(np.nan_to_num(rms, nan=np.inf), floor)
             weights = np.where(ok, scale[None, :, :], 0.0)
     else:
@@ -291,13 +292,21 @@ def stabilisation_diagram(
     ``frequency_hz`` (n_f,) may be non-uniform; ``H`` (n_f, n_out, n_in) receptance (NaN where
     not measured). ``nyquist_hz`` sets the z-domain sampling ``dt = 1 / (2 nyquist_hz)``;
     default 1.1 x the highest line, so poles at the band edge do not alias. Only stable poles
-    with positive frequency are kept.
+    with positive frequency are kept. When some output was never measured for some input
+    (transducers moved between setups), the poly-reference rows are incomplete; the diagram
+    then uses the common-denominator LSCF with every measured FRF as its own row (single
+    reference), and the participation vectors are trivial.
     """
     crit = criteria or StabilityCriteria()
     f, Hc, w = _prepare(frequency_hz, H, H_std)
     n_f, n_out, n_in = Hc.shape
     used = (w > 0).any(axis=(1, 2))
     f, Hc, w = f[used], Hc[used], w[used]
+    have = (w > 0).any(axis=0)
+    if n_in > 1 and not have.all():
+        Hc = Hc[:, have][:, :, None]
+        w = w[:, have][:, :, None]
+        n_in = 1
     if max_order is None:
         max_order = max(2, min(int(math.ceil(64 / n_in)), f.size // 3))
     if not 1 <= max_order < 2 * f.size - 1:
@@ -601,20 +610,35 @@ def modal_phase_collinearity(shapes: np.ndarray) -> tuple[np.ndarray, np.ndarray
     return mpc, mpd
 
 
-def shapes_from_residues(residues: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def shapes_from_residues(residues: np.ndarray, measured: np.ndarray | None = None
+                         ) -> tuple[np.ndarray, np.ndarray]:
     """Mode shapes (n_out, n_modes) and participation (n_modes, n_in) from residue matrices.
 
     Each residue matrix is rank one in theory (``R_r = psi_r l_r^T``); its dominant singular
-    pair gives both. Shapes are normalised so their largest entry is 1 (real, positive).
+    pair gives both. When some FRFs were not measured (``measured`` (n_out, n_in) False, e.g.
+    transducers moved between setups), the rank-one factors are fitted to the measured
+    entries only (alternating least squares from the SVD of the zero-filled matrix); an output
+    with no measured FRF gets NaN. Shapes are normalised so their largest entry is 1.
     """
     n_m, n_out, n_in = residues.shape
+    mask = np.ones((n_out, n_in), dtype=bool) if measured is None else np.asarray(measured)
     shapes = np.zeros((n_out, n_m), dtype=complex)
     part = np.zeros((n_m, n_in), dtype=complex)
     for r in range(n_m):
-        u, s, vh = np.linalg.svd(residues[r], full_matrices=False)
-        psi = u[:, 0] * s[0]
-        l = vh[0]
-        big = psi[np.argmax(np.abs(psi))]
+        R = np.where(mask, residues[r], 0.0)
+        u, sv, vh = np.linalg.svd(R, full_matrices=False)
+        psi = u[:, 0] * sv[0]
+        l = vh[0].copy()
+        if not mask.all():
+            for _ in range(50):  # rank-one fit to the measured entries only
+                den = (mask * np.abs(l[None, :]) ** 2).sum(axis=1)
+                psi = np.where(den > 0, (R * l[None, :].conj()).sum(axis=1)
+                               / np.where(den > 0, den, 1.0), np.nan)
+                p0 = np.nan_to_num(psi)
+                den = (mask * np.abs(p0[:, None]) ** 2).sum(axis=0)
+                l = np.where(den > 0, (R * p0[:, None].conj()).sum(axis=0)
+                             / np.where(den > 0, den, 1.0), 0.0)
+        big = psi[np.nanargmax(np.abs(psi))] if np.any(np.isfinite(psi)) else 0
         if big != 0:
             psi, l = psi / big, l * big
         shapes[:, r] = psi
@@ -725,7 +749,7 @@ def ema(
         residues, LR, UR, H_fit = lsfd(f, Hc, poles, std, lower_residual, upper_residual)
         significance = mode_significance(f, Hc, poles, H_fit, crit.significance_window, std,
                                          lower_residual, upper_residual)
-    shapes, part = shapes_from_residues(residues)
+    shapes, part = shapes_from_residues(residues, np.isfinite(Hc).any(axis=0))
     mpc, mpd = modal_phase_collinearity(shapes)
     fn, zeta = pole_frequency_damping(poles)
     return EmaResult(

@@ -208,3 +208,15 @@ def test_criteria_are_honoured(system):
     result = ema(f, H, criteria=strict)
     assert 4 <= result.frequency_hz.size <= 5 and np.all(result.damping_ratio < 0.05)
     assert np.all(result.frequency_hz > 90)
+
+
+def test_setups_with_unmeasured_frfs_fall_back_to_common_denominator(system):
+    """Transducers moved between setups: some output/input pairs never measured."""
+    M, K, C, lam, V = system
+    f = np.arange(5.0, 300.01, 2.5)
+    H = add_noise(receptance(M, K, C, f, list(range(6)), [0, 4]), 0.01, seed=12)
+    H[:, 0, 1] = np.nan  # output 0 only measured with input 0
+    H[:, 5, 0] = np.nan  # output 5 only with input 4
+    result = ema(f, H)
+    check_identified(result, lam, V, (5, 300))
+    assert np.all(np.isfinite(result.shapes))
