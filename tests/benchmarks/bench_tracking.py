@@ -154,8 +154,8 @@ def timings() -> dict[str, float]:
         for codes, _ in recs:
             _naive_track(codes)
 
-    return {"ours": best_time_s(ours, repeat=100), "fft": best_time_s(fft_batched, repeat=10),
-            "naive": best_time_s(naive, repeat=2), "ours_cpu": _best_cpu_s(ours, 100),
+    return {"ours": best_time_s(ours, repeat=300), "fft": best_time_s(fft_batched, repeat=10),
+            "naive": best_time_s(naive, repeat=2), "ours_cpu": _best_cpu_s(ours, 300),
             "naive_cpu": _best_cpu_s(naive, 2)}
 
 
