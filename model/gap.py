@@ -34,6 +34,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 from scipy.optimize import least_squares
+from scipy.stats import chi2 as chi2_dist
 
 from pelvislab.model.correlation import comac, frac
 from pelvislab.model.gap_effects import (
@@ -59,7 +60,9 @@ class GapOptions:
       updating alone; ``near_noise_gap``: gap_after counted as "near noise";
     * ``min_shrink``: a candidate that removes at least this fraction of the gap explains
       it even when the rest is not yet at noise level (its form differs from reality);
-    * ``significance``: held-out χ² drop (per line units) a candidate must achieve;
+    * ``p_value``: level of the likelihood-ratio test a candidate's held-out χ² drop must
+      pass (Bonferroni over the places tried); ``significance_rel``: minimum relative drop
+      when σ is estimated from the data;
     * ``variants_per_effect``: best-screened variants of each effect that get a joint fit
       with the base parameters (global ones always), at ``places_per_variant`` best places
       plus the place carrying the largest residual share.
@@ -70,7 +73,7 @@ class GapOptions:
     none_gap: float = 0.5
     near_noise_gap: float = 1.0
     min_shrink: float = 0.6
-    significance: float = 25.0
+    p_value: float = 1e-3
     significance_rel: float = 0.02
     places_per_variant: int = 1
     variants_per_effect: int = 2
@@ -628,6 +631,19 @@ def _context(model: PelvisModel, data: GapData) -> Context:
                    data.in_bones, data.in_position_m)
 
 
+def _significance_threshold(res: CandidateResult, opt: GapOptions, chi2_base: float,
+                            exact_noise: bool) -> float:
+    """Held-out χ² drop a candidate needs to count as real: a likelihood-ratio test with k
+    extra parameters at ``opt.p_value`` divided by the number of places tried (Bonferroni,
+    the search over places is part of the fit), and, when σ was estimated rather than
+    given, at least ``significance_rel`` of χ² (a few % error in σ moves χ² that much)."""
+    n_tests = max(1, res.screened_places)
+    crit = float(chi2_dist.isf(opt.p_value / n_tests, res.candidate.n_params))
+    if not exact_noise:
+        crit = max(crit, opt.significance_rel * chi2_base)
+    return crit
+
+
 def _top_place(where: dict[str, object], place_kind: str) -> str:
     """The output, input or bone carrying the largest residual share."""
     key = {"output": "outputs", "input": "inputs", "bone": "bones", "joint": "bones"}.get(
@@ -778,13 +794,15 @@ def diagnose(data: GapData, model: PelvisModel, options: GapOptions | None = Non
         verdict = "none" if gap_before <= opt.none_gap else "unexplained"
         reason = "no candidates"
     else:
-        improvement = chi2_base - best.score
+        improvement = chi2_base - best.chi2_heldout
         shrink = 1.0 - best.gap_after / gap_before if gap_before > 0 else 0.0
-        significant = improvement > max(opt.significance, opt.significance_rel * chi2_base)
+        crit = _significance_threshold(best, opt, chi2_base, data.noise_source == "H_std")
+        significant = improvement > crit
         if gap_before <= opt.none_gap and not significant:
             verdict = "none"
-            reason = (f"base gap {gap_before:.3g} <= {opt.none_gap} and no candidate improves "
-                      f"the held-out chi2 by more than {opt.significance}")
+            reason = (f"base gap {gap_before:.3g} <= {opt.none_gap} and the best candidate "
+                      f"({best.candidate.effect}) lowers the held-out chi2 by "
+                      f"{improvement:.3g} < {crit:.3g} (not significant)")
         elif significant and (best.gap_after <= opt.near_noise_gap or shrink >= opt.min_shrink):
             verdict = best.candidate.effect
             reason = (f"{best.candidate.effect} brings the held-out gap from {gap_before:.3g} "
@@ -816,7 +834,8 @@ def diagnose(data: GapData, model: PelvisModel, options: GapOptions | None = Non
         "base_fit": {"gap_fitted_lines": _round(base.gap_fit), "starts": base.starts,
                      "parameters": {n: _round(v) for n, v in zip(names, theta, strict=True)}},
         "thresholds": {"none_gap": opt.none_gap, "near_noise_gap": opt.near_noise_gap,
-                       "min_shrink": opt.min_shrink, "significance_chi2": opt.significance},
+                       "min_shrink": opt.min_shrink, "p_value": opt.p_value,
+                       "significance_rel_estimated_noise": opt.significance_rel},
         "timing_s": {k: _round(v, 4) for k, v in timing.items()},
     }
     return Diagnosis(report, H_base, H_best, residual_map, data, timing)
