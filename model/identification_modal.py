@@ -98,7 +98,7 @@ def identify_modal(
     max_nfev: int = 100,
     progress: Callable[[str], None] | None = None,
 ) -> FitResult:
-    """Gauss-Newton modal updating of the ``free`` parameters (default: masses + springs).
+    """Gauss-Newton modal updating of the ``free`` parameters (default: the stiffnesses).
 
     Measured shapes live at the rows of ``problem.outputs``. Model modes below 1e-6 x the
     largest eigenvalue (rigid-body modes) are never paired. Mode pairing by maximum MAC
@@ -106,8 +106,8 @@ def identify_modal(
     """
     t0 = time.perf_counter()
     names = list(problem.names)
-    if free is None:
-        free = [n for n in names if not n.startswith("c_")]
+    if free is None:  # masses + stiffnesses together are invisible up to scale (eq. 6.7-6.9)
+        free = [n for n in names if n.startswith("k_")] or list(names)
     unknown = [n for n in free if n not in names]
     if unknown:
         raise ValueError(f"unknown parameter(s) {unknown}; the model has {names}")

@@ -1,0 +1,77 @@
+"""``pelvislab identify``: JSON of design 4.5 from an FRF-only file, clear errors."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from pelvislab.acquisition.frfset import FrfSet, write_frf
+from pelvislab.app.cli import main
+from pelvislab.model.identification import frf_with_jacobian
+from pelvislab.model.identification_pelvis import FACE_UP, layout_channels, pelvis_problem
+from pelvislab.model.pelvis import default_model
+
+
+def _frf_file(path: Path, scale: dict[str, float], with_std: bool = False) -> FrfSet:
+    outs, ins, mask = layout_channels(FACE_UP)
+    problem, space = pelvis_problem(default_model(), outs, ins)
+    values = space.values().copy()
+    for name, factor in scale.items():
+        values[space.index(name)] *= factor
+    f = np.arange(5.0, 300.0, 5.0)
+    H, _ = frf_with_jacobian(problem.assemble(values), problem.outputs, problem.inputs, f,
+                             jacobian=False)
+    H = np.where(mask[None], H, np.nan)
+    std = np.where(mask[None], 1e-3 * np.abs(H), np.nan) if with_std else None
+    frf = FrfSet(f, H, outs, ins, H_std=std)
+    write_frf(path, frf)
+    return frf
+
+
+def test_identify_writes_design_json(tmp_path: Path) -> None:
+    src = tmp_path / "frf.h5"
+    _frf_file(src, {"k_pubh": 1.3, "k_pubs": 0.8})
+    out = tmp_path / "out.json"
+    code = main(["identify", str(src), "--params", "k_pubh,k_pubs", "--json", str(out)])
+    assert code == 0
+    doc = json.loads(out.read_text())
+    assert set(doc["parameters"]) == {"k_pubh", "k_pubs"}
+    assert doc["parameters"]["k_pubh"]["value"] == pytest.approx(1.3e5, rel=1e-6)
+    assert doc["parameters"]["k_pubs"]["value"] == pytest.approx(0.8 * 5e3, rel=1e-6)
+    assert doc["converged"] is True
+    for key in ("cost", "evaluations", "wall_time_s", "identifiability", "correlation"):
+        assert key in doc
+    assert isinstance(doc["evaluations"], int) and doc["wall_time_s"] > 0
+
+
+def test_identify_with_h_std_uses_chi_square(tmp_path: Path) -> None:
+    src = tmp_path / "frf.h5"
+    _frf_file(src, {"m_sacrum": 1.1}, with_std=True)
+    out = tmp_path / "out.json"
+    assert main(["identify", str(src), "--params", "m_sacrum,k_io_R", "--json", str(out)]) == 0
+    doc = json.loads(out.read_text())
+    assert doc["residual"] == "std"
+    assert doc["parameters"]["m_sacrum"]["value"] == pytest.approx(0.396, rel=1e-6)
+    assert doc["parameters"]["m_sacrum"]["std"] > 0
+
+
+def test_bad_file_gives_one_line_error(tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
+    bad = tmp_path / "bad.h5"
+    bad.write_bytes(b"not hdf5 at all")
+    code = main(["identify", str(bad), "--json", str(tmp_path / "o.json")])
+    err = capsys.readouterr().err.strip()
+    assert code == 1
+    assert len(err.splitlines()) == 1 and "bad.h5" in err
+    assert main(["identify", str(tmp_path / "missing.h5"), "--json", "o.json"]) == 1
+    assert "no such file" in capsys.readouterr().err
+
+
+def test_unknown_parameter_is_named(tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
+    src = tmp_path / "frf.h5"
+    _frf_file(src, {})
+    code = main(["identify", str(src), "--params", "k_nope", "--json", str(tmp_path / "o.json")])
+    assert code == 1
+    assert "k_nope" in capsys.readouterr().err
