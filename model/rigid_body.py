@@ -167,9 +167,14 @@ def check_channels(shapes: np.ndarray, bones: list[str], position_m: np.ndarray,
     For every checked channel the direction ``d*`` that best explains its readings by the
     predicted 3-D motion ``U`` (least squares ``Re/Im(U^T d*) ~ psi``) and the position shift
     ``dp`` with ``psi - d.U(p) ~ dp . (d x theta)`` are returned as diagnostics.
+    Each shape is scaled to unit norm first, so every line or mode counts equally.
     """
     x = np.asarray(shapes)
     x = x[:, None] if x.ndim == 1 else x
+    # every shape counts equally (FRF lines near a resonance or at low frequency would
+    # otherwise dominate the residuals)
+    col = np.linalg.norm(x, axis=0)
+    x = x / np.where(col > 0, col, 1.0)[None, :]
     p = np.asarray(position_m, dtype=float).reshape(-1, 3)
     d = np.asarray(direction, dtype=float).reshape(-1, 3)
     n = x.shape[0]

@@ -69,3 +69,33 @@ def test_bad_input_gives_one_line_errors(session, tmp_path, capsys):
     assert main(["ema", str(tmp_path / "junk.h5"), "--json", "-"]) == 1
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and "Traceback" not in err
+
+
+def test_pelvis_session_reports_rigid_content_and_flags_a_misoriented_sensor(tmp_path, capsys):
+    from pelvislab.model.frf import Points, frf
+    from pelvislab.model.pelvis import load_model
+    from pelvislab.tests.test_ema_rigid_body import triaxial_geometry
+
+    model = load_model()
+    bones, pos, dirs = triaxial_geometry()
+    true_dirs = dirs.copy()
+    a = np.radians(30.0)
+    true_dirs[4] = [np.sin(a), np.cos(a), 0.0]  # SIPS_R y sensor actually 30 deg off
+    f = np.arange(5.0, 300.01, 2.5)
+    drive = Points(("innominate_left", "sacrum"), pos[[15, 30]], [[0.0, 1.0, 0.0], [1.0, 0, 0]])
+    H = add_noise(frf(model, f, Points(tuple(bones), pos, true_dirs), drive), 0.01, seed=3)
+    names = [f"c{k}" for k in range(len(bones))]
+    outputs = Channels(names, bones, pos, dirs)  # the file states the nominal directions
+    inputs = Channels(["drive", "sacrum_drive"], ["innominate_left", "sacrum"], pos[[15, 30]],
+                      [[0.0, 1.0, 0.0], [1.0, 0.0, 0.0]])
+    write_frf(tmp_path / "p.h5", FrfSet(f, H, outputs, inputs))
+    assert main(["ema", str(tmp_path / "p.h5"), "--json", str(tmp_path / "p.json")]) == 0
+    doc = json.loads((tmp_path / "p.json").read_text())
+    assert len(doc["modes"]) == 5
+    for m in doc["modes"]:
+        rb = m["rigid_body"]
+        assert 0 <= rb["global_content"] <= 1
+        assert set(rb["bone_rigidity"]) == {"innominate_right", "innominate_left", "sacrum"}
+    flagged = [c["name"] for c in doc["channel_check"] if c["flagged"]]
+    assert flagged == ["c4"]
+    assert "channel c4 is inconsistent" in capsys.readouterr().err

@@ -1,7 +1,8 @@
 """``pelvislab ema``: experimental modal analysis from /frf (thesis ch. 10-11, 14).
 
 Poles by p-LSCF with a stabilisation diagram, residues by LSFD (``pelvislab.model.ema``),
-rigid-body content of the shapes (``pelvislab.model.rigid_body``). Writes a JSON file
+rigid-body content of the shapes and a per-channel rigid-motion check
+(``pelvislab.model.rigid_body``). Writes a JSON file
 (``-`` for stdout) and prints a one-line-per-mode summary on stderr.
 """
 
@@ -67,6 +68,7 @@ def result_to_json(frf: object, result: object, diagram: bool = True) -> dict:
                       "bone_rigidity": {bone: float(b.rigidity[bone][r]) for bone in b.bones
                                         if b.rank[bone] == 6}}
                      for r in range(shapes.shape[1])]
+    checks = _channel_check(frf, result)
     modes = []
     for r in range(result.frequency_hz.size):
         modes.append({
@@ -95,9 +97,41 @@ def result_to_json(frf: object, result: object, diagram: bool = True) -> dict:
         "notes": list(result.notes),
         "method": "p-LSCF (z-domain) poles, LSFD residues with lower/upper residuals",
     }
+    if checks is not None:
+        doc["channel_check"] = checks
     if diagram and result.diagram is not None:
         doc["stabilisation"] = result.diagram.as_rows()
     return _clean(doc)
+
+
+def _channel_check(frf: object, result: object) -> list[dict] | None:
+    """Rigid-motion check of every output channel (``rigid_body.check_channels``).
+
+    Shapes: the measured FRF lines of the band (operating deflection shapes, one per line and
+    input, where every output was measured); if fewer than 6, the identified mode shapes.
+    None when no output lies on a bone.
+    """
+    import numpy as np
+
+    from pelvislab.model.rigid_body import check_channels
+
+    outputs = frf.outputs
+    if not any(outputs.bone):
+        return None
+    H = result.H_measured  # (n_f, n_out, n_in) in the band
+    cols = [H[k, :, i] for k in range(H.shape[0]) for i in range(H.shape[2])
+            if np.all(np.isfinite(H[k, :, i]))]
+    shapes = np.array(cols).T if len(cols) >= 6 else result.shapes
+    if shapes.size == 0 or not np.all(np.isfinite(shapes)):
+        return None
+    check = check_channels(shapes, outputs.bone, outputs.position_m, outputs.direction)
+    return [{"name": outputs.name[c], "bone": outputs.bone[c],
+             "relative_residual": float(check.relative_residual[c]),
+             "flagged": bool(check.flagged[c]),
+             "direction_error_deg": float(check.direction_error_deg[c]),
+             "best_direction": check.best_direction[c].tolist(),
+             "position_shift_m": check.position_shift_m[c].tolist()}
+            for c in range(len(outputs))]
 
 
 def run_ema(args: argparse.Namespace) -> int:
@@ -122,6 +156,11 @@ def run_ema(args: argparse.Namespace) -> int:
               f"complexity {m['complexity']:.3f}", file=sys.stderr)
     for note in doc["notes"]:
         print(f"note: {note}", file=sys.stderr)
+    for c in doc.get("channel_check") or []:
+        if c["flagged"]:
+            print(f"channel {c['name']} is inconsistent with rigid motion of {c['bone']} "
+                  f"(residual {c['relative_residual']:.2f}; best direction "
+                  f"{c['direction_error_deg']:.0f} deg off)", file=sys.stderr)
     if not doc["modes"]:
         print("no mode found in the band", file=sys.stderr)
     return 0
