@@ -83,6 +83,8 @@ class GapOptions:
     max_nfev_screen: int = 12
     max_nfev_joint: int = 40
     max_nfev_short: int = 20
+    polish: bool = True
+    polish_min_shrink: float = 0.3
     finish_jobs: int = 6
     robust_scale: float = 3.0
     effects: tuple[str, ...] | None = None
@@ -778,6 +780,40 @@ def diagnose(data: GapData, model: PelvisModel, options: GapOptions | None = Non
         results.append(CandidateResult(cand, uu, th, gfit, gap_after, chi2,
                                        chi2 + 2 * cand.n_params, n_screened))
     timing["joint_fit_s"] = time.perf_counter() - t2
+    # polish: when the best candidate removes much but not all of the gap, its effect is
+    # refitted at every place on the same bone/channel from all of its starts (resonance
+    # frequencies over the band), from the grid start: local minima in the effect
+    # parameters are the usual reason for a partial fit
+    lead = min(results, key=lambda r: r.score) if results else None
+    if (lead is not None and opt.polish and lead.candidate.place_kind != "global"
+            and gap_before > opt.none_gap and lead.gap_after > opt.near_noise_gap
+            and 1 - lead.gap_after / max(gap_before, 1e-12) >= opt.polish_min_shrink):
+        t3 = time.perf_counter()
+        key = lead.candidate.bone or lead.candidate.place
+        grid_theta = np.exp(base.grid_start) if base.grid_start is not None else theta
+        for cand in cands:
+            if cand.effect != lead.candidate.effect or cand.place_kind != lead.candidate.place_kind:
+                continue
+            if key not in (cand.bone, cand.place):
+                continue
+            best_start = (float("inf"), None)
+            probe = _Model(fit, cand, grid_theta, len(grid_theta))
+            scored = []
+            for u0 in cand.starts:
+                u0 = np.clip(u0, cand.lower + 1e-9, cand.upper - 1e-9)
+                scored.append((_robust_cost(probe.residual(u0), opt.robust_scale), u0))
+            scored.sort(key=lambda t: t[0])
+            for _c, u0 in scored[:2]:
+                cost, x = _joint_start(cand, fit, [grid_theta], u0, bounds, opt)
+                if cost < best_start[0]:
+                    best_start = (cost, x)
+            if best_start[1] is None:
+                continue
+            th, uu, gfit, chi2 = _joint_finish(cand, fit, held, best_start[1], bounds, opt,
+                                               opt.max_nfev_joint)
+            results.append(CandidateResult(cand, uu, th, gfit, excess_gap(chi2, held.n), chi2,
+                                           chi2 + 2 * cand.n_params, lead.screened_places))
+        timing["polish_s"] = time.perf_counter() - t3
     # one entry per effect: its best-scoring variant and place
     best_by_effect: dict[str, CandidateResult] = {}
     for res in results:
