@@ -119,6 +119,10 @@ def _line(text: str, what: str) -> str:
 
 
 def _channel_lines(prefix: str, dprefix: str, channels: Channels, k: int) -> tuple[str, str]:
+    name = channels.name[k]
+    if not name or name != name.strip() or not name.isprintable() or not name.isascii():
+        raise ValueError(f"channel name {name!r} cannot be written to a UFF ID line "
+                         "(printable ASCII without leading/trailing blanks)")
     bone = channels.bone[k] or "-"
     d = channels.direction[k]
     return (
@@ -163,6 +167,9 @@ def uff_datasets(frf: FrfSet, modes: UffModes | None = None, binary: bool = True
                 continue
             id2, id4 = _channel_lines("out", "do", frf.outputs, o)
             id3, id5 = _channel_lines("in", "di", frf.inputs, i)
+            x, values = frf.frequency_hz[ok], frf.H[ok, o, i].astype(complex)
+            if x.size == 1:  # pyuff cannot write a one-point record: repeat the point
+                x, values = np.repeat(x, 2), np.repeat(values, 2)
             sets.append(pyuff.prepare_58(
                 binary=1 if binary else 0, id1=MARKER, id2=id2, id3=id3, id4=id4, id5=id5,
                 func_type=FUNC_FRF, rsp_ent_name="pelvislab", rsp_node=out_nodes[o],
@@ -173,7 +180,7 @@ def uff_datasets(frf: FrfSet, modes: UffModes | None = None, binary: bool = True
                 ordinate_len_unit_exp=1, ordinate_axis_units_lab="m",
                 orddenom_spec_data_type=SPEC_FORCE, orddenom_force_unit_exp=1,
                 orddenom_axis_units_lab="N",
-                x=frf.frequency_hz[ok].copy(), data=frf.H[ok, o, i].astype(complex)))
+                x=x.copy(), data=values.copy()))
     if modes is not None:
         sets.extend(_mode_datasets(frf, modes, out_nodes))
     return sets
@@ -393,6 +400,7 @@ def read_uff(path: str | Path, points: dict[int, PointInfo] | None = None
 
     out_keys = list(outputs)
     in_keys = list(inputs)
+    # (a repeated abscissa, as pelvislab writes one-line records, lands on the same line)
     grid = np.unique(np.concatenate([e[2] for e in entries]))
     H = np.full((grid.size, len(out_keys), len(in_keys)), np.nan + 0j)
     for ko, ki, x, values in entries:

@@ -7,6 +7,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 import pyuff
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from pelvislab.acquisition.frfset import Channels, FrfSet
 from pelvislab.acquisition.uff import (
@@ -181,3 +183,45 @@ def test_real_beam_accelerance_imports_as_receptance(tmp_path):
     assert any("no coordinates" in n for n in notes)
     w = 2 * np.pi * f[1:]
     np.testing.assert_allclose(frf.H[1:, :, 0], (-A[:, 1:] / w**2).T, rtol=1e-12)
+
+
+_names = st.text(alphabet=st.characters(min_codepoint=33, max_codepoint=126), min_size=1,
+                 max_size=20)
+
+
+@settings(max_examples=8, deadline=None)
+@given(n_out=st.integers(1, 4), n_in=st.integers(1, 2), n_f=st.integers(2, 12),
+       seed=st.integers(0, 10_000), names=st.lists(_names, min_size=6, max_size=6, unique=True))
+def test_round_trip_property(tmp_path_factory, n_out, n_in, n_f, seed, names):
+    rng = np.random.default_rng(seed)
+    bones = ["innominate_right", "innominate_left", "sacrum", ""]
+
+    def channels(names_k):
+        d = rng.normal(size=(len(names_k), 3))
+        d /= np.linalg.norm(d, axis=1, keepdims=True)
+        d[0] = np.eye(3)[seed % 3] * (-1) ** seed  # one axis direction
+        return Channels(names_k, [bones[rng.integers(4)] for _ in names_k],
+                        rng.normal(size=(len(names_k), 3)), d)
+
+    out = channels(names[:n_out])
+    inp = channels(names[4:4 + n_in])
+    f = np.sort(rng.choice(np.linspace(0.5, 500.0, 1000), n_f, replace=False))
+    H = rng.normal(size=(n_f, n_out, n_in)) + 1j * rng.normal(size=(n_f, n_out, n_in))
+    H[rng.random(H.shape) < 0.2] = np.nan
+    H[:, 0, 0] = 1e-7 * (1 + 1j)  # every line keeps at least one measured FRF
+    frf = FrfSet(f, H, out, inp)
+    path = tmp_path_factory.mktemp("prop") / "p.uff"
+    write_uff(path, frf)
+    back, _ = read_uff(path)
+    np.testing.assert_array_equal(back.frequency_hz, f)
+    np.testing.assert_array_equal(back.H, H)
+    assert back.outputs.name == out.name and back.inputs.bone == inp.bone
+    np.testing.assert_array_equal(back.outputs.direction, out.direction)
+    np.testing.assert_array_equal(back.inputs.position_m, inp.position_m)
+
+
+def test_unwritable_names_are_refused(tmp_path):
+    frf = sample_frfset()
+    frf.outputs.name[0] = " padded"
+    with pytest.raises(ValueError, match="cannot be written"):
+        write_uff(tmp_path / "n.uff", frf)
