@@ -148,13 +148,19 @@ def test_shape_change_rebuilds_the_reference():
 def test_echo_leaving_the_record_is_lost_not_wrong():
     rng = np.random.default_rng(6)
     n = 600
-    d = np.linspace(0.0, 250e-6, n)  # 160 samples: the echo walks out of the 500-sample record
+    # 450 um = 292 samples earlier: the echo centre (sample 250) walks out of the record.
+    d = np.linspace(0.0, 450e-6, n)
     codes, off = synth_echoes(_arrival(d), snr_db=30.0, rng=rng)
     res = track_echoes(codes, off, FS, C)
     assert res.lost[-1] and not res.lost[0]
     ok = ~res.lost
     assert np.all(np.isnan(res.displacement_m[res.lost]))
     assert np.abs(res.displacement_m[ok] - (d - d[0])[ok]).max() < 1e-6
+    # Lost exactly where the echo is mostly outside the record, and said so.
+    centre = 250 - 2 * d / C * FS
+    # (less than min_in_record = 70 % of its energy inside: centre below ~23 samples)
+    assert not res.lost[centre > 40].any() and res.lost[centre < 10].all()
+    assert any("left the recorded window" in w and "record's start" in w for w in res.warnings)
 
 
 def test_noise_only_segments_are_lost():
@@ -243,3 +249,40 @@ def test_bad_input_is_refused_clearly():
         track_echoes(codes, None, FS, C, options=TrackingOptions(gate=(100, 300)))
     with pytest.raises(ValueError, match="flat"):
         track_echoes(codes, None, FS, C)
+
+
+@pytest.mark.parametrize(("pp_um", "t0_us"), [(150.0, 0.68), (300.0, 0.6)])
+def test_large_slow_motion_inside_the_record_is_tracked(pp_um, t0_us):
+    # 5 Hz rigid-body motion of 150-300 um peak-to-peak (100-195 samples of delay). The echo
+    # sits late in the record, so at the far extreme its tail is cut by the record's end
+    # while the echo itself stays inside: every echo must be tracked, at the bound (before
+    # the fix 73 % of the 300 um record was lost).
+    rng = np.random.default_rng(11)
+    n = 2000
+    d = 0.5 * pp_um * 1e-6 * np.sin(2 * np.pi * 5.0 * np.arange(n) / PRF + 0.3)
+    arrival = t0_us * 1e-6 - 2.0 * d / C
+    codes, off = synth_echoes(arrival, snr_db=30.0, rng=rng)
+    res = track_echoes(codes, off, FS, C)
+    crb_m = C / 2 * delay_crb_s(amplitude_counts=100.0, noise_sd_counts=noise_sd_counts(100, 30))
+    err = res.displacement_m - (d - d[0])
+    assert not res.lost.any()
+    assert np.std(err) < 1.3 * crb_m
+    assert np.abs(err - np.mean(err)).max() < 6 * crb_m
+    assert not any("left the recorded window" in w for w in res.warnings)
+
+
+def test_large_slow_motion_leaving_the_record_is_flagged():
+    # 900 um peak-to-peak at 5 Hz: 584 samples of delay, the echo centre leaves the
+    # 500-sample record at both extremes. Those echoes are lost with a warning naming the
+    # cause; the others are right (the partly cut ones at their own, larger bound).
+    rng = np.random.default_rng(12)
+    n = 2000
+    d = 450e-6 * np.sin(2 * np.pi * 5.0 * np.arange(n) / PRF)
+    codes, off = synth_echoes(_arrival(d), snr_db=30.0, rng=rng)
+    res = track_echoes(codes, off, FS, C)
+    centre = 250 - 2 * d / C * FS
+    assert res.lost[(centre < 10) | (centre > 490)].all()
+    assert not res.lost[(centre > 40) & (centre < 460)].any()
+    ok = ~res.lost
+    assert np.abs(res.displacement_m[ok] - (d - d[0])[ok]).max() < 1e-6
+    assert any("left the recorded window" in w and "both sides" in w for w in res.warnings)
