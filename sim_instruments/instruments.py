@@ -8,7 +8,9 @@
   injected at this level, so the driver's own error handling is what gets exercised.
 - Digitizer and pulser/receivers: Python classes implementing the Protocols of
   ``pelvislab.drivers.interfaces``, with a command log of the calls the real drivers
-  would make.
+  would make. (The bench can also run the product's Acqiris and 5077PR drivers over a
+  simulated library / serial port: ``acqiris_sim.py``, ``panametrics_sim.py``; the 5077PR
+  driver is the default pulser.)
 """
 
 from __future__ import annotations
