@@ -91,7 +91,7 @@ def _random_effect(kind: str, rng: np.random.Generator, model: PelvisModel
                           mass_kg=float(rng.uniform(0.02, 0.1)), inputs=(INPUTS.name[j],))
         return e, INPUTS.name[j], "input", INPUTS.bone[j], {"k": e.stiffness_n_per_m}
     if kind == "frequency_dependent_stiffness":
-        e = fx.FrequencyDependentStiffness(f_k=float(rng.uniform(1.0, 3.0)),
+        e = fx.FrequencyDependentStiffness(f_k=float(rng.uniform(2.5, 5.0)),
                                            f_max_hz=float(FREQUENCY_HZ.max()))
         return e, "", "global", "", {"f_k": e.f_k}
     if kind == "hysteretic_damping":
@@ -174,7 +174,7 @@ def _model_effect_frf(kind: str, rng: np.random.Generator, model: PelvisModel
                                       10 ** rng.uniform(4.7, 5.7)))
         return frf(m2, f, OUTPUTS, INPUTS), *_ligament_place(a[0], b[0]), {}
     if kind == "frequency_dependent_stiffness":
-        m2 = model.with_frequency_dependence(f_k=rng.uniform(1.0, 3.0), f_max_hz=f.max())
+        m2 = model.with_frequency_dependence(f_k=rng.uniform(2.5, 5.0), f_max_hz=f.max())
         return frf(m2, f, OUTPUTS, INPUTS), "", "global", "", {}
     if kind == "hysteretic_damping":
         m2 = model.with_frequency_dependence(f_c=rng.uniform(0.5, 1.0), f_max_hz=f.max())
