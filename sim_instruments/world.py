@@ -370,33 +370,46 @@ class World:
                 n_segments: int, delay_s: float, full_scale_v: float, offset_v: float,
                 timeout_s: float) -> dict[int, SegmentedRecord]:
         """One sequence acquisition on ``channels``; raises like the real digitizer."""
+        # waits happen outside the lock: in realtime pacing a timeout must not block the
+        # other instruments (a pulser's safe state during an abort)
+        failure: Exception | None = None
+        wait_failure = True
         with self._lock:
             index = self.acquisitions
             self.acquisitions += 1
             fault = self.faults.digitizer_fault(index)
+            trig = self.trigger
+            prf = trig.prf_hz
+            drive = self.drive
+            wait_s = 0.0
+            duration = math.inf
             if fault is not None:
                 if self.faults.digitizer_lost(index):
-                    raise InstrumentConnectionError("simulated digitizer: connection lost "
-                                                    f"(acquisition {index})")
+                    wait_failure = False
+                    failure = InstrumentConnectionError(
+                        f"simulated digitizer: connection lost (acquisition {index})")
+                else:
+                    failure = InstrumentTimeoutError(
+                        f"simulated digitizer: acquisition {index} did not end within "
+                        f"{timeout_s:g} s (injected fault)")
+            else:
+                why = self._no_trigger_reason(n_segments)
+                if why is None and self._synced():
+                    wait_s = 1.0 / drive.frequency_hz  # at most one period to the next edge
+                if why is None:
+                    duration = n_segments / prf
+                    if wait_s + duration > timeout_s:
+                        why = (f"{n_segments} pulses at {prf:g} Hz take {duration:g} s, "
+                               f"longer than the timeout {timeout_s:g} s")
+                if why is not None:
+                    failure = InstrumentTimeoutError(
+                        f"simulated digitizer: no end of acquisition within {timeout_s:g} s: "
+                        f"{why}")
+        if failure is not None:
+            if wait_failure:
                 self.clock.wait(timeout_s)
-                raise InstrumentTimeoutError(
-                    f"simulated digitizer: acquisition {index} did not end within "
-                    f"{timeout_s:g} s (injected fault)")
-            trig = self.trigger
-            why = self._no_trigger_reason(n_segments)
-            prf = trig.prf_hz
-            wait_s = 0.0
-            drive = self.drive
-            if why is None and self._synced():
-                wait_s = 1.0 / drive.frequency_hz  # at most one period to the next edge
-            duration = n_segments / prf if why is None else math.inf
-            if why is None and wait_s + duration > timeout_s:
-                why = (f"{n_segments} pulses at {prf:g} Hz take {duration:g} s, longer than "
-                       f"the timeout {timeout_s:g} s")
-            if why is not None:
-                self.clock.wait(timeout_s)
-                raise InstrumentTimeoutError(f"simulated digitizer: no end of acquisition "
-                                             f"within {timeout_s:g} s: {why}")
+            raise failure
+        with self._lock:
             start = self.clock.now()
             if self._synced():
                 # the burst starts on the next SYNC edge (sine phase 0) plus the latency

@@ -355,3 +355,16 @@ def test_pulser_faults_with_the_real_driver():
             b.pulsers[1].configure(40.0, "low", 50.0, None, None)
         b.safe_state()  # never raises
         assert b.pulsers[1].safe_state_errors
+
+
+def test_a_simulated_bench_file_supplies_calibration_and_limits(tmp_path):
+    path = tmp_path / "sim.toml"
+    path.write_text('[bench]\nname = "sim"\nsimulated = true\n[limits]\nmax_drive_vpp = 0.5\n'
+                    '[calibration]\ndrive_newton_per_volt = "2-1j"\n', encoding="utf-8")
+    with open_bench(path) as b:
+        assert b.simulated and b.config.max_drive_vpp == 0.5
+        with pytest.raises(LimitError):
+            b.drive.configure_sine(80.0, 0.6)
+        _arm(b, n=100, vpp=0.4)
+        b.digitizer.acquire(2.0)
+        assert b.world.truth[-1].force_phasor_n == pytest.approx((2 - 1j) * -0.2j)
