@@ -105,7 +105,8 @@ def format_report(report: dict) -> str:
     """A readable text version of the design 4.4 report."""
     lines = [f"sim-to-real gap diagnosis: verdict = {report['verdict']}",
              f"  {report.get('verdict_reason', '')}",
-             f"  gap before (held-out, 1 = noise level): {report['gap_before']:.3g}"
+             f"  gap before (held-out model error beyond noise, in sigma; 0 = noise level): "
+             f"{report['gap_before']:.3g}"
              f"   noise: {report.get('noise', {}).get('source', '?')}"]
     where = report["where"]
     lines.append("where:")
