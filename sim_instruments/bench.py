@@ -34,6 +34,8 @@ timeouts take wall-clock time, like the driver's).
 ``pulsers`` ("panametrics"): the product's ``Panametrics5077PR`` driver over a simulated
 serial port (``SimSerialPort``, answering the driver's declared command table), or
 "python": the ``SimPulserReceiver`` class.
+``phantom``: a ``world.Phantom`` (piezoshaker and two-body phantom of ch. 8.3) used when the
+excitation point is on no bone (the validation protocols); default ``Phantom()``.
 ``trigger_source`` ("drive_sync"): bursts start on the drive's SYNC edge; "internal": at a
 random drive phase. ``trigger_latency_s`` (0), ``trigger_jitter_s`` (0): SYNC-to-first-pulse
 delay and unmeasured trigger timing noise (RMS).
@@ -72,7 +74,7 @@ SIM_RESOURCES = {
 _OPTIONS = {"seed", "pacing", "model", "effects", "faults", "snr_db", "excitation",
             "excitation_direction", "channels", "acoustics", "bone_depth_m", "generators",
             "trigger_source", "trigger_latency_s", "trigger_jitter_s", "digitizer",
-            "pulsers"}
+            "pulsers", "phantom"}
 
 
 @dataclass
@@ -146,7 +148,8 @@ def open_simulated_bench(config: BenchConfig | None = None, **sim_options: Any) 
                   seed=int(opt.get("seed", 0)), snr_db=float(opt.get("snr_db", 30.0)),
                   trigger_source=opt.get("trigger_source", "drive_sync"),
                   trigger_latency_s=float(opt.get("trigger_latency_s", 0.0)),
-                  trigger_jitter_s=float(opt.get("trigger_jitter_s", 0.0)))
+                  trigger_jitter_s=float(opt.get("trigger_jitter_s", 0.0)),
+                  phantom=opt.get("phantom"))
     kind = opt.get("generators", "pyvisa-sim")
     if kind not in ("pyvisa-sim", "python"):
         raise ValueError(f"generators must be 'pyvisa-sim' or 'python', got {kind!r}")

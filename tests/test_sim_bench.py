@@ -368,3 +368,23 @@ def test_a_simulated_bench_file_supplies_calibration_and_limits(tmp_path):
         _arm(b, n=100, vpp=0.4)
         b.digitizer.acquire(2.0)
         assert b.world.truth[-1].force_phasor_n == pytest.approx((2 - 1j) * -0.2j)
+
+
+def test_validation_phantoms_of_chapter_8(bench):
+    from pelvislab.sim_instruments.layout import Landmark
+    from pelvislab.sim_instruments.world import Phantom
+
+    a = Landmark("body_a", "", (0.0, 0.0, 0.0), (0.0, 0.0, 1.0))
+    b = Landmark("body_b", "", (0.0, 0.0, 0.02), (0.0, 0.0, 1.0))
+    bench.world.place(excitation=a, channels={1: a, 2: b}, excitation_direction=(0, 0, 1))
+    _arm(bench, n=2000, frequency_hz=200.0, vpp=0.2)
+    records = bench.digitizer.acquire(5.0)
+    # the piezo face moves 10 um/V in phase with the drive voltage (-i Vpp/2 at pulse 0)
+    truth = bench.world.truth[-1]
+    assert truth.displacement_phasor_m[1] == pytest.approx(1e-5 * -0.1j)
+    ua = phasor(track(records[1], 1480.0), PRF, 200.0)  # water/gel: the protocols say 1480
+    ub = phasor(track(records[2], 1480.0), PRF, 200.0)
+    assert ua == pytest.approx(1e-5 * -0.1j, rel=0.02)
+    T = Phantom().transmissibility(200.0)
+    assert np.degrees(np.angle(ub / ua)) == pytest.approx(np.degrees(np.angle(T)), abs=2.0)
+    assert np.degrees(np.angle(T)) == pytest.approx(-80.9, abs=5.0)  # table 8.1 at 200 Hz
