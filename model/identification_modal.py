@@ -27,7 +27,12 @@ import numpy as np
 from scipy.linalg import eigh
 from scipy.optimize import least_squares
 
-from pelvislab.model.identification import FitResult, FrfProblem, covariance_report
+from pelvislab.model.identification import (
+    FitResult,
+    FrfProblem,
+    covariance_report,
+    one_blas_thread,
+)
 
 
 @dataclass(frozen=True)
@@ -85,6 +90,7 @@ def mac(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return num / np.outer(np.sum(a * a, 0), np.sum(b * b, 0))
 
 
+@one_blas_thread
 def identify_modal(
     problem: FrfProblem,
     data: ModalData,

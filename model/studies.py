@@ -33,6 +33,7 @@ from pelvislab.model.identification import (
     Strategy,
     frf_with_jacobian,
     identify_frf,
+    one_blas_thread,
 )
 from pelvislab.model.identification_pelvis import LAYOUTS, layout_channels, pelvis_problem
 from pelvislab.model.pelvis import load_model
@@ -118,6 +119,7 @@ def _noisy_channels(ch: Channels, rng: np.random.Generator, position_mm: float,
     return Channels(ch.name, ch.bone, pos, ch.direction), gain
 
 
+@one_blas_thread
 def execute(run: Run) -> Outcome:
     """Simulate the measurement of ``run`` and identify it; pure, seeded."""
     t0, c0 = time.perf_counter(), time.process_time()
@@ -248,7 +250,7 @@ def ch6_runs(n_sets: int = 10) -> list[Run]:
         runs.append(replace(r, study="ch6_ours_noisefree"))
         runs.append(replace(r, study="ch6_ours_noise", **noise))
     for ab in (0.01, 0.1, 1.0, 10.0, 100.0):
-        for r in bins_runs((0.1, 0.2, 0.3), n_sets=min(n_sets, 3)):
+        for r in bins_runs((0.1, 0.2, 0.3), n_sets=min(n_sets, 2)):
             runs.append(replace(r, study=f"ch6_eq610_ab{ab:g}", residual="eq610",
                                 a_over_b=ab, strategy="plain", **noise))
     for df in (1.25, 5.0):
@@ -274,3 +276,74 @@ def ch7_runs(seed: int = 7) -> list[Run]:
                             f_stop_hz=550.0, df_hz=10.0, f_k=fk, f_c=fc, f_max_hz=550.0,
                             version_b=version_b, start_dp=0.1))
     return runs
+
+
+# --------------------------------------------------------------------------------------
+# Summaries (pure: tables as lists of dicts and markdown text; the writer lives in
+# docs/studies/run_studies.py)
+
+
+def _pct(values: Iterable[float], q: float) -> float:
+    v = np.asarray(list(values), float)
+    return float(np.percentile(v, q)) if v.size else float("nan")
+
+
+def summarise_ch6(outcomes: list[Outcome]) -> list[dict[str, object]]:
+    """One row per (study, bin): success rate and error percentiles per parameter family."""
+    rows = []
+    keys = sorted({(o.run.study, o.run.dp) for o in outcomes})
+    for study, dp in keys:
+        sel = [o for o in outcomes if o.run.study == study and o.run.dp == dp]
+        err = np.abs(np.array([o.rel_error for o in sel])) * 100
+        rows.append({
+            "study": study, "dp_pct": round(100 * dp), "n": len(sel),
+            "success_pct": 100.0 * float(np.mean([o.max_error < 1e-3 for o in sel])),
+            "mass_err_median_pct": _pct(err[:, 0:3].ravel(), 50),
+            "mass_err_max_pct": float(err[:, 0:3].max()),
+            "stiffness_err_median_pct": _pct(err[:, 3:15].ravel(), 50),
+            "stiffness_err_p90_pct": _pct(err[:, 3:15].ravel(), 90),
+            "damping_err_median_pct": _pct(err[:, 15:18].ravel(), 50),
+            "median_wall_time_s": _pct([o.wall_time_s for o in sel], 50),
+        })
+    return rows
+
+
+def summarise_ch7(outcomes: list[Outcome]) -> list[dict[str, object]]:
+    """One row per case and version: parameter, frequency, damping-ratio errors, MAC."""
+    rows = []
+    for o in outcomes:
+        e = o.extra
+        freq = np.abs(e.get("frequency_error_pct", [np.nan]))
+        zeta = np.abs(np.asarray(e.get("damping_ratio_error_pct", [np.nan]), float))
+        macs = np.asarray(e.get("mac", [np.nan]), float)
+        err = np.abs(np.array(o.rel_error[:18])) * 100
+        rows.append({
+            "case": o.run.label.split(" version")[0], "f_k": o.run.f_k, "f_c": o.run.f_c,
+            "version": "B" if o.run.version_b else "A",
+            "recovered": bool(o.max_error < 1e-3),
+            "param_err_max_pct": float(err.max()),
+            "c_sij_err_max_pct": float(err[15:17].max()),
+            "freq_err_max_pct": float(np.nanmax(freq)),
+            "zeta_err_max_pct": float(np.nanmax(zeta)) if np.isfinite(zeta).any() else None,
+            "mac_min": float(np.nanmin(macs)),
+            "f_k_identified": o.identified[18] if o.run.version_b else None,
+            "f_c_identified": o.identified[19] if o.run.version_b else None,
+            "starts": o.starts, "wall_time_s": o.wall_time_s,
+        })
+    return rows
+
+
+def markdown_table(rows: list[dict[str, object]]) -> str:
+    """A GitHub markdown table of ``rows`` (floats with 3 significant digits)."""
+    if not rows:
+        return "(no rows)\n"
+    cols = list(rows[0])
+
+    def fmt(v: object) -> str:
+        if isinstance(v, float):
+            return f"{v:.3g}"
+        return "" if v is None else str(v)
+
+    lines = ["| " + " | ".join(cols) + " |", "|" + "---|" * len(cols)]
+    lines += ["| " + " | ".join(fmt(r[c]) for c in cols) + " |" for r in rows]
+    return "\n".join(lines) + "\n"
