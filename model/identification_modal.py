@@ -179,13 +179,15 @@ def identify_modal(
     std, corr, sv, weak = covariance_report(J, r, list(free), values[idx],
                                             absolute_sigma=False)
     rms = float(np.sqrt(np.mean(r**2)))
+    at_bound = bool(np.any(np.isclose(sol.x, lo, atol=1e-6) | np.isclose(sol.x, hi, atol=1e-6)))
+    message = str(sol.message) + ("; a parameter sits on its bound" if at_bound else "")
     if progress:
         progress(f"modal updating: rms residual {rms:.3g} after {evals[0]} evaluations")
     return FitResult(
         names=list(free), values=values[idx], std=std, correlation=corr,
-        cost=0.5 * float(r @ r), converged=bool(sol.status > 0),
+        cost=0.5 * float(r @ r), converged=bool(sol.status > 0) and not at_bound,
         evaluations=evals[0], wall_time_s=time.perf_counter() - t0, residual_kind="modal",
-        singular_values=sv, weak_directions=weak, message=str(sol.message),
+        singular_values=sv, weak_directions=weak, message=message,
         extra={"rms_residual": rms},
     )
 
@@ -193,7 +195,7 @@ def identify_modal(
 def modes_from_frf(
     frequency_hz: np.ndarray, H: np.ndarray, *, max_modes: int = 12, min_prominence: float = 0.1,
 ) -> ModalData:
-    """Quadrature peak picking (ch. 4.5): peaks of the mean log|H|, shapes = Im H there.
+    """Peak picking (ch. 4.5): peaks of the mean log|H|, shapes = the FRF column there.
 
     A simple single-degree-of-freedom estimator for lightly damped, well separated modes:
     the column (input) with the largest response at each peak supplies the shape. NaN
@@ -217,5 +219,9 @@ def modes_from_frf(
     shapes = []
     for k in peaks:
         col = int(np.argmax(np.sum(np.abs(Hm[k]), axis=0)))
-        shapes.append(Hm[k, :, col].imag)
+        h = Hm[k, :, col]
+        # dominant real direction of the complex column: Im H on the peak, Re H when the
+        # grid misses a lightly damped peak (the nearest mode dominates either way)
+        u, _, _ = np.linalg.svd(np.stack([h.real, h.imag], axis=1), full_matrices=False)
+        shapes.append(u[:, 0])
     return ModalData(np.asarray(frequency_hz, float)[peaks], np.array(shapes).T)
