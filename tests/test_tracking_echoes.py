@@ -286,3 +286,18 @@ def test_large_slow_motion_leaving_the_record_is_flagged():
     ok = ~res.lost
     assert np.abs(res.displacement_m[ok] - (d - d[0])[ok]).max() < 1e-6
     assert any("left the recorded window" in w and "both sides" in w for w in res.warnings)
+
+
+def test_echo_cut_by_the_record_edge_is_unbiased():
+    # Noise-free, echo walking +-200 samples in the 500-sample record: at the extremes up to
+    # ~30 % of its energy is outside. The in-record least-squares delay stays unbiased; the
+    # plain correlation of the cut echo was off by 0.2-1.4 samples.
+    n = 1000
+    pos = 200.0 * np.sin(2 * np.pi * 2.5 * np.arange(n) / PRF)
+    arrival = T0 + pos / FS
+    codes, off = synth_echoes(arrival, snr_db=None, quantise=False,
+                              rng=np.random.default_rng(13))
+    res = track_echoes(codes, off, FS, C)
+    err = (res.delay_s - (arrival - arrival[0])) * FS
+    assert not res.lost.any()
+    assert np.abs(err).max() < 0.05  # measured 0.037
