@@ -191,12 +191,13 @@ class VisaTransport:
             raise self._translate(exc, "<device clear>") from exc
 
     def close(self) -> None:
+        """Close this instrument's session only. The ResourceManager is shared by every
+        resource of the same VISA library in the process (pyvisa keeps one per library), so
+        closing it here would cut the other generator's session ("Invalid session handle");
+        pyvisa closes it at exit."""
         res, self._res = self._res, None
         if res is not None:
-            try:
-                res.close()
-            finally:
-                self._rm.close()
+            res.close()
 
 
 @dataclass
