@@ -694,6 +694,12 @@ def track_echoes(codes: np.ndarray, trigger_offset_s: np.ndarray | None, sample_
         warnings.append(f"{int(np.sum(lost & ~lost_edge))} echo(es) with correlation below "
                         f"{opts.min_correlation}")
     if padded is not None:
+        short = _short_stretches(lost)
+        if np.any(short):
+            lost = lost | short
+            warnings.append(
+                f"{int(short.sum())} echo(es) in stretches of fewer than 16 tracked echoes "
+                "between losses (cannot be checked against their neighbours): marked lost")
         off_lobe = _inconsistent_runs(delay, lost, period)
         if np.any(off_lobe):
             lost = lost | off_lobe
@@ -735,6 +741,21 @@ def _clipped(codes: np.ndarray, w0: int, ref: _Reference, L: int) -> np.ndarray:
     if seg.max() < info.max and seg.min() > info.min:  # the usual case: one pass, no rows
         return np.zeros(codes.shape[0], dtype=bool)
     return (seg.max(axis=1) >= info.max) | (seg.min(axis=1) <= info.min)
+
+
+def _short_stretches(lost: np.ndarray, min_len: int = 16, max_gap: int = 3) -> np.ndarray:
+    """Tracked echoes in stretches shorter than ``min_len`` (stretches joined across gaps of
+    up to ``max_gap`` lost echoes): fragments of an echo that is mostly outside the record or
+    not found, whose lobe cannot be checked (``_inconsistent_runs``)."""
+    ok = np.nonzero(~lost)[0]
+    out = np.zeros(lost.size, dtype=bool)
+    if ok.size == 0:
+        return out
+    cuts = np.nonzero(np.diff(ok) > max_gap + 1)[0] + 1
+    for run in np.split(ok, cuts):
+        if run.size < min_len:
+            out[run] = True
+    return out
 
 
 def _inconsistent_runs(delay: np.ndarray, lost: np.ndarray, period: float) -> np.ndarray:
