@@ -470,12 +470,12 @@ def _track_block(W: np.ndarray, ref: _Reference, L: int, opts: TrackingOptions,
     coarse = _coarse(W, ref, L, max(1, min(opts.coarse_lag_step, L)))
     edge = coarse.edge | (np.abs(coarse.lag) > L - _FINE_HALF)
     g = _Groups.build(W, np.clip(coarse.lag, -(L - _FINE_HALF), L - _FINE_HALF), valid)
-    whole = np.ones(W.shape[0], dtype=bool) if valid is None else (
-        (valid[0] <= 0) & (valid[1] >= W.shape[1]))
+    whole = None if valid is None else (valid[0] <= 0) & (valid[1] >= W.shape[1])
     delay, res = coarse.delay, None
     for i in range(rebuilds):
         good = ~edge if res is None else ~edge & (res.corr >= opts.min_correlation)
-        good = good & whole
+        if whole is not None:
+            good = good & whole
         new = _aligned_reference(g, delay, good, G, L, band, ref.offset)
         if new is None:
             break
