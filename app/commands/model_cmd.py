@@ -22,8 +22,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     m.set_defaults(handler=_modes)
     f = sub.add_parser("frf", help="FRFs of the model at catalogue points")
     f.add_argument("--model", metavar="M.toml", help="model file; default: thesis appendix E")
-    f.add_argument("--points", metavar="NAMES", required=True,
-                   help="comma-separated landmark names (outputs; also inputs unless --inputs)")
+    f.add_argument("--points", metavar="NAMES",
+                   help="comma-separated landmark names (outputs; also inputs unless --inputs), "
+                   "e.g. sacrum_x,SIAS_R_x,SIAS_L_x (see protocols/landmarks.toml)")
     f.add_argument("--inputs", metavar="NAMES", help="comma-separated landmark names of the "
                    "excitation points (force along the landmark direction); default: --points")
     f.add_argument("--landmarks", metavar="L.toml",
@@ -85,6 +86,9 @@ def _frf(args: argparse.Namespace) -> int:
     from pelvislab.model.frf import frf
     from pelvislab.model.landmarks import landmark_points, load_landmarks
 
+    if not args.points:
+        raise ValueError("give --points NAMES (comma-separated landmark names from "
+                         "protocols/landmarks.toml, e.g. sacrum_x,SIAS_R_x,SIAS_L_x)")
     if not (0 < args.start_hz <= args.stop_hz) or args.step_hz <= 0:
         raise ValueError("need 0 < --start-hz <= --stop-hz and --step-hz > 0")
     model = _load(args.model)
