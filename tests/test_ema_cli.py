@@ -71,6 +71,18 @@ def test_bad_input_gives_one_line_errors(session, tmp_path, capsys):
     assert err.count("\n") == 1 and "Traceback" not in err
 
 
+def test_existing_json_is_never_overwritten(session, tmp_path, capsys):
+    tmp, _ = session
+    out = tmp_path / "old.json"
+    out.write_text("earlier result\n")
+    assert main(["ema", str(tmp / "s.h5"), "--json", str(out)]) == 1
+    err = capsys.readouterr().err
+    assert "exists" in err and err.count("\n") == 1
+    assert out.read_text() == "earlier result\n"
+    assert main(["ema", str(tmp / "s.h5"), "--json", str(tmp_path / "no" / "o.json")]) == 1
+    assert "output folder" in capsys.readouterr().err
+
+
 def test_pelvis_session_reports_rigid_content_and_flags_a_misoriented_sensor(tmp_path, capsys):
     from pelvislab.model.frf import Points, frf
     from pelvislab.model.pelvis import load_model

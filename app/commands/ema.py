@@ -139,6 +139,12 @@ def run_ema(args: argparse.Namespace) -> int:
     from pelvislab.acquisition.frfset import read_frf
     from pelvislab.model.ema import ema
 
+    out = None if args.json == "-" else Path(args.json)
+    if out is not None:  # before the fit: a finished result is never written over, nor lost
+        if out.exists():
+            raise FileExistsError(f"{out} exists; not overwriting it")
+        if not out.parent.is_dir():
+            raise FileNotFoundError(f"output folder {out.parent} does not exist")
     frf = read_frf(Path(args.session))
     if args.max_order is not None and args.max_order < 1:
         raise ValueError(f"--max-order must be >= 1, got {args.max_order}")
@@ -147,10 +153,11 @@ def run_ema(args: argparse.Namespace) -> int:
                  refine=args.refine)
     doc = result_to_json(frf, result, diagram=not args.no_diagram)
     text = json.dumps(doc, indent=1)
-    if args.json == "-":
+    if out is None:
         print(text)
     else:
-        Path(args.json).write_text(text + "\n", encoding="utf-8")
+        with out.open("x", encoding="utf-8") as fh:  # "x": still never overwrite
+            fh.write(text + "\n")
     for m in doc["modes"]:
         print(f"{m['frequency_hz']:10.3f} Hz  zeta {m['damping_ratio']:.4f}  "
               f"complexity {m['complexity']:.3f}", file=sys.stderr)
