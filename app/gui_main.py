@@ -242,7 +242,7 @@ class OperatorWindow(QtWidgets.QMainWindow):
         grid.addWidget(self.displacement, 0, 1)
         grid.addWidget(self.frf, 1, 0, 1, 2)
         grid.addWidget(self.quality, 2, 0, 1, 2)
-        grid.setRowStretch(0, 2)
+        grid.setRowStretch(0, 3)
         grid.setRowStretch(1, 3)
         self.tabs.addTab(live, "Live")
 
@@ -504,7 +504,7 @@ class OperatorWindow(QtWidgets.QMainWindow):
         return changed
 
     def _draw_frf_lines(self, keys: set[tuple[str, str]]) -> None:
-        order = sorted(self._frf_lines)
+        order = list(self._frf_lines)  # first-seen order: a curve keeps its colour
         for key in keys:
             lines = self._frf_lines[key]
             freq = np.array(sorted(lines))
@@ -549,8 +549,13 @@ class OperatorWindow(QtWidgets.QMainWindow):
 
 def run_gui(session_file: Path | None = None, screenshot: Path | None = None,
             after_s: float = 0.0, bench_path: Path | None = None,
-            size: tuple[int, int] = (1366, 768)) -> int:
-    """Open the operator window; with ``screenshot`` render it to a PNG and exit."""
+            size: tuple[int, int] = (1366, 768), start_protocol: Path | None = None,
+            out_path: Path | None = None) -> int:
+    """Open the operator window; with ``screenshot`` render it to a PNG and exit.
+
+    ``start_protocol``: start that protocol at once (subject ID ``SCREENSHOT`` unless set,
+    operator prompts confirmed automatically), e.g. to show the live view in a screenshot.
+    """
     import os
 
     if screenshot is not None:
@@ -559,6 +564,16 @@ def run_gui(session_file: Path | None = None, screenshot: Path | None = None,
     window = OperatorWindow(session_file, bench_path=bench_path)
     window.resize(*size)
     window.show()
+    if start_protocol is not None:
+        window.protocol_combo.addItem(Path(start_protocol).stem, str(start_protocol))
+        window.protocol_combo.setCurrentIndex(window.protocol_combo.count() - 1)
+        if not window.subject_edit.text():
+            window.subject_edit.setText("SCREENSHOT")
+        if out_path is not None:
+            window.out_edit.setText(str(out_path))
+        window.start_run()
+        if window.control is None:
+            raise ValueError(f"could not start {start_protocol} (see the dialog text above)")
     if screenshot is None:
         code = app.exec()
         _dispose(app, window)
@@ -566,11 +581,16 @@ def run_gui(session_file: Path | None = None, screenshot: Path | None = None,
     deadline = time.monotonic() + max(0.0, after_s)
     while True:
         app.processEvents(QtCore.QEventLoop.ProcessEventsFlag.AllEvents, 50)
+        if start_protocol is not None and window.confirm_button.isVisible():
+            window.confirm_prompt()
         if time.monotonic() >= deadline:
             break
         time.sleep(0.01)
     app.processEvents()
     ok = window.grab().save(str(screenshot))
+    if window.control is not None and not window.control.finished.is_set():
+        window.control.stop("screenshot taken")
+        window.control.finished.wait(10.0)
     _dispose(app, window)
     if not ok:
         raise OSError(f"could not write the screenshot {screenshot}")

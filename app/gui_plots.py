@@ -13,7 +13,8 @@ import numpy as np
 import pyqtgraph as pg
 from PySide6 import QtCore, QtGui, QtWidgets
 
-CHANNEL_PENS = ("#1f77b4", "#d62728", "#2ca02c", "#9467bd")
+CHANNEL_PENS = ("#1f77b4", "#d62728", "#2ca02c", "#9467bd", "#ff7f0e", "#8c564b", "#e377c2",
+                "#17becf", "#7f7f7f", "#bcbd22")
 MODEL_PEN = pg.mkPen("#444444", width=1.5, style=QtCore.Qt.PenStyle.DashLine)
 
 # Antialiasing costs several ms per 2000-point trace; the live view must redraw at >= 10 fps.
@@ -99,13 +100,16 @@ class FrfPanel(pg.GraphicsLayoutWidget):
         self.magnitude.setLogMode(x=False, y=True)
         self.magnitude.setLabel("left", "|H|", units="m/N")
         self.magnitude.showGrid(x=True, y=True, alpha=0.2)
-        self.magnitude.addLegend(offset=(10, 10))
         self.phase = self.addPlot(row=1, col=0, title="FRF phase")
         self.phase.setLabel("left", "phase", units="deg")
         self.phase.setLabel("bottom", "frequency", units="Hz")
         self.phase.setXLink(self.magnitude)
         self.phase.setYRange(-180, 180)
         self.phase.showGrid(x=True, y=True, alpha=0.2)
+        # The legend gets its own column: inside the plot it hides the lines it names.
+        self.legend = pg.LegendItem(labelTextSize="8pt")
+        self.addItem(self.legend, row=0, col=1, rowspan=2)
+        self.ci.layout.setColumnFixedWidth(1, 190)
         self._measured: dict[str, tuple[pg.PlotDataItem, pg.PlotDataItem]] = {}
         self._model: dict[str, tuple[pg.PlotDataItem, pg.PlotDataItem]] = {}
 
@@ -116,9 +120,7 @@ class FrfPanel(pg.GraphicsLayoutWidget):
                 self.magnitude.removeItem(mag)
                 self.phase.removeItem(ph)
             store.clear()
-        legend = self.magnitude.legend
-        if legend is not None:
-            legend.clear()
+        self.legend.clear()
 
     def _curve_pair(self, store: dict, label: str, pen: QtGui.QPen, symbol: str | None,
                     legend: bool) -> tuple[pg.PlotDataItem, pg.PlotDataItem]:
@@ -126,8 +128,10 @@ class FrfPanel(pg.GraphicsLayoutWidget):
             kwargs = {"pen": pen}
             if symbol:
                 kwargs.update(symbol=symbol, symbolSize=5, symbolBrush=pen.color())
-            mag = self.magnitude.plot(name=label if legend else None, **kwargs)
+            mag = self.magnitude.plot(**kwargs)
             ph = self.phase.plot(**kwargs)
+            if legend:
+                self.legend.addItem(mag, label)
             store[label] = (mag, ph)
         return store[label]
 

@@ -17,6 +17,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--screenshot", metavar="OUT.png", help="render offscreen to a PNG and exit")
     p.add_argument("--after", type=float, default=0.0, metavar="SECONDS",
                    help="with --screenshot: wait this long before rendering")
+    p.add_argument("--start", metavar="PROTOCOL.toml",
+                   help="start this protocol at once (prompts auto-confirmed with --screenshot)")
+    p.add_argument("--out", metavar="S.h5", help="with --start: the session file to write")
     p.set_defaults(handler=run)
 
 
@@ -27,7 +30,13 @@ def run(args: argparse.Namespace) -> int:
         raise FileNotFoundError(f"no such session file: {session}")
     if args.after < 0:
         raise ValueError("--after must be >= 0 seconds")
+    start = Path(args.start) if args.start else None
+    if start is not None and not start.is_file():
+        raise FileNotFoundError(f"no such protocol file: {start}")
+    if args.out and Path(args.out).exists():
+        raise FileExistsError(f"{args.out} exists; not overwriting it")
     from pelvislab.app.gui_main import run_gui
 
     return run_gui(session, Path(args.screenshot) if args.screenshot else None, args.after,
-                   Path(args.bench) if args.bench else None)
+                   Path(args.bench) if args.bench else None, start_protocol=start,
+                   out_path=Path(args.out) if args.out else None)
