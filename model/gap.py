@@ -75,7 +75,7 @@ class GapOptions:
     none_gap: float = 0.5
     near_noise_gap: float = 1.0
     min_shrink: float = 0.6
-    small_shrink: float = 0.5
+    small_shrink: float = 0.2
     p_value: float = 1e-3
     significance_rel: float = 0.02
     places_per_variant: int = 1

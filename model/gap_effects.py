@@ -425,8 +425,10 @@ def _orientation_candidates(ctx: Context) -> list[Candidate]:
             gain[:, j] = np.exp(u[0])
             return EffectTerms(out_gain=gain)
 
+        # a flat reflector read through a tilted beam gives 1/cos α >= 1 (fig. 6.9): a gain
+        # below 1 would be a calibration error, not a misorientation
         cands.append(Candidate("sensor_misorientation", "1/cos gain", name, "output",
-                               ("log_gain",), np.array([np.log(0.3)]), np.array([np.log(3.0)]),
+                               ("log_gain",), np.array([0.0]), np.array([np.log(3.0)]),
                                (np.array([0.1]),), gbuild,
                                lambda u: {"gain": float(np.exp(u[0]))}, ctx.out_bones[j]))
     return cands
