@@ -29,6 +29,7 @@ import numpy as np
 __all__ = [
     "PROTOCOL_SCHEMA",
     "PROTOCOL_SCHEMA_VERSION",
+    "MIN_DRIVE_VPP",
     "BenchLimits",
     "PlannedStep",
     "Point",
@@ -38,6 +39,7 @@ __all__ = [
     "Subject",
     "Sweep",
     "Ultrasound",
+    "drive_profile_vpp",
     "load_landmarks",
     "load_protocol",
     "parse_protocol",
@@ -54,6 +56,11 @@ MIN_PERIODS_PER_RECORD = 2.0
 """A record must hold at least this many drive periods for a phasor estimate."""
 MAX_STEPS = 20_000
 """Sanity bound on setups x frequencies."""
+MIN_DRIVE_VPP = 0.02
+"""Lowest drive level a profile or auto-ranging may use, V pk-pk: the Agilent 33220A's
+minimum amplitude into an open circuit (10 mVpp into 50 ohm, 20 mVpp high-Z; data sheet,
+``pelvislab.drivers.agilent33220a.AMPLITUDE_50OHM_VPP``); the bench drives high-Z."""
+DRIVE_MODES = ("fixed", "auto")
 CHANNEL_KEYS = {"ch1": 1, "ch2": 2, "ch3": 3, "ch4": 4}
 BONES = ("innominate_right", "innominate_left", "sacrum", "")
 SUBJECT_POSITIONS = ("face-up", "face-down", "side", "specimen", "phantom", "simulated", "")
@@ -113,6 +120,22 @@ class Sweep:
     """Record length in drive periods (thesis: 10); None: ``ultrasound.pulses`` per record."""
     repeats: int = 1
     """Acquisitions per frequency, one after the other (ch. 8 validation: 4-6)."""
+    drive_profile: tuple[tuple[float, float], ...] = ()
+    """Optional drive-level profile ((frequency_hz, vpp), ...), frequencies increasing;
+    empty: ``drive_vpp`` at every step. See :func:`drive_profile_vpp`."""
+    drive_mode: str = "fixed"
+    """``fixed``: the planned level; ``auto``: a step whose motion exceeds
+    ``max_displacement_m`` (or loses echoes) is repeated once at a lower level."""
+    max_displacement_m: float | None = None
+    """Auto mode: largest acceptable displacement amplitude (peak, any channel), m."""
+    min_drive_vpp: float = MIN_DRIVE_VPP
+    """Auto mode: the lowest level a repeat may use, V pk-pk."""
+
+    def drive_vpp_at(self, frequency_hz: float) -> float:
+        """Planned drive level at ``frequency_hz``, V pk-pk (profile, else ``drive_vpp``)."""
+        if not self.drive_profile:
+            return float(self.drive_vpp)
+        return float(drive_profile_vpp(self.drive_profile, frequency_hz))
 
 
 @dataclass(frozen=True)
@@ -167,6 +190,8 @@ class PlannedStep:
     settle_s: float
     repeat: int = 0
     """0 .. sweep.repeats - 1."""
+    drive_vpp: float = 0.0
+    """Planned drive level of this step, V pk-pk (auto mode may lower it)."""
 
     @property
     def key(self) -> tuple[str, float, int]:
@@ -240,13 +265,24 @@ class Protocol:
             for f in self.sweep.frequencies_hz:
                 for r in range(self.sweep.repeats):
                     out.append(PlannedStep(len(out), si, setup.name, float(f),
-                                           self.n_pulses(f), self.settle_s(f), r))
+                                           self.n_pulses(f), self.settle_s(f), r,
+                                           self.sweep.drive_vpp_at(f)))
         return out
 
     @property
     def channels(self) -> tuple[int, ...]:
         """Every digitizer channel any setup uses, sorted."""
         return tuple(sorted({ch for s in self.setups for ch in s.transducers}))
+
+    def _drive_text(self) -> str:
+        sw = self.sweep
+        levels = [sw.drive_vpp_at(f) for f in sw.frequencies_hz]
+        text = (f"{sw.drive_vpp:g} Vpp" if not sw.drive_profile else
+                f"{min(levels):.3g}-{max(levels):.3g} Vpp (profile)")
+        if sw.drive_mode == "auto":
+            text += (f", auto-ranging to {sw.max_displacement_m * 1e6:g} um "
+                     f"(floor {sw.min_drive_vpp:g} Vpp)")
+        return text
 
     def summary(self) -> str:
         """A few lines describing the plan, for ``pelvislab protocol check``."""
@@ -258,8 +294,8 @@ class Protocol:
             f"v{PROTOCOL_SCHEMA_VERSION}",
             f"  sweep: {len(f)} steps {lo:g}-{hi:g} Hz ({self.sweep.order}"
             + (f", each {self.sweep.repeats} times" if self.sweep.repeats > 1 else "")
-            + "), drive "
-            f"{self.sweep.drive_vpp:g} Vpp, {min(pulses)}-{max(pulses)} pulses per step at "
+            + "), drive " + self._drive_text() + ", "
+            f"{min(pulses)}-{max(pulses)} pulses per step at "
             f"{self.ultrasound.prf_hz:g} Hz PRF",
             f"  setups: {len(self.setups)} ("
             + ", ".join(f"{s.name}: {s.excitation} -> "
@@ -270,6 +306,24 @@ class Protocol:
             "transducer repositioning not included)",
         ]
         return "\n".join(lines)
+
+
+# --------------------------------------------------------------------------- drive profile
+def drive_profile_vpp(profile: Any, frequency_hz: Any) -> Any:
+    """Drive level (V pk-pk) of a profile at ``frequency_hz`` (Hz; scalar or array).
+
+    ``profile``: ((frequency_hz, vpp), ...) with strictly increasing frequencies. Between
+    two points, log(vpp) is linear in log(frequency) (a straight line on a log-log plot,
+    i.e. a power law; one point: constant); outside the profile the end level is held.
+    A stepped-sine FRF is a ratio (response / force), so the level may change per step.
+    """
+    table = np.asarray(profile, dtype=float).reshape(-1, 2)
+    if table.shape[0] == 0:
+        raise ValueError("empty drive profile")
+    f = np.asarray(frequency_hz, dtype=float)
+    logf = np.log(np.clip(f, table[0, 0], table[-1, 0]))
+    out = np.exp(np.interp(logf, np.log(table[:, 0]), np.log(table[:, 1])))
+    return float(out) if out.ndim == 0 else out
 
 
 # --------------------------------------------------------------------------- landmarks
@@ -310,8 +364,8 @@ def load_landmarks(path: Path | str | None = None) -> dict[str, Point]:
 _TOP = {"schema", "schema_version", "name", "description", "subject", "sweep", "ultrasound",
         "setups", "points"}
 _SWEEP = {"start_hz", "stop_hz", "step_hz", "frequencies_hz", "order", "drive_vpp", "settle_s",
-          "repeats",
-          "settle_periods", "periods_per_step"}
+          "repeats", "settle_periods", "periods_per_step", "drive_profile", "drive_mode",
+          "max_displacement_m", "min_drive_vpp"}
 _US_FLOAT = {"prf_hz", "sample_rate_hz", "delay_s", "speed_of_sound_m_s", "full_scale_v",
              "offset_v", "trigger_width_s", "trigger_high_v", "gain_db", "damping_ohm",
              "high_pass_hz", "low_pass_hz"}
@@ -399,6 +453,38 @@ def _string(table: Mapping[str, Any], key: str, where: str, p: _Problems, defaul
         p.add(full, f"must be one of {list(choices)}, got {value!r}")
         return None
     return value
+
+
+def _drive_profile(sw: Mapping[str, Any], limits: BenchLimits,
+                   p: _Problems) -> tuple[tuple[float, float], ...] | None:
+    """``sweep.drive_profile``: [[frequency_hz, vpp], ...], frequencies increasing."""
+    if "drive_profile" not in sw:
+        return None
+    key = "sweep.drive_profile"
+    raw = sw["drive_profile"]
+    if (not isinstance(raw, list) or not raw
+            or any(not isinstance(row, list) or len(row) != 2
+                   or any(isinstance(v, bool) or not isinstance(v, int | float) for v in row)
+                   for row in raw)):
+        p.add(key, "must be a non-empty list of [frequency_hz, vpp] pairs of numbers, e.g. "
+                   f"[[5.0, 0.02], [40.0, 0.5]], got {raw!r}")
+        return None
+    rows = tuple((float(f), float(v)) for f, v in raw)
+    n_before = len(p.items)
+    for i, (f, v) in enumerate(rows):
+        where = f"{key}[{i}]"
+        if not (math.isfinite(f) and f > 0):
+            p.add(where, f"frequency must be finite and > 0 Hz, got {f!r}")
+        if not math.isfinite(v) or v < MIN_DRIVE_VPP:
+            p.add(where, f"level {v!r} V pk-pk is below the generator minimum "
+                         f"{MIN_DRIVE_VPP:g} V pk-pk (33220A, high-Z load)")
+        elif v > limits.max_drive_vpp:
+            p.add(where, f"level {v:g} V pk-pk is above the bench limit "
+                         f"{limits.max_drive_vpp:g} V pk-pk ({limits.name})")
+        if i and not f > rows[i - 1][0]:
+            p.add(where, f"frequencies must increase strictly ({f:g} Hz after "
+                         f"{rows[i - 1][0]:g} Hz)")
+    return rows if len(p.items) == n_before else None
 
 
 def _unknown(table: Mapping[str, Any], known: set[str], where: str, p: _Problems) -> None:
@@ -600,11 +686,33 @@ def parse_protocol(text: str, source: str = "<string>", limits: BenchLimits | No
                         freqs = [round(start + i * step, 9) for i in range(n)]  # type: ignore
     order = _string(sw, "order", "sweep", p, "up", ("up", "down"))
     drive = _number(sw, "drive_vpp", "sweep", p, minimum=0.0)
-    if "drive_vpp" not in sw and sw:
-        p.add("sweep.drive_vpp", "missing (shaker-drive amplitude, V pk-pk)")
+    profile = _drive_profile(sw, limits, p)
+    if "drive_vpp" in sw and "drive_profile" in sw:
+        p.add("sweep.drive_profile", "give either sweep.drive_vpp or sweep.drive_profile, "
+                                     "not both")
+    elif "drive_vpp" not in sw and "drive_profile" not in sw and sw:
+        p.add("sweep.drive_vpp", "missing (shaker-drive amplitude, V pk-pk; or give "
+                                 "sweep.drive_profile)")
     elif drive is not None and drive > limits.max_drive_vpp:
         p.add("sweep.drive_vpp", f"{drive:g} V pk-pk is above the bench limit "
                                  f"{limits.max_drive_vpp:g} V pk-pk ({limits.name})")
+    elif drive is not None and drive < MIN_DRIVE_VPP:
+        p.add("sweep.drive_vpp", f"{drive:g} V pk-pk is below the generator minimum "
+                                 f"{MIN_DRIVE_VPP:g} V pk-pk (33220A, high-Z load)")
+    if profile:
+        drive = max(v for _, v in profile)  # the highest level: what the limit applies to
+    drive_mode = _string(sw, "drive_mode", "sweep", p, "fixed", DRIVE_MODES)
+    max_disp = _number(sw, "max_displacement_m", "sweep", p, None, minimum=0.0,
+                       maximum=1e-3)
+    min_drive = _number(sw, "min_drive_vpp", "sweep", p, MIN_DRIVE_VPP, minimum=MIN_DRIVE_VPP,
+                        exclusive=False, maximum=limits.max_drive_vpp)
+    if drive_mode == "auto" and "max_displacement_m" not in sw:
+        p.add("sweep.max_displacement_m", "missing: drive_mode = \"auto\" needs the largest "
+                                          "acceptable displacement amplitude (m, peak)")
+    if drive_mode == "fixed":
+        for key in ("max_displacement_m", "min_drive_vpp"):
+            if key in sw:
+                p.add(f"sweep.{key}", "only used with drive_mode = \"auto\"")
     settle = _number(sw, "settle_s", "sweep", p, MIN_SETTLE_S, minimum=0.0, exclusive=False,
                      maximum=60.0)
     settle_periods = _number(sw, "settle_periods", "sweep", p, 0.0, minimum=0.0,
@@ -616,10 +724,12 @@ def parse_protocol(text: str, source: str = "<string>", limits: BenchLimits | No
 
     repeats = _integer(sw, "repeats", "sweep", p, 1, 1, 100)
     sweep = None
-    if freqs is not None and None not in (order, drive, settle, settle_periods, repeats):
+    if freqs is not None and None not in (order, drive, settle, settle_periods, repeats,
+                                          drive_mode):
         ordered = tuple(freqs if order == "up" else reversed(freqs))
         sweep = Sweep(ordered, order, drive, settle, settle_periods, periods,  # type: ignore
-                      repeats)
+                      repeats, profile or (), drive_mode or "fixed", max_disp,
+                      min_drive if min_drive is not None else MIN_DRIVE_VPP)
         if ultrasound is not None:
             nyquist = ultrasound.prf_hz / 2
             if max(freqs) >= nyquist:

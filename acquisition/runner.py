@@ -26,7 +26,7 @@ import logging
 import math
 import threading
 import time
-from collections.abc import Callable, Iterable, Mapping
+from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -302,6 +302,76 @@ def process_channel(channel: ChannelData, frequency_hz: float, options: Any = No
         f"{100 * quality['lost_fraction']:.1f}% echoes lost"))
     channel.quality = quality
     return channel
+
+
+AUTO_RANGE_MARGIN = 0.7
+"""Auto drive mode aims at this fraction of ``max_displacement_m`` (motion scales with the
+drive level, but the measured amplitude of a record that lost echoes is uncertain)."""
+AUTO_RANGE_LOST_STEP = 0.2
+"""Auto drive mode: level factor when echoes were lost and the motion is unknown."""
+
+
+def _max_lost(data: StepData) -> float:
+    return max((float(c.quality.get("lost_fraction", 1.0)) for c in data.channels),
+               default=0.0)
+
+
+def motion_amplitude_m(phasor_m: complex | None, displacement_m: np.ndarray | None) -> float:
+    """Largest displacement amplitude (m, peak) a record shows: the phasor magnitude or
+    half the peak-to-peak of the tracked displacement, whichever is larger (NaN: none)."""
+    amp = abs(phasor_m) if phasor_m is not None else math.nan
+    if displacement_m is not None:
+        d = np.asarray(displacement_m, dtype=float)
+        d = d[np.isfinite(d)]
+        if d.size:
+            half_pp = 0.5 * float(d.max() - d.min())
+            amp = half_pp if not math.isfinite(amp) else max(amp, half_pp)
+    return float(amp)
+
+
+def auto_range_level(phasors_m: Sequence[complex | None],
+                     displacements_m: Sequence[np.ndarray | None],
+                     lost_fractions: Sequence[float], level_vpp: float,
+                     max_displacement_m: float,
+                     min_drive_vpp: float) -> tuple[float | None, str]:
+    """Lower drive level (V pk-pk) for repeating a step, or (None, "") to keep it.
+
+    Per channel: the measured amplitude (:func:`motion_amplitude_m`, m) and the fraction of
+    lost echoes. The step is repeated when an amplitude exceeds ``max_displacement_m``
+    (new level = level x max / measured x :data:`AUTO_RANGE_MARGIN`: displacement is
+    linear in the force), or when more than 5 % of a channel's echoes were lost while its
+    motion was large (over half the limit) or unknown (x :data:`AUTO_RANGE_LOST_STEP`,
+    or the ratio rule if smaller). The level never goes under ``min_drive_vpp`` and a step
+    already at the floor is not repeated. The second string says why.
+    """
+    amps = [motion_amplitude_m(p, d) for p, d in zip(phasors_m, displacements_m, strict=True)]
+    worst = max((a for a in amps if math.isfinite(a)), default=math.nan)
+    factor = math.inf
+    why = ""
+    if math.isfinite(worst) and worst > max_displacement_m:
+        factor = max_displacement_m / worst * AUTO_RANGE_MARGIN
+        why = f"motion {worst * 1e6:.3g} um > {max_displacement_m * 1e6:.3g} um"
+    for a, lost in zip(amps, lost_fractions, strict=True):
+        if lost > QUALITY_MAX_LOST_FRACTION and (not math.isfinite(a)
+                                                 or a > 0.5 * max_displacement_m):
+            factor = min(factor, AUTO_RANGE_LOST_STEP)
+            why = why or f"{lost:.0%} echoes lost with large motion"
+    if not math.isfinite(factor) or level_vpp <= min_drive_vpp * (1 + 1e-9):
+        return None, ""
+    return max(min_drive_vpp, level_vpp * min(factor, 0.9)), why
+
+
+def better_record(first: StepData, second: StepData, max_displacement_m: float) -> StepData:
+    """The better of two records of one step: fewer channels with poor quality, then
+    motion within ``max_displacement_m``, then fewer lost echoes; a tie keeps ``first``
+    (the higher drive level: better signal-to-noise)."""
+    def score(d: StepData) -> tuple[int, int, float]:
+        bad = sum(not bool(c.quality.get("ok")) for c in d.channels)
+        over = sum(motion_amplitude_m(c.phasor_m, c.displacement_m) > max_displacement_m
+                   for c in d.channels)
+        return bad, over, round(_max_lost(d), 3)
+
+    return second if score(second) < score(first) else first
 
 
 # --------------------------------------------------------------------------- runner
@@ -625,9 +695,10 @@ class Runner:
             self._wait_prompt(si, setup)
             self._place(setup)
             first = steps[0]
+            level = first.drive_vpp or proto.sweep.drive_vpp
             with self._lock:
                 self._check()
-                bench.drive.configure_sine(first.frequency_hz, proto.sweep.drive_vpp)
+                bench.drive.configure_sine(first.frequency_hz, level)
             self._generators(True)
             setup_channels = tuple(sorted(setup.transducers))
             for step in steps:
@@ -637,17 +708,19 @@ class Runner:
                 self._emit(StepStarted(self._t(), step, n_done, n_total))
                 t_step = self._clock()
                 started_at = self._session_time()
+                planned = step.drive_vpp or proto.sweep.drive_vpp
                 with self._lock:
                     self._check()
                     bench.drive.set_frequency(step.frequency_hz)
+                    if planned != level:  # drive profile: a new level for this step
+                        bench.drive.set_amplitude(planned)
+                        level = planned
                 if (step.n_pulses, setup_channels) != configured:
                     self._configure(step, setup_channels)
                     configured = (step.n_pulses, setup_channels)
-                self._settle(step.settle_s)
-                record_s = step.n_pulses / us.prf_hz
-                records = bench.digitizer.acquire(timeout_s=2.0 * record_s + 5.0)
-                self._check()  # an abort during the acquisition: do not keep a cut record
-                data = self._process(step, setup, records, force_per_volt, started_at)
+                data = self._acquire(step, setup, force_per_volt, started_at, level)
+                if proto.sweep.drive_mode == "auto":
+                    data, level = self._auto_range(step, setup, force_per_volt, data, level)
                 self._emit(StepFinished(self._t(), step, data, self._clock() - t_step))
                 for c in data.channels:
                     q = c.quality
@@ -667,6 +740,46 @@ class Runner:
             self._emit(SetupFinished(self._t(), si, setup.name))
         return n_done
 
+    def _acquire(self, step: PlannedStep, setup: Setup, force_per_volt: complex,
+                 started_at: float, level_vpp: float) -> StepData:
+        """Settle, acquire one record at drive level ``level_vpp`` (V pk-pk), process it."""
+        self._settle(step.settle_s)
+        record_s = step.n_pulses / self.protocol.ultrasound.prf_hz
+        records = self.bench.digitizer.acquire(timeout_s=2.0 * record_s + 5.0)
+        self._check()  # an abort during the acquisition: do not keep a cut record
+        return self._process(step, setup, records, force_per_volt, started_at, level_vpp)
+
+    def _auto_range(self, step: PlannedStep, setup: Setup, force_per_volt: complex,
+                    data: StepData, level_vpp: float) -> tuple[StepData, float]:
+        """Auto drive mode: repeat ``step`` once at a lower level when its motion was too
+        large (see :func:`auto_range_level`); returns the better record and the level now
+        set on the generator."""
+        sweep = self.protocol.sweep
+        data.extra["drive_planned_vpp"] = float(level_vpp)
+        data.extra["drive_attempts"] = 1
+        lower, why = auto_range_level(
+            [c.phasor_m for c in data.channels],
+            [c.displacement_m for c in data.channels],
+            [float(c.quality.get("lost_fraction", 1.0)) for c in data.channels],
+            level_vpp, float(sweep.max_displacement_m or math.inf), sweep.min_drive_vpp)
+        if lower is None:
+            return data, level_vpp
+        with self._lock:
+            self._check()
+            self.bench.drive.set_amplitude(lower)
+        retry = self._acquire(step, setup, force_per_volt, self._session_time(), lower)
+        keep = better_record(data, retry, float(sweep.max_displacement_m or math.inf))
+        for d in (data, retry):
+            d.extra["drive_planned_vpp"] = float(level_vpp)
+            d.extra["drive_attempts"] = 2
+        other = data if keep is retry else retry
+        keep.extra["drive_rejected_vpp"] = float(other.drive_vpp)
+        self._log(f"step {step.index} ({step.setup}, {step.frequency_hz:g} Hz): {why} at "
+                  f"{level_vpp:.3g} Vpp; repeated at {lower:.3g} Vpp, kept the "
+                  f"{keep.drive_vpp:.3g} Vpp record (lost "
+                  f"{_max_lost(data):.1%} -> {_max_lost(retry):.1%})")
+        return keep, lower
+
     def _session_time(self) -> float:
         return self.session_offset_s + self._t()
 
@@ -674,7 +787,8 @@ class Runner:
     """Seconds between the session's creation and this run's start (set by the caller)."""
 
     def _process(self, step: PlannedStep, setup: Setup, records: Mapping[int, Any],
-                 force_per_volt: complex, started_at: float) -> StepData:
+                 force_per_volt: complex, started_at: float,
+                 level_vpp: float | None = None) -> StepData:
         proto = self.protocol
         us = proto.ultrasound
         cfg = self.bench.config
@@ -694,11 +808,14 @@ class Runner:
                 output=proto.points[setup.transducers[ch]])
             process_channel(cd, step.frequency_hz, self.tracking_options)
             chans.append(cd)
-        force = force_phasor(step.frequency_hz, proto.sweep.drive_vpp, force_per_volt)
+        level = float(level_vpp if level_vpp is not None else
+                      (step.drive_vpp or proto.sweep.drive_vpp))
+        # the level actually set on the generator for this record: the FRF's denominator
+        force = force_phasor(step.frequency_hz, level, force_per_volt)
         ok = all(bool(c.quality.get("ok")) for c in chans)
         return StepData(setup=setup.name, frequency_hz=step.frequency_hz,
                         input=proto.excitations[setup.excitation], started_at_s=started_at,
-                        channels=chans, force_phasor_n=force, drive_vpp=proto.sweep.drive_vpp,
+                        channels=chans, force_phasor_n=force, drive_vpp=level,
                         status=STATUS_COMPLETE,
                         extra={"plan_index": step.index, "setup_index": step.setup_index,
                                "repeat": step.repeat, "n_pulses": step.n_pulses,
