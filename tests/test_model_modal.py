@@ -179,6 +179,10 @@ def test_cli_modes_json(capsys):
     assert out["n_rigid_body"] == 6 and len(out["frequencies_hz"]) == 12
     assert out["frequencies_hz"] == sorted(out["frequencies_hz"])
     assert all(0 < z < 1 for z in out["damping_ratios"])
+    assert main(["model", "modes", "--json", "--points", "SIAS_R_x,SIAS_L_x"]) == 0
+    shapes = json.loads(capsys.readouterr().out)["shapes"]
+    assert shapes["points"] == ["SIAS_R_x", "SIAS_L_x"]
+    assert np.array(shapes["real"]).shape == (2, 12)
 
 
 def test_cli_frf_json_and_errors(capsys, tmp_path):

@@ -19,6 +19,10 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                    help="eq. 7.3 stiffness slope factor (overrides the model file)")
     m.add_argument("--f-c", type=float, default=None, metavar="F",
                    help="eq. 7.2 hysteretic damping factor (overrides the model file)")
+    m.add_argument("--points", metavar="NAMES",
+                   help="also give the complex mode shapes at these landmarks (JSON 'shapes')")
+    m.add_argument("--landmarks", metavar="L.toml",
+                   help="landmark catalogue; default: protocols/landmarks.toml")
     m.set_defaults(handler=_modes)
     f = sub.add_parser("frf", help="FRFs of the model at catalogue points")
     f.add_argument("--model", metavar="M.toml", help="model file; default: thesis appendix E")
@@ -60,6 +64,15 @@ def _modes(args: argparse.Namespace) -> int:
         "overdamped_poles_rad_s": [float(x.real) for x in modes.overdamped_poles],
         "model": model.name,
     }
+    if args.points:
+        from pelvislab.model.frf import rows_for
+        from pelvislab.model.landmarks import landmark_points, load_landmarks
+
+        names = _names(args.points)
+        pts = landmark_points(names, load_landmarks(args.landmarks))
+        shapes = rows_for(model, pts) @ modes.shapes  # (n_points, n_modes), eq. 4.9
+        result["shapes"] = {"points": names, "real": shapes.real.tolist(),
+                            "imag": shapes.imag.tolist()}
     if args.json:
         json.dump(result, sys.stdout, indent=2)
         sys.stdout.write("\n")
