@@ -24,8 +24,7 @@ from pelvislab.app.gui_plots import (
     DisplacementPanel,
     FrfPanel,
     QualityTable,
-    gate_seconds,
-    quality_row,
+    draw_step,
 )
 
 REFRESH_MS = 50  # 20 frames per second at most; the issue asks for >= 10
@@ -512,17 +511,8 @@ class OperatorWindow(QtWidgets.QMainWindow):
                                    np.array([lines[f] for f in freq]))
 
     def _show_step(self, step: Any) -> None:
-        rows = []
-        for i, ch in enumerate(step.channels):
-            n_samples = ch.codes.shape[1]
-            t = ch.delay_s + np.arange(n_samples) / ch.sample_rate_hz
-            volts = ch.codes[-1].astype(float) * ch.volts_per_count + ch.volts_offset
-            self.ascan.show_echo(i, t, volts, gate_seconds(ch))
-            if ch.displacement_m is not None:
-                pulse_t = np.arange(ch.displacement_m.size) / ch.prf_hz
-                self.displacement.show_trace(i, pulse_t, ch.displacement_m)
-            rows.append(quality_row(ch))
-        for warning in self.quality.show_quality(rows):
+        """The latest echo, displacement and quality of the step just acquired."""
+        for warning in draw_step(self.ascan, self.displacement, self.quality, step, -1):
             self.statusBar().showMessage(f"check channel {warning}")
 
     # ------------------------------------------------------------------ replay

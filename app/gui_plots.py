@@ -228,3 +228,25 @@ def quality_row(channel: Any) -> dict[str, object]:
         "peak_hops": quality.get("peak_hops", 0),
         "lost": None if lost_fraction is None else round(float(lost_fraction) * n_pulses),
     }
+
+
+def echo_trace(channel: Any, echo_index: int) -> tuple[np.ndarray, np.ndarray]:
+    """(time after trigger in s, volts) of one echo of a step channel's raw record."""
+    time_s = channel.delay_s + np.arange(channel.codes.shape[1]) / channel.sample_rate_hz
+    volts = channel.codes[echo_index].astype(float) * channel.volts_per_count
+    return time_s, volts + channel.volts_offset
+
+
+def draw_step(ascan: AScanPanel, displacement: DisplacementPanel, quality: QualityTable,
+              step: Any, echo_index: int = 0) -> list[str]:
+    """Draw a step's echo (``echo_index``) with its gate, its displacement traces and its
+    quality rows; returns the quality warnings."""
+    rows = []
+    for i, ch in enumerate(step.channels):
+        time_s, volts = echo_trace(ch, echo_index)
+        ascan.show_echo(i, time_s, volts, gate_seconds(ch))
+        if ch.displacement_m is not None:
+            displacement.show_trace(i, np.arange(ch.displacement_m.size) / ch.prf_hz,
+                                    ch.displacement_m)
+        rows.append(quality_row(ch))
+    return quality.show_quality(rows)

@@ -21,8 +21,8 @@ from pelvislab.app.gui_plots import (
     DisplacementPanel,
     FrfPanel,
     QualityTable,
-    gate_seconds,
-    quality_row,
+    draw_step,
+    echo_trace,
 )
 
 
@@ -225,17 +225,7 @@ class ReplayView(QtWidgets.QWidget):
             f"step {step.index}: setup {step.setup}, {step.frequency_hz:g} Hz, input "
             f"{step.input.name}, status {step.status}, force phasor "
             f"{abs(step.force_phasor_n):.3g} N")
-        rows = []
-        for i, ch in enumerate(step.channels):
-            n_samples = ch.codes.shape[1]
-            t = ch.delay_s + np.arange(n_samples) / ch.sample_rate_hz
-            volts = ch.codes[0].astype(float) * ch.volts_per_count + ch.volts_offset
-            self.ascan.show_echo(i, t, volts, gate_seconds(ch))
-            if ch.displacement_m is not None:
-                self.displacement.show_trace(
-                    i, np.arange(ch.displacement_m.size) / ch.prf_hz, ch.displacement_m)
-            rows.append(quality_row(ch))
-        self.quality.show_quality(rows)
+        draw_step(self.ascan, self.displacement, self.quality, step, 0)
 
     def tracking_options(self) -> Any:
         """Tracking options from the re-track controls."""
@@ -267,9 +257,7 @@ class ReplayView(QtWidgets.QWidget):
                     i, np.arange(res.displacement_m.size) / ch.prf_hz, res.displacement_m)
                 gate = (ch.delay_s + res.gate[0] / ch.sample_rate_hz,
                         ch.delay_s + res.gate[1] / ch.sample_rate_hz)
-                t = ch.delay_s + np.arange(ch.codes.shape[1]) / ch.sample_rate_hz
-                self.ascan.show_echo(
-                    i, t, ch.codes[0].astype(float) * ch.volts_per_count + ch.volts_offset, gate)
+                self.ascan.show_echo(i, *echo_trace(ch, 0), gate)
                 rows.append({
                     "channel": ch.name, "landmark": ch.output.name,
                     "correlation": float(np.median(res.correlation)),
