@@ -20,6 +20,7 @@ report damaged groups instead of failing on them.
 from __future__ import annotations
 
 import datetime as _dt
+import logging
 import os
 import re
 import time
@@ -34,6 +35,8 @@ import numpy as np
 from pelvislab.acquisition.frfset import Channels, FrfSet, read_frf_group, write_frf
 from pelvislab.acquisition.protocol import Point, Protocol
 
+log = logging.getLogger(__name__)
+
 __all__ = [
     "SESSION_SCHEMA",
     "SESSION_SCHEMA_VERSION",
@@ -44,6 +47,7 @@ __all__ = [
     "StepData",
     "frf_from_steps",
     "plan_channels",
+    "remove_stale_partials",
 ]
 
 SESSION_SCHEMA = "pelvislab-session"
@@ -251,6 +255,48 @@ def _attr_value(value: Any) -> Any:
     return value
 
 
+def _pid_alive(pid: int) -> bool:
+    """True when process ``pid`` exists (or we cannot tell: then keep its files)."""
+    if pid == os.getpid():
+        return True
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except (PermissionError, OSError, OverflowError):
+        return True
+    return True
+
+
+def remove_stale_partials(path: Path | str) -> list[str]:
+    """Delete ``.<name>.<pid>.partial`` files next to ``path`` whose process is gone.
+
+    :meth:`SessionWriter.create` builds a session under that temporary name; a kill during
+    creation leaves it behind (never at ``path`` itself). Files of running processes (another
+    session being created now) are kept. Returns the removed file names; each removal is
+    logged (and written to the new session's log by ``create``).
+    """
+    path = Path(path)
+    removed: list[str] = []
+    pattern = re.compile(rf"\.{re.escape(path.name)}\.(\d+)\.partial")
+    try:
+        candidates = list(path.parent.iterdir())
+    except OSError:
+        return removed
+    for candidate in candidates:
+        match = pattern.fullmatch(candidate.name)
+        if match is None or _pid_alive(int(match.group(1))):
+            continue
+        try:
+            candidate.unlink()
+        except OSError as exc:
+            log.warning("could not remove stale %s: %s", candidate, exc)
+            continue
+        log.warning("removed stale %s (its process %s is gone)", candidate, match.group(1))
+        removed.append(candidate.name)
+    return removed
+
+
 class SessionWriter:
     """Writes one session file step by step (create it, or open one to resume).
 
@@ -289,6 +335,7 @@ class SessionWriter:
                                   "continue that session, or choose another --out)")
         if not path.parent.is_dir():
             raise FileNotFoundError(f"folder {path.parent} does not exist")
+        stale = remove_stale_partials(path)
         # Built under a temporary name and linked into place when complete: a kill during
         # creation must not leave a half-made file at ``path`` (measured: "truncated file").
         tmp = path.with_name(f".{path.name}.{os.getpid()}.partial")
@@ -327,6 +374,9 @@ class SessionWriter:
         except OSError as exc:
             raise SessionFileError(f"cannot open the new session {path}: {exc}") from None
         writer = cls(handle, path, time.monotonic(), 0.0)
+        for name in stale:
+            writer.log(f"removed {name}, left by a session creation killed earlier (process "
+                       "no longer running)", "WARNING")
         return writer
 
     @classmethod
