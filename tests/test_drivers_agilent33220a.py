@@ -254,6 +254,17 @@ def test_sim_open_configure_and_read_back():
     assert g.command_log[-1][1] == "OUTP OFF"
 
 
+def test_sim_two_generators_identify_by_their_own_serial_and_keep_their_own_state():
+    # each *IDN? ends up in the session's /bench: the drive must not claim the trigger's serial
+    res2 = RES1.replace("MY44000001", "MY44000002")
+    with sim_gen() as g1, sim_gen(res2) as g2:
+        assert "MY44000001" in g1.identity and "MY44000002" in g2.identity
+        g1.configure_sine(100.0, 1.0)
+        g2.configure_sine(250.0, 0.5)
+        assert g1.frequency_hz == 100.0 and g2.frequency_hz == 250.0
+        g2.check_errors()
+
+
 def test_sim_every_declared_query_answers_and_parses():
     with sim_gen() as g:
         for control in Agilent33220A.command_table():
