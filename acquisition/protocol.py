@@ -61,6 +61,11 @@ MIN_DRIVE_VPP = 0.02
 minimum amplitude into an open circuit (10 mVpp into 50 ohm, 20 mVpp high-Z; data sheet,
 ``pelvislab.drivers.agilent33220a.AMPLITUDE_50OHM_VPP``); the bench drives high-Z."""
 DRIVE_MODES = ("fixed", "auto")
+DP235_MAX_SAMPLES_PER_CHANNEL = 8 * 1024 * 1024
+"""Acqiris DP235 acquisition memory per channel assumed, samples (8 Mi points: the largest
+memory option, as the simulated DP235 models it, ``sim_instruments.instruments``); the
+thesis (ch. 8) names the DP235 but not its memory option; unconfirmed against the unit.
+The record needs ``n_pulses x samples`` (the driver's per-segment padding is not counted)."""
 CHANNEL_KEYS = {"ch1": 1, "ch2": 2, "ch3": 3, "ch4": 4}
 BONES = ("innominate_right", "innominate_left", "sacrum", "")
 SUBJECT_POSITIONS = ("face-up", "face-down", "side", "specimen", "phantom", "simulated", "")
@@ -207,6 +212,8 @@ class BenchLimits:
     n_channels: int = 2
     max_sample_rate_hz: float = 500e6
     name: str = "simulated bench"
+    max_samples_per_channel: int = DP235_MAX_SAMPLES_PER_CHANNEL
+    """Digitizer acquisition memory per channel (samples): one record, all segments."""
 
     @classmethod
     def from_config(cls, config: Any) -> BenchLimits:
@@ -747,6 +754,16 @@ def parse_protocol(text: str, source: str = "<string>", limits: BenchLimits | No
             elif periods < MIN_PERIODS_PER_RECORD:
                 p.add("sweep.periods_per_step",
                       f"must be >= {MIN_PERIODS_PER_RECORD:g} periods per record")
+            if periods is None:
+                most = ultrasound.pulses
+            else:
+                most = int(math.ceil(periods * ultrasound.prf_hz / min(freqs) - 1e-9))
+            if most * ultrasound.samples > limits.max_samples_per_channel:
+                p.add("sweep.periods_per_step" if periods is not None else "ultrasound.pulses",
+                      f"the longest record ({most} pulses x {ultrasound.samples} samples = "
+                      f"{most * ultrasound.samples} samples, at {min(freqs):g} Hz) exceeds "
+                      f"the digitizer memory of {limits.max_samples_per_channel} samples per "
+                      "channel (DP235 as assumed: 8 Mi points)")
 
     # points and setups ----------------------------------------------------------
     own: dict[str, Point] = {}

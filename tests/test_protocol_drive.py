@@ -124,3 +124,13 @@ def test_shipped_protocols_level_within_generator_range(name):
     p = load_protocol(str(path))
     levels = [s.drive_vpp for s in p.steps()]
     assert min(levels) >= MIN_DRIVE_VPP and max(levels) <= BenchLimits().max_drive_vpp
+
+
+def test_record_longer_than_the_digitizer_memory_refused():
+    data = base()  # 10 periods of 5 Hz = 10 000 pulses x 500 samples = 5e6: fits 8 Mi
+    parse(data)
+    data["ultrasound"]["samples"] = 1000  # 1e7 samples: does not (record 12 us < 200 us)
+    message = problems_of(data)
+    assert "sweep.periods_per_step: the longest record (10000 pulses x 1000 samples" in message
+    assert "digitizer memory of 8388608 samples" in message
+    parse(data, BenchLimits(max_samples_per_channel=16 * 1024 * 1024))
