@@ -36,11 +36,11 @@ class AScanPanel(pg.GraphicsLayoutWidget):
         self._gates: list[pg.LinearRegionItem] = []
 
     def set_channels(self, names: Sequence[str]) -> None:
-        """One row per channel, titled by its name (e.g. ``ch1 → PSIS_R``)."""
-        self.clear()
-        self._plots, self._curves, self._gates = [], [], []
-        for i, name in enumerate(names):
-            plot = self.addPlot(row=i, col=0, title=f"A-scan {name}")
+        """One row per channel, titled by its name (e.g. ``ch1 → PSIS_R``). Plots are reused
+        between setups: building a pyqtgraph plot costs ~50 ms, too long for the UI thread."""
+        while len(self._plots) < len(names):
+            i = len(self._plots)
+            plot = self.addPlot(row=i, col=0)
             plot.setLabel("bottom", "time after trigger", units="s")
             plot.setLabel("left", "echo", units="V")
             plot.showGrid(x=True, y=True, alpha=0.2)
@@ -51,6 +51,11 @@ class AScanPanel(pg.GraphicsLayoutWidget):
             self._plots.append(plot)
             self._curves.append(curve)
             self._gates.append(gate)
+        for i, plot in enumerate(self._plots):
+            visible = i < len(names)
+            plot.setVisible(visible)
+            if visible:
+                plot.setTitle(f"A-scan {names[i]}")
 
     def show_echo(self, index: int, time_s: np.ndarray, volts: np.ndarray,
                   gate_s: tuple[float, float] | None) -> None:
@@ -80,10 +85,18 @@ class DisplacementPanel(pg.PlotWidget):
         self._curves: list[pg.PlotDataItem] = []
 
     def set_channels(self, names: Sequence[str]) -> None:
-        """One curve per channel."""
-        for curve in self._curves:
-            self.removeItem(curve)
-        self._curves = [self.plot(pen=channel_pen(i), name=n) for i, n in enumerate(names)]
+        """One curve per channel; curves are reused and renamed between setups."""
+        while len(self._curves) < len(names):
+            i = len(self._curves)
+            self._curves.append(self.plot(pen=channel_pen(i), name=f"ch{i + 1}"))
+        legend = self.getPlotItem().legend
+        for i, curve in enumerate(self._curves):
+            curve.setVisible(i < len(names))
+            if i < len(names):
+                curve.setData([], [])
+                if legend is not None:
+                    legend.removeItem(curve)
+                    legend.addItem(curve, names[i])
 
     def show_trace(self, index: int, time_s: np.ndarray, displacement_m: np.ndarray) -> None:
         """Draw channel ``index``'s displacement trace (metres; pyqtgraph scales the units)."""
