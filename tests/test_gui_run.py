@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import time
 
+import pytest
 from PySide6 import QtCore
 
 from pelvislab.acquisition.session import SessionReader
@@ -97,3 +98,29 @@ def test_replay_steps_through_a_recorded_session(operator_window, qtbot, tmp_pat
     replay.estimator_combo.setCurrentText("parabolic")
     replay.retrack_step()
     qtbot.waitUntil(lambda: "re-tracked: parabolic" in replay.step_info.text(), timeout=60_000)
+
+
+@pytest.fixture(scope="module")
+def demo_session(tmp_path_factory):
+    """A complete demo session on the simulated bench (CLI, ~15 s)."""
+    from importlib import resources
+
+    from pelvislab.app.cli import main
+
+    out = tmp_path_factory.mktemp("demo") / "demo.h5"
+    protocol = resources.files("pelvislab.protocols") / "demo.toml"
+    assert main(["run", str(protocol), "--out", str(out), "--quiet"]) == 0
+    return out
+
+
+def test_replay_identification_shows_parameters_and_model_frfs(operator_window, qtbot,
+                                                              demo_session):
+    window = operator_window()
+    assert window.open_replay(demo_session)
+    replay = window.replay
+    qtbot.mouseClick(replay.identify_button, QtCore.Qt.MouseButton.LeftButton)
+    qtbot.waitUntil(lambda: replay.param_table.rowCount() > 0, timeout=120_000)
+    names = {replay.param_table.item(r, 0).text() for r in range(replay.param_table.rowCount())}
+    assert {"k_io_R", "c_pub", "m_sacrum"} <= names
+    assert replay.ident_frf._model, "no model FRF drawn"
+    assert replay.tabs.currentIndex() == 2

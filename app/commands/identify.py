@@ -6,7 +6,10 @@ import argparse
 import json
 import os
 import sys
+from collections.abc import Callable
+from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -57,60 +60,109 @@ def _one_blas_thread() -> None:
         os.environ.setdefault(var, "1")
 
 
-def _identify(args: argparse.Namespace) -> int:
+@dataclass
+class IdentificationReport:
+    """One identification of a file: the design 4.5 JSON, the measured FRFs and the model's
+    FRFs at the identified parameters (for measured-vs-model plots)."""
+
+    document: dict[str, Any]
+    frf: Any  # pelvislab.acquisition.frfset.FrfSet
+    model_H: Any  # (n_f, n_out, n_in) complex, m/N
+    converged: bool
+    message: str
+
+    def to_json(self) -> dict[str, Any]:
+        """The JSON document written by ``pelvislab identify --json``."""
+        return self.document
+
+
+def identify_file(path: str | Path, method: str = "frf", params: list[str] | None = None,
+                  model_path: str | Path | None = None,
+                  progress: Callable[[str], None] | None = None, *, symmetric: bool = False,
+                  version_b: bool = False, residual: str = "auto", a_b: float = 1.0,
+                  starts: int | None = None, seed: int = 0) -> IdentificationReport:
+    """Identify the pelvis model's parameters from the /frf of ``path`` (session or FRF-only).
+
+    The one entry point of the CLI and the GUI's replay view; the numerics are
+    :func:`pelvislab.model.identification.identify_frf` / ``identify_modal``.
+    """
     _one_blas_thread()
     import numpy as np
 
     from pelvislab.acquisition.frfset import read_frf
-    from pelvislab.model.identification import ResidualSpec, default_strategy, identify_frf
+    from pelvislab.model.identification import (
+        ResidualSpec,
+        default_strategy,
+        frf_with_jacobian,
+        identify_frf,
+    )
     from pelvislab.model.identification_modal import identify_modal, modes_from_frf
     from pelvislab.model.identification_pelvis import pelvis_problem
     from pelvislab.model.pelvis import load_model
 
-    out = Path(args.json)
-    if out.parent and not out.parent.exists():
-        raise FileNotFoundError(f"output folder {out.parent} does not exist")
-    frf = read_frf(args.session)
-    model = load_model(args.model)
-    problem, _ = pelvis_problem(model, frf.outputs, frf.inputs, symmetric=args.symmetric)
-    free = [s.strip() for s in args.params.split(",") if s.strip()] if args.params else None
+    frf = read_frf(path)
+    model = load_model(model_path)
+    problem, _ = pelvis_problem(model, frf.outputs, frf.inputs, symmetric=symmetric)
+    free = list(params) if params else None
     if free is not None:
         unknown = [n for n in free if n not in problem.names]
         if unknown:
             raise ValueError(f"unknown parameter(s) {unknown}; choose from "
                              f"{', '.join(problem.names)}")
-    progress = _progress(sys.stderr.isatty() or args.verbose > 0)
     if not np.isfinite(frf.H).any():
-        raise ValueError(f"{args.session}: /frf holds no measured line")
-    if args.method == "modal":
+        raise ValueError(f"{path}: /frf holds no measured line")
+    f_k, f_c = model.frequency_dependence.f_k, model.frequency_dependence.f_c
+    if method == "modal":
         data = modes_from_frf(frf.frequency_hz, frf.H)
         result = identify_modal(problem, data, free=free, progress=progress)
-        extra = {"method": "modal", "modes_hz": [float(f) for f in data.frequency_hz]}
-    else:
-        kind = args.residual
+        extra: dict[str, Any] = {"method": "modal",
+                                 "modes_hz": [float(f) for f in data.frequency_hz]}
+    elif method == "frf":
+        kind = residual
         if kind == "auto":
             kind = "std" if frf.H_std is not None else "log"
         if kind == "std" and frf.H_std is None:
-            raise ValueError(f"{args.session}: --residual std needs H_std in /frf")
-        ratio = float(args.a_b)
-        if not ratio > 0:
+            raise ValueError(f"{path}: --residual std needs H_std in /frf")
+        if not a_b > 0:
             raise ValueError("--a-b must be > 0")
-        spec = ResidualSpec(kind, a=ratio / (1 + ratio), b=1 / (1 + ratio))
-        strategy = default_strategy(kind, starts=args.starts, seed=args.seed)
-        f_dep = model.frequency_dependence
+        spec = ResidualSpec(kind, a=a_b / (1 + a_b), b=1 / (1 + a_b))
+        strategy = default_strategy(kind, starts=starts, seed=seed)
         result = identify_frf(
             problem, frf.frequency_hz, frf.H, frf.H_std, free=free, residual=spec,
-            strategy=strategy, version_b=args.version_b,
-            start_freq_dep=(f_dep.f_k, f_dep.f_c), progress=progress,
+            strategy=strategy, version_b=version_b, start_freq_dep=(f_k, f_c),
+            progress=progress,
         )
         extra = {"method": "frf"}
+    else:
+        raise ValueError(f"unknown method {method!r}; use frf or modal")
     doc = result.as_dict()
     doc.update(extra)
     doc["units"] = {"m_": "kg", "k_": "N/m", "c_": "N s/m", "f_": "1"}
-    doc["source"] = str(args.session)
+    doc["source"] = str(path)
     doc["model"] = model.name
-    out.write_text(json.dumps(doc, indent=2, allow_nan=False) + "\n")
-    if not result.converged:
-        print(f"identify: not converged ({result.message.strip('; ')}); result written to "
+    # The model's FRFs at the identified values, for measured-vs-model views.
+    identified = dict(zip(result.names, np.asarray(result.values, dtype=float), strict=True))
+    values = np.array([identified.get(n, v) for n, v in zip(problem.names, problem.nominal,
+                                                             strict=True)])
+    model_H, _ = frf_with_jacobian(
+        problem.assemble(values), problem.outputs, problem.inputs, frf.frequency_hz,
+        f_k=identified.get("f_k", f_k), f_c=identified.get("f_c", f_c),
+        omega_max_rad_s=problem.omega_max_rad_s, jacobian=False)
+    return IdentificationReport(doc, frf, model_H, bool(result.converged), str(result.message))
+
+
+def _identify(args: argparse.Namespace) -> int:
+    out = Path(args.json)
+    if out.parent and not out.parent.exists():
+        raise FileNotFoundError(f"output folder {out.parent} does not exist")
+    free = [s.strip() for s in args.params.split(",") if s.strip()] if args.params else None
+    progress = _progress(sys.stderr.isatty() or args.verbose > 0)
+    report = identify_file(
+        args.session, args.method, free, args.model, progress, symmetric=args.symmetric,
+        version_b=args.version_b, residual=args.residual, a_b=float(args.a_b),
+        starts=args.starts, seed=args.seed)
+    out.write_text(json.dumps(report.to_json(), indent=2, allow_nan=False) + "\n")
+    if not report.converged:
+        print(f"identify: not converged ({report.message.strip('; ')}); result written to "
               f"{out}", file=sys.stderr)
     return 0
