@@ -14,6 +14,7 @@ import pytest
 from pelvislab.acquisition.runner import (
     AUTO_RANGE_LOST_STEP,
     AUTO_RANGE_MARGIN,
+    AUTO_RANGE_UNKNOWN_STEP,
     auto_range_level,
     force_phasor,
     motion_amplitude_m,
@@ -57,8 +58,8 @@ def test_auto_range_lowers_by_the_measured_over_limit_ratio():
 
 def test_auto_range_on_lost_echoes_with_large_or_unknown_motion():
     # every echo lost, no phasor: motion unknown -> fixed step down
-    lower, why = auto_range_level([None], [None], [1.0], 0.5, 20e-6, 0.02)
-    assert lower == pytest.approx(0.5 * AUTO_RANGE_LOST_STEP) and "lost" in why
+    lower, why = auto_range_level([None], [None], [1.0], 2.0, 20e-6, 0.02)
+    assert lower == pytest.approx(2.0 * AUTO_RANGE_UNKNOWN_STEP) and "unknown" in why
     # echoes lost while moving more than half the limit
     lower, _ = auto_range_level([15e-6], [None], [0.3], 0.5, 20e-6, 0.02)
     assert lower == pytest.approx(0.5 * AUTO_RANGE_LOST_STEP)
@@ -152,3 +153,23 @@ periods_per_step = 10
     assert step.drive_vpp == pytest.approx(0.2)
     assert int(step.extra["drive_attempts"]) == 1
     assert not any("repeated at" in line for line in log)
+
+
+def test_better_record_prefers_fewer_lost_echoes_then_motion_within_the_limit():
+    from pelvislab.acquisition.runner import better_record
+    from pelvislab.acquisition.session import ChannelData, StepData
+
+    def step(lost: float, ok: bool, amp: float) -> StepData:
+        point = None
+        c = ChannelData(name="ch1", codes=np.zeros((1, 1), np.int8),
+                        trigger_offset_s=np.zeros(1), sample_rate_hz=1.0, prf_hz=1.0,
+                        delay_s=0.0, volts_per_count=1.0, volts_offset=0.0,
+                        speed_of_sound_m_s=1540.0, output=point, phasor_m=amp,
+                        quality={"ok": ok, "lost_fraction": lost})
+        return StepData("a", 10.0, point, 0.0, [c], 1.0)
+
+    high_lost, low_partly = step(1.0, False, 0.0), step(0.47, False, 30e-6)
+    assert better_record(high_lost, low_partly, 20e-6) is low_partly
+    big, small = step(0.0, True, 40e-6), step(0.0, True, 5e-6)
+    assert better_record(big, small, 20e-6) is small
+    assert better_record(small, step(0.0, True, 2e-6), 20e-6) is small  # tie: first
