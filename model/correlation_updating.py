@@ -308,6 +308,7 @@ def update_by_mac(
     m0 = mac(a_hat, G @ modes0.shapes)
     unpaired = [i for i in range(n_m) if m0.shape[1] == 0 or m0[i].max() < min_mac]
     active = np.array([i for i in range(n_m) if i not in unpaired], dtype=int)
+    state = {"active": active}
     if active.size == 0:
         raise ValueError(f"no measured mode pairs with a model mode at MAC >= {min_mac}")
     n_eval = [0]
@@ -317,6 +318,7 @@ def update_by_mac(
         values = space.from_scaled(x)
         mats, modes = modes_at(values)
         y_all = G @ modes.shapes
+        active = state["active"]
         pairs = pair_modes(a_hat[:, active], y_all)
         partner = {int(active[p.a]): p.b for p in pairs}
         lam = modes.poles
@@ -366,26 +368,43 @@ def update_by_mac(
     x0 = np.clip(space.to_scaled(space.values()), lo, hi)
     rng = np.random.default_rng(seed)
     log = space.log_mask
-    best = None
     start_costs: list[float] = []
     starts = 0
-    for k in range(max(1, n_starts)):
-        if k == 0:
-            xs = x0.copy()
-        else:
-            u = rng.uniform(-1.0, 1.0, x0.size)
-            step = np.where(log, np.log1p(perturbation) * u, perturbation * u * (hi - lo) / 2)
-            xs = np.clip(x0 + step, lo + 1e-9 * (hi - lo), hi - 1e-9 * (hi - lo))
-        starts += 1
-        jac_arg = (lambda x: get(x, True)[1]) if jacobian == "analytic" else "2-point"
-        sol = least_squares(lambda x: get(x, jacobian == "analytic")[0], xs, jac=jac_arg,
-                            bounds=(lo, hi), method="trf", x_scale="jac", ftol=1e-12,
-                            xtol=1e-12, gtol=1e-12, max_nfev=max_nfev)
-        start_costs.append(float(sol.cost))
-        if best is None or sol.cost < best.cost:
-            best = sol
-        if best.cost < cost_tol:
+    x_centre = x0
+    # Modes left out at the start are re-checked against the updated model and, once they
+    # pair above min_mac, included and the fit repeated from there (at most 3 rounds).
+    for _round in range(3):
+        best = None
+        for k in range(max(1, n_starts)):
+            if k == 0:
+                xs = x_centre.copy()
+            else:
+                u = rng.uniform(-1.0, 1.0, x0.size)
+                step = np.where(log, np.log1p(perturbation) * u,
+                                perturbation * u * (hi - lo) / 2)
+                xs = np.clip(x_centre + step, lo + 1e-9 * (hi - lo), hi - 1e-9 * (hi - lo))
+            starts += 1
+            jac_arg = (lambda x: get(x, True)[1]) if jacobian == "analytic" else "2-point"
+            sol = least_squares(lambda x: get(x, jacobian == "analytic")[0], xs, jac=jac_arg,
+                                bounds=(lo, hi), method="trf", x_scale="jac", ftol=1e-12,
+                                xtol=1e-12, gtol=1e-12, max_nfev=max_nfev)
+            start_costs.append(float(sol.cost))
+            if best is None or sol.cost < best.cost:
+                best = sol
+            if best.cost < cost_tol:
+                break
+        assert best is not None
+        if not unpaired:
             break
+        info_now = get(best.x, False)[2]
+        m_now = mac(a_hat[:, unpaired], info_now["y"])
+        back = [i for i, row in zip(unpaired, m_now, strict=True) if row.max() >= min_mac]
+        if not back:
+            break
+        unpaired = [i for i in unpaired if i not in back]
+        state["active"] = np.array(sorted([*state["active"], *back]), dtype=int)
+        cache.clear()
+        x_centre = best.x
     assert best is not None
     r, J, info = get(best.x, True) if jacobian == "analytic" else get(best.x, False)
     if J is None:  # fd mode: the Jacobian least_squares ended with
