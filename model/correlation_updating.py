@@ -428,6 +428,8 @@ def update_by_mac(
         ferr[i] = f_model[j] / measured.frequency_hz[i] - 1.0
         if zeta_meas is not None:
             zerr[i] = modes.damping_ratios[j] - zeta_meas[i]
+    unpaired = sorted({*unpaired, *(int(i) for i in state["active"]
+                                    if int(i) not in info["partner"])})
     cost = mac_cost(a_hat, y_all, final_pairs)
     low = [i for i, _ in final_pairs if macs[i] < min_mac]
     at_bound = np.flatnonzero(np.isclose(best.x, lo, atol=1e-6 * (hi - lo))
