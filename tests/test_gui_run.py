@@ -124,3 +124,16 @@ def test_replay_identification_shows_parameters_and_model_frfs(operator_window, 
     assert {"k_io_R", "c_pub", "m_sacrum"} <= names
     assert replay.ident_frf._model, "no model FRF drawn"
     assert replay.tabs.currentIndex() == 2
+
+
+def test_replay_gap_diagnosis_shows_verdict_map_and_candidates(operator_window, qtbot,
+                                                              demo_session):
+    window = operator_window()
+    assert window.open_replay(demo_session)
+    replay = window.replay
+    qtbot.mouseClick(replay.gap_button, QtCore.Qt.MouseButton.LeftButton)
+    qtbot.waitUntil(lambda: replay.candidate_table.rowCount() > 0, timeout=180_000)
+    assert "verdict:" in replay.gap_summary.text()
+    image = replay.residual_image.image
+    assert image is not None and image.shape[1] >= 2  # frequency x measured pairs
+    assert replay.tabs.currentIndex() == 3

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 from collections.abc import Callable
+from pathlib import Path
 
 from pelvislab.app.errors import NotImplementedCommand
 
@@ -18,3 +19,43 @@ def not_implemented(command: str) -> Handler:
 
     handler.not_implemented = True  # type: ignore[attr-defined]  # lets tests find stubs
     return handler
+
+
+def json_safe(value: object) -> object:
+    """``value`` with NaN/inf floats (numpy included) replaced by None, so the file is
+    strict JSON that every other tool can read."""
+    import math
+
+    if isinstance(value, dict):
+        return {str(k): json_safe(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [json_safe(v) for v in value]
+    if hasattr(value, "tolist") and not isinstance(value, (str, bytes)):
+        return json_safe(value.tolist())  # numpy arrays and scalars
+    if isinstance(value, float) and not math.isfinite(value):
+        return None
+    return value
+
+
+def write_json(path: str | Path, document: object) -> Path:
+    """Write a result document as strict JSON, atomically: a crash never leaves a half-written
+    file, and an existing result is replaced only by a complete new one."""
+    import json
+    import os
+    import tempfile
+
+    target = Path(path)
+    if target.is_dir():
+        raise IsADirectoryError(f"{target} is a folder; give a file name for the JSON")
+    if not target.parent.exists():
+        raise FileNotFoundError(f"output folder {target.parent} does not exist")
+    text = json.dumps(json_safe(document), indent=2, allow_nan=False) + "\n"
+    fd, tmp = tempfile.mkstemp(prefix=f".{target.name}.", suffix=".tmp", dir=target.parent)
+    try:
+        with os.fdopen(fd, "w") as handle:
+            handle.write(text)
+        os.replace(tmp, target)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+    return target

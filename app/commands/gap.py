@@ -14,10 +14,14 @@ stays blind. The command imports it lazily, only when asked to run the self-chec
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import sys
+from collections.abc import Callable
+from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
+
+from pelvislab.app.commands._common import write_json
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -62,39 +66,75 @@ def _one_blas_thread() -> None:
         os.environ.setdefault(var, "1")
 
 
-def _diagnose(args: argparse.Namespace) -> int:
-    _one_blas_thread()
-    from pelvislab.acquisition.frfset import read_frf
-    from pelvislab.model.gap import diagnose, prepare_data
-    from pelvislab.model.gap_effects import EFFECT_NAMES
-    from pelvislab.model.pelvis import default_model, load_model
+@dataclass
+class GapReport:
+    """One diagnosis of a file: the design 4.4 document plus what the views draw."""
 
-    frf = read_frf(args.session)
-    model = load_model(args.model) if args.model else default_model()
-    effects = None
-    if args.effects:
-        effects = tuple(e.strip() for e in args.effects.split(",") if e.strip())
+    document: dict[str, Any]
+    residual_map: Any  # (n_rows, n_f) array: |normalised residual| of the base fit
+    row_labels: list[str]  # "output / input" of each measured pair
+    frequency_hz: Any  # (n_f,) array
+    diagnosis: Any  # pelvislab.model.gap.Diagnosis
+
+    def to_json(self) -> dict[str, Any]:
+        """The JSON document written by ``pelvislab gap diagnose --json``."""
+        return self.document
+
+
+def diagnose_file(path: str | Path, model_path: str | Path | None = None,
+                  progress: Callable[[str], None] | None = None,
+                  effects: tuple[str, ...] | None = None) -> GapReport:
+    """Sim-to-real gap diagnosis of the /frf of ``path`` (session or FRF-only file).
+
+    The one entry point of the CLI and the GUI's replay view; the numerics are
+    :func:`pelvislab.model.gap.diagnose`.
+    """
+    _one_blas_thread()
+    import numpy as np
+
+    from pelvislab.acquisition.frfset import read_frf
+    from pelvislab.model.gap import GapOptions, diagnose, prepare_data
+    from pelvislab.model.gap_effects import EFFECT_NAMES
+    from pelvislab.model.pelvis import load_model
+
+    frf = read_frf(path)
+    model = load_model(model_path)
+    if effects is not None:
         unknown = sorted(set(effects) - set(EFFECT_NAMES))
         if unknown:
             raise ValueError(f"unknown effect(s) {unknown}; known: {', '.join(EFFECT_NAMES)}")
-    from pelvislab.model.gap import GapOptions
-
     data = prepare_data(frf.frequency_hz, frf.H, frf.H_std, frf.outputs, frf.inputs)
-    result = diagnose(data, model, GapOptions(effects=effects), progress=_progress())
+    result = diagnose(data, model, GapOptions(effects=effects), progress=progress)
+    document = dict(result.report)
+    document["source"] = {"file": str(Path(path).resolve()),
+                          "model": str(model_path) if model_path else "appendix_e (default)"}
+    residual = np.abs(np.asarray(result.residual_map))
+    rows, labels = [], []
+    for i, out in enumerate(frf.outputs.name):
+        for j, inp in enumerate(frf.inputs.name):
+            if np.any(data.mask[:, i, j]):
+                rows.append(np.where(data.mask[:, i, j], residual[:, i, j], np.nan))
+                labels.append(f"{out} / {inp}")
+    residual_rows = np.array(rows) if rows else np.zeros((0, frf.frequency_hz.size))
+    return GapReport(document, residual_rows, labels, np.asarray(frf.frequency_hz), result)
+
+
+def _diagnose(args: argparse.Namespace) -> int:
     out = Path(args.json)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    report = dict(result.report)
-    report["source"] = {"file": str(Path(args.session).resolve()),
-                        "model": args.model or "appendix_e (default)"}
+    effects = None
+    if args.effects:
+        effects = tuple(e.strip() for e in args.effects.split(",") if e.strip())
+    report = diagnose_file(args.session, args.model, _progress(), effects)
     plots: list[str] = []
     if not args.no_plots:
         try:
-            plots = _plots(result, out)
+            plots = _plots(report.diagnosis, out)
         except Exception as exc:  # plots are a convenience; the JSON is the result
             print(f"pelvislab gap diagnose: warning: no plots ({exc})", file=sys.stderr)
-    report["plots"] = plots
-    out.write_text(json.dumps(report, indent=2, allow_nan=True) + "\n")
-    print(format_report(report))
+    document = report.to_json()
+    document["plots"] = plots
+    write_json(out, document)
+    print(format_report(document))
     print(f"\nJSON: {out}")
     for p in plots:
         print(f"plot: {p}")
@@ -202,7 +242,7 @@ def _benchmark(args: argparse.Namespace) -> int:
     result["generator"] = source
     out = Path(args.json)
     out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(json.dumps(result, indent=2) + "\n")
+    write_json(out, result)
     print(format_summary(result))
     print(f"\nJSON: {out}")
     return 0

@@ -3,13 +3,14 @@
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import sys
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
+
+from pelvislab.app.commands._common import write_json
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -153,7 +154,7 @@ def identify_file(path: str | Path, method: str = "frf", params: list[str] | Non
 
 def _identify(args: argparse.Namespace) -> int:
     out = Path(args.json)
-    if out.parent and not out.parent.exists():
+    if not out.parent.exists():
         raise FileNotFoundError(f"output folder {out.parent} does not exist")
     free = [s.strip() for s in args.params.split(",") if s.strip()] if args.params else None
     progress = _progress(sys.stderr.isatty() or args.verbose > 0)
@@ -161,7 +162,7 @@ def _identify(args: argparse.Namespace) -> int:
         args.session, args.method, free, args.model, progress, symmetric=args.symmetric,
         version_b=args.version_b, residual=args.residual, a_b=float(args.a_b),
         starts=args.starts, seed=args.seed)
-    out.write_text(json.dumps(report.to_json(), indent=2, allow_nan=False) + "\n")
+    write_json(out, report.to_json())
     if not report.converged:
         print(f"identify: not converged ({report.message.strip('; ')}); result written to "
               f"{out}", file=sys.stderr)
