@@ -546,11 +546,12 @@ class OperatorWindow(QtWidgets.QMainWindow):
 def run_gui(session_file: Path | None = None, screenshot: Path | None = None,
             after_s: float = 0.0, bench_path: Path | None = None,
             size: tuple[int, int] = (1366, 768), start_protocol: Path | None = None,
-            out_path: Path | None = None) -> int:
+            out_path: Path | None = None, analyse: str | None = None) -> int:
     """Open the operator window; with ``screenshot`` render it to a PNG and exit.
 
     ``start_protocol``: start that protocol at once (subject ID ``SCREENSHOT`` unless set,
     operator prompts confirmed automatically), e.g. to show the live view in a screenshot.
+    ``analyse``: ``identify`` or ``gap`` on the replayed session; a screenshot waits for it.
     """
     import os
 
@@ -570,6 +571,11 @@ def run_gui(session_file: Path | None = None, screenshot: Path | None = None,
         window.start_run()
         if window.control is None:
             raise ValueError(f"could not start {start_protocol} (see the dialog text above)")
+    if analyse is not None:
+        if session_file is None:
+            raise ValueError("--analyse needs a session file to replay")
+        {"identify": window.replay.run_identification,
+         "gap": window.replay.run_gap}[analyse]()
     if screenshot is None:
         code = app.exec()
         _dispose(app, window)
@@ -579,7 +585,7 @@ def run_gui(session_file: Path | None = None, screenshot: Path | None = None,
         app.processEvents(QtCore.QEventLoop.ProcessEventsFlag.AllEvents, 50)
         if start_protocol is not None and window.confirm_button.isVisible():
             window.confirm_prompt()
-        if time.monotonic() >= deadline:
+        if time.monotonic() >= deadline and not window.replay.busy():
             break
         time.sleep(0.01)
     app.processEvents()

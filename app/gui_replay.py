@@ -113,7 +113,9 @@ class ReplayView(QtWidgets.QWidget):
         self.param_table = QtWidgets.QTableWidget(0, 3)
         self.param_table.setHorizontalHeaderLabels(("parameter", "value", "std"))
         self.param_table.verticalHeader().setVisible(False)
-        self.param_table.setFixedWidth(320)
+        self.param_table.setFixedWidth(340)
+        self.param_table.horizontalHeader().setSectionResizeMode(
+            0, QtWidgets.QHeaderView.ResizeMode.ResizeToContents)
         self.ident_frf = FrfPanel()
         ident_layout.addWidget(self.param_table)
         ident_layout.addWidget(self.ident_frf, 1)
@@ -130,11 +132,17 @@ class ReplayView(QtWidgets.QWidget):
         self.residual_image = pg.ImageItem()
         self.residual_image.setColorMap(pg.colormap.get("viridis"))
         self.residual_plot.addItem(self.residual_image)
+        self.residual_bar = pg.ColorBarItem(colorMap=pg.colormap.get("viridis"),
+                                            label="|residual| / σ", interactive=False)
+        self.residual_bar.setImageItem(self.residual_image,
+                                       insert_in=self.residual_plot.getPlotItem())
         gap_layout.addWidget(self.residual_plot, 2)
         self.candidate_table = QtWidgets.QTableWidget(0, 4)
         self.candidate_table.setHorizontalHeaderLabels(
             ("effect", "gap after", "shrink", "evidence"))
         self.candidate_table.horizontalHeader().setStretchLastSection(True)
+        self.candidate_table.horizontalHeader().setSectionResizeMode(
+            0, QtWidgets.QHeaderView.ResizeMode.ResizeToContents)
         self.candidate_table.verticalHeader().setVisible(False)
         gap_layout.addWidget(self.candidate_table, 1)
         self.tabs.addTab(gap_page, "Gap diagnosis")
@@ -339,7 +347,10 @@ class ReplayView(QtWidgets.QWidget):
         if residual is not None:
             image = np.nan_to_num(np.asarray(residual, dtype=float))
             # ImageItem's first axis is x: transpose rows x frequency to frequency x rows.
-            self.residual_image.setImage(image.T, autoLevels=True)
+            self.residual_image.setImage(image.T, autoLevels=False)
+            finite = image[np.isfinite(image)]
+            top = float(np.percentile(finite, 99)) if finite.size else 1.0
+            self.residual_bar.setLevels((0.0, max(top, 1e-12)))
             frequency = np.asarray(result.frequency_hz, dtype=float)
             if frequency.size > 1:
                 self.residual_image.setRect(QtCore.QRectF(

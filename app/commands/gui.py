@@ -20,6 +20,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--start", metavar="PROTOCOL.toml",
                    help="start this protocol at once (prompts auto-confirmed with --screenshot)")
     p.add_argument("--out", metavar="S.h5", help="with --start: the session file to write")
+    p.add_argument("--analyse", choices=("identify", "gap"),
+                   help="with a session: run the identification or the gap diagnosis at once")
     p.set_defaults(handler=run)
 
 
@@ -28,6 +30,8 @@ def run(args: argparse.Namespace) -> int:
     session = Path(args.session) if args.session else None
     if session is not None and not session.is_file():
         raise FileNotFoundError(f"no such session file: {session}")
+    if args.analyse and session is None:
+        raise ValueError("--analyse needs a session file (pelvislab gui S.h5 --analyse …)")
     if args.after < 0:
         raise ValueError("--after must be >= 0 seconds")
     start = Path(args.start) if args.start else None
@@ -39,4 +43,4 @@ def run(args: argparse.Namespace) -> int:
 
     return run_gui(session, Path(args.screenshot) if args.screenshot else None, args.after,
                    Path(args.bench) if args.bench else None, start_protocol=start,
-                   out_path=Path(args.out) if args.out else None)
+                   out_path=Path(args.out) if args.out else None, analyse=args.analyse)
