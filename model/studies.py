@@ -13,15 +13,17 @@ appendix E model (``model/appendix_e.toml``) and the landmark estimates of
   and B (f_k, f_c identified), errors in parameters, frequencies, damping ratios and MAC.
 
 Each run is a pure function of a :class:`Run` (seeded), so runs are independent and go
-through any ``concurrent.futures`` executor (:func:`run_all`).
+through any ``concurrent.futures`` executor (:func:`run_all`): a local process pool
+(:func:`make_executor`) or a dask.distributed cluster (:func:`dask_executor`).
 """
 
 from __future__ import annotations
 
 import os
 import time
-from collections.abc import Callable, Iterable
+from collections.abc import Callable, Iterable, Iterator
 from concurrent.futures import Executor, ProcessPoolExecutor
+from contextlib import contextmanager
 from dataclasses import asdict, dataclass, field, replace
 
 import numpy as np
@@ -212,6 +214,31 @@ def make_executor(workers: int | None = None) -> Executor:
     one_thread_env()
     return ProcessPoolExecutor(max_workers=workers or os.cpu_count() or 1,
                                mp_context=multiprocessing.get_context("spawn"))
+
+
+@contextmanager
+def dask_executor(address: str, connect_timeout_s: float = 5.0) -> Iterator[Executor]:
+    """A ``concurrent.futures`` executor on the dask.distributed scheduler at ``address``
+    (``distributed.Client(address).get_executor()``), closed on exit. Workers run
+    :func:`execute` (each run seeded, so results equal the local pool's).
+
+    Raises ``RuntimeError`` if ``distributed`` is not installed and ``ConnectionError`` if
+    the scheduler does not answer within ``connect_timeout_s``.
+    """
+    try:
+        from distributed import Client
+    except ImportError as exc:
+        raise RuntimeError("--dask needs dask.distributed: pip install 'pelvislab[cluster]' "
+                           f"({exc})") from None
+    try:
+        client = Client(address, timeout=connect_timeout_s)
+    except (OSError, TimeoutError, ValueError) as exc:
+        raise ConnectionError(f"cannot reach the dask scheduler at {address!r} within "
+                              f"{connect_timeout_s:g} s: {exc}") from None
+    try:
+        yield client.get_executor()
+    finally:
+        client.close()
 
 
 def run_all(runs: Iterable[Run], executor: Executor | None = None,

@@ -2,8 +2,10 @@
 
 Writes ``docs/studies/<study>.json`` (every run), ``<study>_summary.csv`` and
 ``<study>_summary.md`` (tables next to the thesis' figures). matplotlib is not installed in
-this environment, so the studies are tables, not plots. Runs are independent and go
-through a process pool (``--workers``, default: CPU count).
+this environment: ``docs/studies/plot_studies.py`` draws the PNGs with pyqtgraph from these
+files. Runs are independent and go through a process pool (``--workers``, default: CPU
+count) or, with ``--dask ADDRESS``, a dask.distributed cluster (``pip install
+'pelvislab[cluster]'``; start one with ``dask scheduler`` and ``dask worker ADDRESS``).
 """
 
 from __future__ import annotations
@@ -25,6 +27,10 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--out", default=str(Path(__file__).parent), help="output folder")
     p.add_argument("--workers", type=int, default=None)
     p.add_argument("--sets", type=int, default=10, help="parameter sets per bin (ch6)")
+    p.add_argument("--dask", metavar="ADDRESS", default=None,
+                   help="run on the dask.distributed scheduler at ADDRESS (tcp://host:8786)")
+    p.add_argument("--connect-timeout", type=float, default=5.0, metavar="S",
+                   help="seconds to wait for the dask scheduler (default 5)")
     args = p.parse_args(argv)
     runs = studies.ch6_runs(args.sets) if args.study == "ch6" else studies.ch7_runs()
     t0 = time.perf_counter()
@@ -32,8 +38,16 @@ def main(argv: list[str] | None = None) -> int:
     def progress(msg: str) -> None:
         print(f"\r{args.study}: {msg:<60}", end="", file=sys.stderr, flush=True)
 
-    with studies.make_executor(args.workers) as pool:
-        outcomes = studies.run_all(runs, pool, progress)
+    try:
+        if args.dask:
+            with studies.dask_executor(args.dask, args.connect_timeout) as pool:
+                outcomes = studies.run_all(runs, pool, progress)
+        else:
+            with studies.make_executor(args.workers) as pool:
+                outcomes = studies.run_all(runs, pool, progress)
+    except (RuntimeError, ConnectionError) as exc:
+        print(f"run_studies: error: {exc}", file=sys.stderr)
+        return 1
     print(file=sys.stderr)
     rows = (studies.summarise_ch6 if args.study == "ch6" else studies.summarise_ch7)(outcomes)
     out = Path(args.out)
