@@ -28,9 +28,11 @@ LOCAL_KINDS = ("output", "input", "bone", "joint")
 class BenchCase:
     """One generated data set and its hidden truth (``effect`` is ``"none"`` or a name).
 
-    ``place_kind`` is ``"global"`` for effects without a place, else ``"output"``,
-    ``"input"``, ``"bone"`` or ``"joint"``; ``place`` names it (output/input name, bone,
-    joint ``sij_right``/``sij_left``/``pubic``); ``bone`` is the bone it sits on, if any.
+    ``source`` says where the data come from (``"model"``: FRF level, ``"chain"``: a
+    session of the full simulated chain). ``place_kind`` is ``"global"`` for effects
+    without a place, else ``"output"``, ``"input"``, ``"bone"`` or ``"joint"``; ``place``
+    names it (output/input name, bone, joint ``sij_right``/``sij_left``/``pubic``);
+    ``bone`` is the bone it sits on, if any.
     """
 
     frequency_hz: np.ndarray
@@ -43,6 +45,8 @@ class BenchCase:
     place_kind: str = "global"
     bone: str = ""
     params: dict[str, float] = field(default_factory=dict)
+    source: str = "model"  # "model" (FRF-level generator) or "chain" (full simulated chain)
+    truth_model: object | None = None  # the hidden subject (PelvisModel), never scored
 
 
 Generator = Callable[[str, int], BenchCase]
@@ -84,20 +88,30 @@ def place_correct(report: dict, truth: BenchCase) -> bool:
     return got == truth.place
 
 
-def run_benchmark(generator: Generator, kinds: Sequence[str] | None = None,
+def run_benchmark(generator: Generator | None, kinds: Sequence[str] | None = None,
                   cases_per_kind: int = 2, model: PelvisModel | None = None,
                   options: GapOptions | None = None,
-                  progress: Callable[[str], None] | None = None) -> dict[str, object]:
-    """Generate ``cases_per_kind`` data sets per kind (``"none"`` included), diagnose each
-    blind against ``model`` (default appendix E) and score. Returns a JSON-ready dict."""
+                  progress: Callable[[str], None] | None = None,
+                  chain_generator: Generator | None = None,
+                  chain_cases_per_kind: int = 0) -> dict[str, object]:
+    """Generate ``cases_per_kind`` data sets per kind (``"none"`` included) with
+    ``generator`` and ``chain_cases_per_kind`` more with ``chain_generator`` (full simulated
+    chain), diagnose each blind against ``model`` (default appendix E) and score, overall
+    and per source (``by_source``). Returns a JSON-ready dict."""
     kinds = list(kinds) if kinds is not None else ["none", *EFFECT_NAMES]
     model = model or default_model()
     cases = []
     labels = [*kinds, "unexplained"]
-    confusion = {t: {p: 0 for p in labels} for t in kinds}
+    plan: list[tuple[Generator, int]] = []
+    if generator is not None:
+        plan += [(generator, k) for k in range(cases_per_kind)]
+    if chain_generator is not None:
+        plan += [(chain_generator, k) for k in range(chain_cases_per_kind)]
     for kind in kinds:
-        for k in range(cases_per_kind):
-            case = generator(kind, k)
+        for gen, k in plan:
+            g0 = time.perf_counter()
+            case = gen(kind, k)
+            generate_s = time.perf_counter() - g0
             data = prepare_data(case.frequency_hz, case.H, case.H_std, case.outputs,
                                 case.inputs)
             t0 = time.perf_counter()
@@ -107,14 +121,14 @@ def run_benchmark(generator: Generator, kinds: Sequence[str] | None = None,
             cpu = time.process_time() - c0
             rep = result.report
             verdict = str(rep["verdict"])
-            confusion[kind][verdict if verdict in labels else "unexplained"] += 1
             shrink = None
             for c in rep["candidates"]:
                 if c["effect"] == verdict:
                     shrink = float(c["shrink"])
             local = case.place_kind in LOCAL_KINDS and kind != "none"
             entry = {
-                "kind": kind, "index": k, "verdict": verdict, "correct": verdict == kind,
+                "kind": kind, "index": k, "source": case.source, "verdict": verdict,
+                "correct": verdict == kind,
                 "truth_place": case.place, "truth_place_kind": case.place_kind,
                 "truth_params": case.params,
                 "predicted_place": predicted_place(rep, case) if local else None,
@@ -122,13 +136,30 @@ def run_benchmark(generator: Generator, kinds: Sequence[str] | None = None,
                 "gap_before": rep["gap_before"], "shrink": shrink,
                 "n_frf": int(np.sum(np.any(data.mask, axis=0))),
                 "n_lines": int(data.frequency_hz.size), "wall_time_s": round(wall, 2),
-                "cpu_time_s": round(cpu, 2),
+                "cpu_time_s": round(cpu, 2), "generate_time_s": round(generate_s, 2),
                 "top3": [(c["effect"], c["gap_after"]) for c in rep["candidates"][:3]],
             }
             cases.append(entry)
             if progress:
-                progress(f"{kind} #{k}: verdict {verdict} (gap {rep['gap_before']:.3g}, "
-                         f"{wall:.0f} s)")
+                progress(f"{case.source} {kind} #{k}: verdict {verdict} (gap "
+                         f"{rep['gap_before']:.3g}, diagnosis {wall:.0f} s, data "
+                         f"{generate_s:.0f} s)")
+    result = _score(cases, kinds, labels)
+    sources = sorted({c["source"] for c in cases})
+    if len(sources) > 1:
+        result["by_source"] = {src: {k: v for k, v in _score(
+            [c for c in cases if c["source"] == src], kinds, labels).items()
+            if k not in ("cases", "targets")} for src in sources}
+    return result
+
+
+def _score(cases: list[dict], kinds: Sequence[str], labels: Sequence[str]
+           ) -> dict[str, object]:
+    """Confusion matrix and scores of a list of case entries (see :func:`run_benchmark`)."""
+    confusion = {t: {p: 0 for p in labels} for t in kinds}
+    for c in cases:
+        v = c["verdict"]
+        confusion[c["kind"]][v if v in labels else "unexplained"] += 1
     n = len(cases)
     correct = [c for c in cases if c["correct"]]
     local = [c for c in cases if c["place_correct"] is not None]
@@ -155,7 +186,7 @@ def run_benchmark(generator: Generator, kinds: Sequence[str] | None = None,
         # machine (the diagnosis is single-threaded); shared CI machines inflate wall time
         "cpu_time_s": {"median": round(float(np.median(cpus)), 2) if cpus else None,
                        "max": round(float(np.max(cpus)), 2) if cpus else None},
-        "confusion": {"rows_truth_cols_verdict": labels, "matrix": confusion},
+        "confusion": {"rows_truth_cols_verdict": list(labels), "matrix": confusion},
         "targets": {"verdict_accuracy": ">= 0.90", "place_accuracy_local": ">= 0.80",
                     "median_shrink_correct": ">= 0.70", "false_none": "0",
                     "wall_time_per_set_s": "<= 60"},
@@ -183,4 +214,9 @@ def format_summary(result: dict) -> str:
     lines.append("    " + " " * 30 + " ".join(f"{a:>6}" for a in abbrev))
     for t, row in result["confusion"]["matrix"].items():
         lines.append(f"    {t:<30}" + " ".join(f"{row[p]:>6}" for p in labels))
+    for src, sub in result.get("by_source", {}).items():
+        lines.append(f"  source {src}: {sub['n_cases']} sets, verdict accuracy "
+                     f"{sub['verdict_accuracy']}, place accuracy (local) "
+                     f"{sub['place_accuracy_local']} of {sub['n_local']}, false none "
+                     f"{sub['false_none']}")
     return "\n".join(lines)

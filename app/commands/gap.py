@@ -42,9 +42,15 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     b.add_argument("--cases", type=int, default=2, metavar="N",
                    help="data sets per effect kind (plus N without effect); default 2")
     b.add_argument("--seed", type=int, default=1, help="random seed of the generator")
-    b.add_argument("--source", choices=("auto", "sim", "model"), default="auto",
+    b.add_argument("--source", choices=("auto", "sim", "model", "chain"), default="auto",
                    help="data generator: the simulator's effect_frf ('sim'), the test-side "
-                   "model generator ('model'), or sim when available ('auto')")
+                   "model generator ('model'), sim when available ('auto'), or only "
+                   "sessions of the full simulated chain ('chain', --cases per kind)")
+    b.add_argument("--chain-cases", type=int, default=0, metavar="N",
+                   help="also N full-chain data sets per kind (simulated bench, face-up "
+                   "protocol on a 5 Hz grid, ~20-30 s each); default 0")
+    b.add_argument("--chain-step-hz", type=float, default=5.0, metavar="HZ",
+                   help="line spacing of the full-chain sessions (default 5 Hz)")
     b.add_argument("--kinds", metavar="LIST",
                    help="comma-separated kinds to generate (default: none and every effect)")
     b.add_argument("--progress", dest="verbose_progress", action="store_true",
@@ -229,17 +235,34 @@ def _benchmark(args: argparse.Namespace) -> int:
 
     if args.cases < 1:
         raise ValueError("--cases must be >= 1")
-    # test-side generator (may use the simulator); see the module docstring for why
-    from pelvislab.tests.benchmarks.bench_gap import make_generator
+    if args.chain_cases < 0:
+        raise ValueError("--chain-cases must be >= 0")
+    if not 0.5 <= args.chain_step_hz <= 50:
+        raise ValueError("--chain-step-hz must be within 0.5-50 Hz")
+    # test-side generators (may use the simulator); see the module docstring for why
+    from pelvislab.tests.benchmarks.bench_gap import make_chain_generator, make_generator
 
-    generator, source = make_generator(args.source, seed=args.seed)
+    generator, chain = None, None
+    chain_cases, names = args.chain_cases, []
+    if args.source == "chain":
+        chain_cases = args.cases
+    else:
+        generator, name = make_generator(args.source, seed=args.seed)
+        names.append(name)
+    if chain_cases:
+        chain = make_chain_generator(seed=args.seed, step_hz=args.chain_step_hz)
+        names.append(f"full simulated chain (open_simulated_bench + prepare_session, face_up "
+                     f"on a {args.chain_step_hz:g} Hz grid)")
     kinds = None
     if args.kinds:
         kinds = [k.strip() for k in args.kinds.split(",") if k.strip()]
     result = run_benchmark(generator, kinds=kinds, cases_per_kind=args.cases,
                            progress=_progress() if not args.verbose_progress else
-                           (lambda m: print(f"  {m}", file=sys.stderr, flush=True)))
-    result["generator"] = source
+                           (lambda m: print(f"  {m}", file=sys.stderr, flush=True)),
+                           chain_generator=chain, chain_cases_per_kind=chain_cases)
+    result["generator"] = " + ".join(names)
+    result["command"] = "pelvislab gap benchmark " + " ".join(sys.argv[3:]) \
+        if sys.argv[1:3] == ["gap", "benchmark"] else None
     out = Path(args.json)
     out.parent.mkdir(parents=True, exist_ok=True)
     write_json(out, result)

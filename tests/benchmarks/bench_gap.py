@@ -251,6 +251,97 @@ def make_generator(source: str = "auto", seed: int = 1
     return generate, name
 
 
+# --------------------------------------------------------------------------- full chain
+CHAIN_STEP_HZ = 5.0
+"""Line spacing of the full-chain cases: face_up on a 5 Hz grid (60 lines, 5-300 Hz)."""
+CHAIN_PERIODS = 5
+"""Drive periods per step in the full-chain cases (face_up uses 10)."""
+
+
+def chain_protocol_text(step_hz: float = CHAIN_STEP_HZ, periods: int = CHAIN_PERIODS,
+                        stop_hz: float | None = None) -> str:
+    """protocols/face_up.toml (thesis table 6.3, 9 setups, 15 FRFs) on a coarser grid."""
+    import re
+    from importlib import resources
+
+    text = (resources.files("pelvislab.protocols") / "face_up.toml").read_text()
+    text, n1 = re.subn(r"(?m)^step_hz = .*$", f"step_hz = {step_hz!r}", text)
+    text, n2 = re.subn(r"(?m)^periods_per_step = .*$", f"periods_per_step = {int(periods)}",
+                       text)
+    n3 = 1
+    if stop_hz is not None:
+        text, n3 = re.subn(r"(?m)^stop_hz = .*$", f"stop_hz = {float(stop_hz)!r}", text)
+    if (n1, n2, n3) != (1, 1, 1):
+        raise ValueError("protocols/face_up.toml changed: cannot set the chain grid")
+    return text
+
+
+def make_chain_generator(seed: int = 1, step_hz: float = CHAIN_STEP_HZ,
+                         periods: int = CHAIN_PERIODS, stop_hz: float | None = None,
+                         workdir: str | None = None) -> Callable[[str, int], BenchCase]:
+    """Full-chain data sets ``(kind, index) -> BenchCase`` (``source="chain"``).
+
+    Each case opens the simulated bench (``open_simulated_bench``) on a random subject
+    (:func:`perturbed_model`: +-30 % masses/springs, damping far from appendix E) with one
+    hidden effect from :func:`_random_effect` (none for ``"none"``), runs the face-up
+    protocol on a coarse grid (:func:`chain_protocol_text`) through the product's
+    ``prepare_session`` into a temporary session file: drive, ultrasound echoes, tracking,
+    phasors, auto-ranging and /frf as in a real session. The case carries that file's /frf
+    (``read_frf``, as ``diagnose_file`` reads it) and its path is not kept. The effect size
+    is redrawn (up to 20 times) until the effect changes the model FRF by >= 3 sigma rms on
+    the protocol's lines with sigma = 1 % of each FRF's peak (the chain's noise is not
+    known before the run).
+    """
+    import tempfile
+    from pathlib import Path
+
+    from pelvislab.acquisition.frfset import read_frf
+    from pelvislab.acquisition.runner import prepare_session
+    from pelvislab.sim_instruments.bench import open_simulated_bench
+    from pelvislab.sim_instruments.effects import effect_frf
+
+    text = chain_protocol_text(step_hz, periods, stop_hz)
+
+    def generate(kind: str, index: int) -> BenchCase:
+        code = sum(ord(c) for c in kind) * 1000 + index
+        rng = np.random.default_rng([seed, 7919, code])
+        model = perturbed_model(rng)
+        place, place_kind, bone, params = "", "global", "", {}
+        effects: list[object] = []
+        if kind != "none":
+            f = np.arange(5.0, (stop_hz or 300.0) + 1e-9, step_hz)
+            H0 = frf(model, f, OUTPUTS, INPUTS)
+            sigma = 0.01 * np.max(np.abs(H0), axis=0, keepdims=True)
+            for _ in range(20):
+                eff, place, place_kind, bone, params = _random_effect(kind, rng, model)
+                H = effect_frf(model, eff, f, OUTPUTS, INPUTS)
+                if np.sqrt(np.mean((np.abs(H - H0) ** 2 / sigma**2)[:, MEASURED])) >= 3.0:
+                    break
+            effects = [eff]
+        sim_seed = int(rng.integers(2**31))
+        with tempfile.TemporaryDirectory(dir=workdir) as tmp:
+            proto = Path(tmp) / "face_up_chain.toml"
+            proto.write_text(text)
+            out = Path(tmp) / "session.h5"
+            t0 = time.perf_counter()
+            bench = open_simulated_bench(model=model, effects=effects, seed=sim_seed,
+                                         generators="python")
+            with prepare_session(proto, out, bench=bench) as prepared:
+                final = prepared.run()
+            if final.status != "completed":
+                raise RuntimeError(f"chain case {kind} #{index}: run {final.status}: "
+                                   f"{final.reason}")
+            run_s = time.perf_counter() - t0
+            measured = read_frf(out)
+        params = {k: float(v) for k, v in params.items()}
+        params["chain_run_s"] = round(run_s, 2)
+        return BenchCase(measured.frequency_hz, measured.H, measured.H_std, measured.outputs,
+                         measured.inputs, kind, place, place_kind, bone, params,
+                         source="chain", truth_model=model)
+
+    return generate
+
+
 def run() -> list[Result]:
     """A small benchmark (1 set per kind + 1 without effect) through the CLI in a
     subprocess (one BLAS thread, as the command sets it): accuracy and time per set."""
