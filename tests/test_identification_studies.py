@@ -2,9 +2,12 @@
 
 from __future__ import annotations
 
+import shutil
 from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
 
 import numpy as np
+import pytest
 
 from pelvislab.model.studies import (
     Run,
@@ -44,3 +47,32 @@ def test_ch7_version_b_case_reports_modal_errors() -> None:
     assert abs(row["f_k_identified"] - 0.5) < 1e-6
     assert row["mac_min"] > 0.999
     assert np.nanmax(np.abs(out.extra["frequency_error_pct"])) < 1e-6
+
+
+@pytest.mark.gui
+def test_plots_are_drawn_from_the_committed_summaries(tmp_path: Path) -> None:
+    import importlib.util
+
+    import pyqtgraph as pg
+    from PySide6.QtGui import QColor, QImage
+
+    studies_dir = Path(__file__).resolve().parents[1] / "docs" / "studies"
+    for name in ("ch6_summary.csv", "ch7_summary.csv"):
+        shutil.copy(studies_dir / name, tmp_path / name)
+    spec = importlib.util.spec_from_file_location("plot_studies",
+                                                  studies_dir / "plot_studies.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    background = pg.getConfigOption("background")
+    assert module.main(["--dir", str(tmp_path)]) == 0
+    assert pg.getConfigOption("background") == background  # global look restored
+    blue = QColor(*module.COLOURS["ours"]).rgb()
+    for name, width in (("ch6_success_mass.png", 1400), ("ch6_stiffness.png", 1800),
+                        ("ch7_errors.png", 1800)):
+        image = QImage(str(tmp_path / name))
+        assert image.width() == width and image.height() > 300
+        # our curves were drawn (not an empty scene): some pixels carry their colour
+        step = 3
+        hits = sum(image.pixel(x, y) == blue for x in range(0, image.width(), step)
+                   for y in range(0, image.height(), step))
+        assert hits > 20, name

@@ -49,8 +49,22 @@ def main(argv: list[str] | None = None) -> int:
     from pyqtgraph.exporters import ImageExporter
 
     pg.mkQApp()
+    # global options: restored afterwards so a GUI in the same process keeps its look
+    saved = {k: pg.getConfigOption(k) for k in ("background", "foreground", "antialias")}
     pg.setConfigOptions(background="w", foreground="k", antialias=True)
     widgets: list[object] = []
+    try:
+        _draw(pg, ImageExporter, folder, widgets)
+    finally:
+        for w in widgets:  # PySide6 may crash at interpreter exit with live widgets
+            shiboken6.delete(w)
+        pg.setConfigOptions(**saved)
+    return 0
+
+
+def _draw(pg: object, ImageExporter: type, folder: Path,
+          widgets: list[object]) -> None:
+    """Build the three figures (pyqtgraph scenes) and export them as PNG into ``folder``."""
 
     def pen(key: str, style: object = None, width: float = 2) -> object:
         kw = {"style": style} if style is not None else {}
@@ -215,10 +229,6 @@ def main(argv: list[str] | None = None) -> int:
     plot.setXRange(0.5, 7.5)
     plot.setYRange(0.45, 1.05)
     export(layout, "ch7_errors.png", 1800)
-
-    for w in widgets:  # PySide6 may crash at interpreter exit with live widgets
-        shiboken6.delete(w)
-    return 0
 
 
 if __name__ == "__main__":
