@@ -82,3 +82,23 @@ def test_cli_rejects_bad_chain_options(tmp_path, capsys):
                  "-1"])
     assert code == 1
     assert "--chain-cases" in capsys.readouterr().err
+
+
+def test_named_effect_acts_only_where_its_point_is_placed():
+    from pelvislab.sim_instruments.bench import open_simulated_bench
+    from pelvislab.sim_instruments.effects import SensorMisorientation, SoftTissue
+    from pelvislab.tests.benchmarks.bench_gap import _apply_named_effects_where_placed
+
+    tissue = SoftTissue(inputs=("sacrum_x",))
+    tilt = SensorMisorientation(tilt_deg=20.0, outputs=("SIAS_R_x",))
+    bench = open_simulated_bench(effects=[tissue, tilt], generators="python")
+    try:
+        _apply_named_effects_where_placed(bench, [tissue, tilt])
+        bench.place(excitation="SIPS_R_x", channels={1: "SIPS_R_x", 2: "SIAS_L_x"})
+        assert bench.world.frf_effects == []
+        assert all(np.isfinite(v) for v in bench.world.frf(50.0).values())
+        bench.place(excitation="sacrum_x", channels={1: "sacrum_x", 2: "SIAS_R_x"})
+        assert bench.world.frf_effects == [tissue, tilt]
+        assert all(np.isfinite(v) for v in bench.world.frf(50.0).values())
+    finally:
+        bench.close()

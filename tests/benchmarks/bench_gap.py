@@ -276,6 +276,39 @@ def chain_protocol_text(step_hz: float = CHAIN_STEP_HZ, periods: int = CHAIN_PER
     return text
 
 
+def _apply_named_effects_where_placed(bench: object, effects: list[object]) -> None:
+    """Work around the simulator raising when an effect names a point that the current
+    setup does not use (``SoftTissue(inputs=...)`` with the shaker elsewhere,
+    ``SensorMisorientation(outputs=...)`` with that transducer unplaced): the runner's
+    simulated operator calls ``bench.place`` when the bench has one, so this bench gets a
+    ``place`` that moves the world and then keeps only the effects whose named points are
+    placed (the tilted transducer or the tissue under the shaker go with their point)."""
+    world = bench.world  # type: ignore[attr-defined]
+
+    def active() -> list[object]:
+        outputs = {c.landmark.name for c in world.channels.values()}
+        inputs = {world.excitation.name}
+        keep = []
+        for e in effects:
+            named_out = getattr(e, "outputs", None)
+            named_in = getattr(e, "inputs", None)
+            if named_out is not None and not set(named_out) <= outputs:
+                continue
+            if named_in is not None and not set(named_in) <= inputs:
+                continue
+            keep.append(e)
+        return keep
+
+    def place(**kwargs: object) -> None:
+        with world._lock:  # the FRF cache is per layout: swap the effects with the layout
+            world.place(**kwargs)
+            world.frf_effects = active()
+
+    with world._lock:
+        world.frf_effects = active()
+    bench.place = place  # type: ignore[attr-defined]
+
+
 def make_chain_generator(seed: int = 1, step_hz: float = CHAIN_STEP_HZ,
                          periods: int = CHAIN_PERIODS, stop_hz: float | None = None,
                          workdir: str | None = None) -> Callable[[str, int], BenchCase]:
@@ -326,6 +359,7 @@ def make_chain_generator(seed: int = 1, step_hz: float = CHAIN_STEP_HZ,
             t0 = time.perf_counter()
             bench = open_simulated_bench(model=model, effects=effects, seed=sim_seed,
                                          generators="python")
+            _apply_named_effects_where_placed(bench, effects)
             with prepare_session(proto, out, bench=bench) as prepared:
                 final = prepared.run()
             if final.status != "completed":
