@@ -300,6 +300,13 @@ def process_channel(channel: ChannelData, frequency_hz: float, options: Any = No
     quality.setdefault("message", "ok" if ok else (
         f"poor tracking: median correlation {quality['correlation_median']:.2f}, "
         f"{100 * quality['lost_fraction']:.1f}% echoes lost"))
+    # The tracker says in words what went wrong or was corrected (e.g. the echo left the
+    # recorded window, and what to change): that belongs in front of the operator too.
+    tracker_warnings = [" ".join(str(w).split()) for w in getattr(result, "warnings", []) or []]
+    if tracker_warnings:
+        quality["tracking_warnings"] = "; ".join(tracker_warnings)
+        if not ok:
+            quality["message"] = f"{quality['message']}; {quality['tracking_warnings']}"
     channel.quality = quality
     return channel
 

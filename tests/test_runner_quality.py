@@ -1,0 +1,35 @@
+"""The tracker's own words about a failed step reach the step's quality message."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from pelvislab.acquisition.runner import process_channel
+from pelvislab.acquisition.session import ChannelData
+from pelvislab.tests.echo_synth import synth_echoes
+
+FS, C, PRF = 500e6, 1540.0, 5000.0
+
+
+def _channel(displacement_m: np.ndarray) -> ChannelData:
+    codes, offsets = synth_echoes(0.5e-6 - 2.0 * displacement_m / C, snr_db=30.0,
+                                  rng=np.random.default_rng(3))
+    return ChannelData(name="ch1", codes=codes, trigger_offset_s=offsets, sample_rate_hz=FS,
+                       prf_hz=PRF, delay_s=0.0, volts_per_count=1.0, volts_offset=0.0,
+                       speed_of_sound_m_s=C, output=None)
+
+
+def test_echo_leaving_the_record_is_named_in_the_quality_message():
+    # 900 um peak-to-peak at 5 Hz: the echo leaves the 1 us record at both extremes.
+    d = 450e-6 * np.sin(2 * np.pi * 5.0 * np.arange(2000) / PRF)
+    channel = process_channel(_channel(d), 5.0)
+    assert channel.quality["ok"] is False
+    assert "left the recorded window" in channel.quality["message"]
+    assert "left the recorded window" in channel.quality["tracking_warnings"]
+
+
+def test_good_step_keeps_a_plain_ok_message():
+    d = 1e-6 * np.sin(2 * np.pi * 80.0 * np.arange(2000) / PRF)
+    channel = process_channel(_channel(d), 80.0)
+    assert channel.quality["ok"] is True
+    assert channel.quality["message"] == "ok"
