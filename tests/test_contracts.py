@@ -266,7 +266,6 @@ def test_reprocess_refuses_frf_only_file(files: dict[str, Path], tmp_path: Path,
 
 
 # ---------------------------------------------------------------- never overwrite
-OVERWRITE_BUG = "open bug (reported by QA): the command writes over an existing --json file"
 WRITERS = {
     "run": lambda fs, o: ["run", str(fs["protocol"]), "--out", str(o), "--quiet"],
     "reprocess": lambda fs, o: ["reprocess", str(fs["session"]), "--out", str(o)],
@@ -278,11 +277,7 @@ WRITERS = {
 }
 
 
-@pytest.mark.parametrize("command", [
-    *sorted(set(WRITERS) - {"identify", "gap"}),
-    pytest.param("identify", marks=pytest.mark.xfail(reason=OVERWRITE_BUG)),
-    pytest.param("gap", marks=pytest.mark.xfail(reason=OVERWRITE_BUG)),
-])
+@pytest.mark.parametrize("command", sorted(WRITERS))
 def test_existing_output_is_never_overwritten(files: dict[str, Path], command: str,
                                               tmp_path: Path,
                                               capsys: pytest.CaptureFixture) -> None:

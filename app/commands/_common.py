@@ -37,24 +37,34 @@ def json_safe(value: object) -> object:
     return value
 
 
+def check_new_output(path: str | Path) -> Path:
+    """Refuse, before any long work, an output that exists (results are never overwritten,
+    like sessions) or whose folder does not."""
+    target = Path(path)
+    if target.is_dir():
+        raise IsADirectoryError(f"{target} is a folder; give a file name for the output")
+    if target.exists():
+        raise FileExistsError(f"{target} exists; not overwriting it (choose another name)")
+    if not target.parent.exists():
+        raise FileNotFoundError(f"output folder {target.parent} does not exist")
+    return target
+
+
 def write_json(path: str | Path, document: object) -> Path:
-    """Write a result document as strict JSON, atomically: a crash never leaves a half-written
-    file, and an existing result is replaced only by a complete new one."""
+    """Write a result document as strict JSON, atomically (a crash never leaves a
+    half-written file) and only if no file of that name exists."""
     import json
     import os
     import tempfile
 
-    target = Path(path)
-    if target.is_dir():
-        raise IsADirectoryError(f"{target} is a folder; give a file name for the JSON")
-    if not target.parent.exists():
-        raise FileNotFoundError(f"output folder {target.parent} does not exist")
+    target = check_new_output(path)
     text = json.dumps(json_safe(document), indent=2, allow_nan=False) + "\n"
     fd, tmp = tempfile.mkstemp(prefix=f".{target.name}.", suffix=".tmp", dir=target.parent)
     try:
         with os.fdopen(fd, "w") as handle:
             handle.write(text)
-        os.replace(tmp, target)
+        os.link(tmp, target)  # fails if the name appeared meanwhile: never overwrite
+        Path(tmp).unlink()
     except BaseException:
         Path(tmp).unlink(missing_ok=True)
         raise

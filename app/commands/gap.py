@@ -21,7 +21,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from pelvislab.app.commands._common import write_json
+from pelvislab.app.commands._common import check_new_output, write_json
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -126,7 +126,7 @@ def diagnose_file(path: str | Path, model_path: str | Path | None = None,
 
 
 def _diagnose(args: argparse.Namespace) -> int:
-    out = Path(args.json)
+    out = check_new_output(args.json)
     effects = None
     if args.effects:
         effects = tuple(e.strip() for e in args.effects.split(",") if e.strip())

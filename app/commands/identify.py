@@ -10,7 +10,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from pelvislab.app.commands._common import write_json
+from pelvislab.app.commands._common import check_new_output, write_json
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -153,9 +153,7 @@ def identify_file(path: str | Path, method: str = "frf", params: list[str] | Non
 
 
 def _identify(args: argparse.Namespace) -> int:
-    out = Path(args.json)
-    if not out.parent.exists():
-        raise FileNotFoundError(f"output folder {out.parent} does not exist")
+    out = check_new_output(args.json)
     free = [s.strip() for s in args.params.split(",") if s.strip()] if args.params else None
     progress = _progress(sys.stderr.isatty() or args.verbose > 0)
     report = identify_file(
