@@ -101,7 +101,9 @@ def run_benchmark(generator: Generator | None, kinds: Sequence[str] | None = Non
     kinds = list(kinds) if kinds is not None else ["none", *EFFECT_NAMES]
     model = model or default_model()
     cases = []
-    labels = [*kinds, "unexplained"]
+    # columns: every verdict the diagnosis can give, also when --kinds restricts the rows
+    # (else a verdict outside the generated kinds would be counted as "unexplained")
+    labels = [*kinds, *[e for e in ("none", *EFFECT_NAMES) if e not in kinds], "unexplained"]
     plan: list[tuple[Generator, int]] = []
     if generator is not None:
         plan += [(generator, k) for k in range(cases_per_kind)]

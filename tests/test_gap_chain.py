@@ -11,6 +11,7 @@ import pytest
 from pelvislab.app.cli import main
 from pelvislab.model.frf import frf
 from pelvislab.model.gap_benchmark import run_benchmark
+from pelvislab.model.gap_effects import EFFECT_NAMES
 from pelvislab.model.pelvis import default_model
 from pelvislab.tests.benchmarks.bench_gap import (
     INPUTS,
@@ -69,6 +70,9 @@ def test_chain_case_is_scored_with_its_source(none_case):
     assert entry["source"] == "chain" and entry["kind"] == "none"
     assert entry["n_frf"] == 15 and entry["n_lines"] == 15
     assert sum(result["confusion"]["matrix"]["none"].values()) == 1
+    # every possible verdict is a column even when only "none" sets were generated
+    assert set(EFFECT_NAMES) <= set(result["confusion"]["rows_truth_cols_verdict"])
+    assert result["confusion"]["matrix"]["none"][entry["verdict"]] == 1
 
 
 def test_chain_protocol_is_face_up_on_a_coarser_grid():
