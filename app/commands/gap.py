@@ -64,14 +64,6 @@ def _progress() -> object:
     return None
 
 
-def _one_blas_thread() -> None:
-    """The diagnosis makes many small LAPACK calls (SVDs inside least squares); a
-    multi-threaded OpenBLAS on a busy 2-core machine was measured ~2x slower overall than
-    one thread. Only effective before numpy is first imported, which the CLI guarantees."""
-    for var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
-        os.environ.setdefault(var, "1")
-
-
 @dataclass
 class GapReport:
     """One diagnosis of a file: the design 4.4 document plus what the views draw."""
@@ -95,7 +87,6 @@ def diagnose_file(path: str | Path, model_path: str | Path | None = None,
     The one entry point of the CLI and the GUI's replay view; the numerics are
     :func:`pelvislab.model.gap.diagnose`.
     """
-    _one_blas_thread()
     import numpy as np
 
     from pelvislab.acquisition.frfset import read_frf
@@ -230,7 +221,6 @@ def _plots(result: object, out: Path) -> list[str]:
 
 
 def _benchmark(args: argparse.Namespace) -> int:
-    _one_blas_thread()
     from pelvislab.model.gap_benchmark import format_summary, run_benchmark
 
     if args.cases < 1:

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import argparse
-import os
 import sys
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -53,14 +52,6 @@ def _progress(enabled: bool):  # noqa: ANN202 - Callable[[str], None] | None
     return report
 
 
-def _one_blas_thread() -> None:
-    """Least squares makes many small LAPACK calls; a multi-threaded OpenBLAS on a busy
-    2-core machine was measured ~10x slower (one identification 19.9 s vs 1.6 s wall).
-    Only effective before numpy is first imported, which the CLI guarantees."""
-    for var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
-        os.environ.setdefault(var, "1")
-
-
 @dataclass
 class IdentificationReport:
     """One identification of a file: the design 4.5 JSON, the measured FRFs and the model's
@@ -87,7 +78,6 @@ def identify_file(path: str | Path, method: str = "frf", params: list[str] | Non
     The one entry point of the CLI and the GUI's replay view; the numerics are
     :func:`pelvislab.model.identification.identify_frf` / ``identify_modal``.
     """
-    _one_blas_thread()
     import numpy as np
 
     from pelvislab.acquisition.frfset import read_frf
