@@ -126,6 +126,19 @@ class EmaResult:
         return float(num / den) if den > 0 else float("nan")
 
 
+
+def _frf_arrays(frequency_hz: np.ndarray, H: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(f (n_f,), H (n_f, n_out, n_in) complex) from a 1-, 2- or 3-D FRF array."""
+    f = np.asarray(frequency_hz, dtype=float).reshape(-1)
+    H = np.asarray(H, dtype=complex)
+    if H.ndim == 1:
+        H = H[:, None, None]
+    elif H.ndim == 2:
+        H = H[:, :, None]
+    if H.ndim != 3 or H.shape[0] != f.size:
+        raise ValueError(f"H must be (n_f, n_out, n_in) with n_f = {f.size}; got {H.shape}")
+    return f, H
+
 def pole_frequency_damping(poles: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Undamped natural frequency (Hz) and damping ratio of complex poles (rad/s)."""
     poles = np.asarray(poles, dtype=complex)
@@ -153,14 +166,7 @@ def _prepare(
     error, and a line-by-line ``1/H_std`` weight biases the poles badly; measured on the
     pelvis model with proportional noise: lost modes).
     """
-    f = np.asarray(frequency_hz, dtype=float).reshape(-1)
-    H = np.asarray(H, dtype=complex)
-    if H.ndim == 1:
-        H = H[:, None, None]
-    elif H.ndim == 2:
-        H = H[:, :, None]
-    if H.ndim != 3 or H.shape[0] != f.size:
-        raise ValueError(f"H must be (n_f, n_out, n_in) with n_f = {f.size}; got {H.shape}")
+    f, H = _frf_arrays(frequency_hz, H)
     ok = np.isfinite(H) & (f[:, None, None] > 0)
     if not ok.any():
         raise ValueError("no measured FRF line (all NaN or at 0 Hz)")
@@ -701,14 +707,7 @@ def ema(
     ``refine`` polishes the selected poles by a nonlinear pole/residue fit (:func:`refine_poles`).
     Returns an :class:`EmaResult` (modes sorted by frequency, shapes, complexity, fit).
     """
-    f = np.asarray(frequency_hz, dtype=float).reshape(-1)
-    Hc = np.asarray(H, dtype=complex)
-    if Hc.ndim == 1:
-        Hc = Hc[:, None, None]
-    elif Hc.ndim == 2:
-        Hc = Hc[:, :, None]
-    if Hc.ndim != 3 or Hc.shape[0] != f.size:
-        raise ValueError(f"H must be (n_f, n_out, n_in) with n_f = {f.size}; got {Hc.shape}")
+    f, Hc = _frf_arrays(frequency_hz, H)
     std = None if H_std is None else np.asarray(H_std, dtype=float).reshape(Hc.shape)
     sel = f > 0
     if band_hz is not None:

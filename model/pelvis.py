@@ -497,30 +497,24 @@ def parse_model(data: Mapping[str, Any], source: str = "<model>") -> PelvisModel
             raise ModelError(f"{where}: {exc}") from None
     connector_keys = {"name", "group", "side", "body_a", "body_b", "axis"} | _len_keys(
         "point_a", "point_b")
-    springs = []
-    for i, e in enumerate(data.get("spring", [])):
-        what = f"{where}: spring #{i + 1} {e.get('name', '?')!r}"
-        _check_keys(e, connector_keys | {"stiffness_n_per_m"}, what)
-        try:
-            springs.append(Spring(
-                str(_require(e, "name", what)), str(_require(e, "body_a", what)),
-                _length(e, "point_a", what), str(_require(e, "body_b", what)),
-                _length(e, "point_b", what), _require(e, "stiffness_n_per_m", what),
-                str(e.get("group", "")), str(e.get("side", "")), e.get("axis")))
-        except ModelError as exc:
-            raise ModelError(f"{where}: {exc}") from None
-    dashpots = []
-    for i, e in enumerate(data.get("dashpot", [])):
-        what = f"{where}: dashpot #{i + 1} {e.get('name', '?')!r}"
-        _check_keys(e, connector_keys | {"coefficient_n_s_per_m"}, what)
-        try:
-            dashpots.append(Dashpot(
-                str(_require(e, "name", what)), str(_require(e, "body_a", what)),
-                _length(e, "point_a", what), str(_require(e, "body_b", what)),
-                _length(e, "point_b", what), _require(e, "coefficient_n_s_per_m", what),
-                str(e.get("group", "")), str(e.get("side", "")), e.get("axis")))
-        except ModelError as exc:
-            raise ModelError(f"{where}: {exc}") from None
+    def connectors(table: str, cls: type, coefficient_key: str) -> list:
+        """Springs or dashpots: the same keys but for the coefficient's name."""
+        found = []
+        for i, e in enumerate(data.get(table, [])):
+            what = f"{where}: {table} #{i + 1} {e.get('name', '?')!r}"
+            _check_keys(e, connector_keys | {coefficient_key}, what)
+            try:
+                found.append(cls(
+                    str(_require(e, "name", what)), str(_require(e, "body_a", what)),
+                    _length(e, "point_a", what), str(_require(e, "body_b", what)),
+                    _length(e, "point_b", what), _require(e, coefficient_key, what),
+                    str(e.get("group", "")), str(e.get("side", "")), e.get("axis")))
+            except ModelError as exc:
+                raise ModelError(f"{where}: {exc}") from None
+        return found
+
+    springs = connectors("spring", Spring, "stiffness_n_per_m")
+    dashpots = connectors("dashpot", Dashpot, "coefficient_n_s_per_m")
     pms = []
     for i, e in enumerate(data.get("point_mass", [])):
         what = f"{where}: point_mass #{i + 1} {e.get('name', '?')!r}"
