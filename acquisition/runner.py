@@ -222,6 +222,17 @@ class _Stop(Exception):
     """Raised inside the runner when an abort was requested."""
 
 
+class RunInterrupted(KeyboardInterrupt):
+    """Raised by :meth:`Runner.interrupt` (a signal handler) to cut a wait short.
+
+    A subclass, not ``KeyboardInterrupt`` itself: CPython 3.11 marks the process for exit
+    *by* SIGINT (exit status -2 instead of our 130) whenever an exact KeyboardInterrupt
+    passes through code run by ``exec`` of a string, even if it is caught later; the handler
+    can fire while a lazy import defines a dataclass (dataclasses build methods that way).
+    The exact-type check there does not match a subclass; ``except KeyboardInterrupt``
+    still does."""
+
+
 # --------------------------------------------------------------------------- numerics glue
 def drive_voltage_phasor(amplitude_vpp: float) -> complex:
     """Drive-voltage phasor (V, peak) at the first pulse of a record."""
@@ -491,7 +502,7 @@ class Runner:
         unless listeners are writing, raise KeyboardInterrupt to cut a wait short."""
         self.abort(reason, "interrupted")
         if not self.critical and self.state in ("running", "waiting", "paused"):
-            raise KeyboardInterrupt(reason)
+            raise RunInterrupted(reason)
 
     @property
     def aborted(self) -> bool:

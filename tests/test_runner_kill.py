@@ -172,6 +172,24 @@ def test_ctrl_c_via_cli_outputs_off_within_100_ms(tmp_path):
             assert off and off[0] - t_sigint < 0.1, (role, texts[-5:])
 
 
+def test_interrupt_inside_exec_code_still_exits_130(tmp_path):
+    """The signal handler's exception can land in code run by exec() of a string (a lazy
+    import defining a dataclass); CPython 3.11 then exits by SIGINT (status -2, not 130) at
+    the end of ``python -m`` if that exception is exactly KeyboardInterrupt, even though the
+    runner caught it. CI saw this; the runner raises a subclass instead."""
+    (tmp_path / "interrupt_in_exec.py").write_text(
+        "import sys\n"
+        "from pelvislab.acquisition.runner import RunInterrupted\n"
+        "try:\n"
+        "    exec('raise RunInterrupted(\"x\")')\n"
+        "except KeyboardInterrupt:\n"
+        "    pass\n"
+        "sys.exit(130)\n")
+    proc = subprocess.run([sys.executable, "-m", "interrupt_in_exec"], cwd=tmp_path,
+                          capture_output=True, text=True, timeout=60)
+    assert proc.returncode == 130, proc.stderr
+
+
 def test_truncated_session_is_refused_cleanly(tmp_path):
     protocol = tmp_path / "p.toml"
     protocol.write_text(PROTOCOL)
