@@ -48,7 +48,7 @@ excitation = "SIAS_R_x"
 transducers = { ch1 = "SIPS_R_x", ch2 = "SIPS_L_x" }
 """
 N_STEPS = 8
-N_KILLS = 12
+N_KILLS = 20  # issue 7: "kill -9 at 20 random moments"
 
 
 def _child(protocol: str, out: str, resume: bool) -> None:
