@@ -346,6 +346,7 @@ def read_uff(path: str | Path, points: dict[int, PointInfo] | None = None
     inputs: dict[object, tuple[str, str, np.ndarray, np.ndarray]] = {}
     entries = []
     scalar_warned = False
+    unplaced: set[int] = set()  # nodes already named in a "no coordinates" note
 
     def channel(dset: dict, role: str) -> tuple[object, tuple[str, str, np.ndarray, np.ndarray]]:
         nonlocal scalar_warned
@@ -365,7 +366,9 @@ def read_uff(path: str | Path, points: dict[int, PointInfo] | None = None
             position = info.position_m
         if position is None:
             position = np.zeros(3)
-            notes.append(f"node {node} has no coordinates; placed at the origin")
+            if node not in unplaced:
+                unplaced.add(node)
+                notes.append(f"node {node} has no coordinates; placed at the origin")
         if parsed is not None:
             name, bone, direction = parsed
             key: object = name
