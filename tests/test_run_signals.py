@@ -1,0 +1,64 @@
+"""Ctrl-C during a long C call of the run still turns the outputs off at once.
+
+CPython runs a Python signal handler in the main thread only between bytecodes; the CLI's run
+is in the main thread, so an HDF5 flush or an FFT (50-230 ms measured under load) used to
+delay the abort, and test_runner_kill's Ctrl-C test failed now and then (142 ms). Here the
+run is one C call that releases the GIL and never looks at signals (PBKDF2): the abort must
+come from the signal watcher thread while it lasts, not from the handler after it.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import os
+import signal
+import time
+
+from pelvislab.app.commands.run import _run_with_signals
+
+
+def _calibrated_iterations(seconds: float) -> int:
+    n = 20_000
+    t0 = time.perf_counter()
+    hashlib.pbkdf2_hmac("sha256", b"pelvislab", b"salt", n)
+    return max(n, int(n * seconds / max(time.perf_counter() - t0, 1e-6)))
+
+
+class _Runner:
+    def __init__(self) -> None:
+        self.calls: list[tuple[str, float, str, str]] = []
+
+    def abort(self, reason: str = "", status: str = "aborted") -> None:
+        self.calls.append(("abort", time.monotonic(), reason, status))
+
+    def interrupt(self, reason: str = "") -> None:  # the real one raises RunInterrupted
+        self.calls.append(("interrupt", time.monotonic(), reason, "interrupted"))
+
+
+class _Prepared:
+    def __init__(self, iterations: int) -> None:
+        self.runner = _Runner()
+        self.iterations = iterations
+
+    def run(self) -> str:
+        self.t_signal = time.monotonic()
+        os.kill(os.getpid(), signal.SIGINT)
+        hashlib.pbkdf2_hmac("sha256", b"pelvislab", b"salt", self.iterations)  # ~0.4 s
+        self.t_end = time.monotonic()
+        return "final"
+
+
+def test_sigint_during_a_long_c_call_aborts_within_100_ms():
+    before = signal.getsignal(signal.SIGINT)
+    prepared = _Prepared(_calibrated_iterations(0.4))
+    assert _run_with_signals(prepared) == "final"
+    aborts = [c for c in prepared.runner.calls if c[0] == "abort"]
+    assert aborts, prepared.runner.calls
+    _, t_abort, reason, status = aborts[0]
+    assert t_abort < prepared.t_end, "abort only after the C call: no watcher"
+    assert t_abort - prepared.t_signal < 0.1
+    assert reason == "interrupted by Ctrl-C (SIGINT)" and status == "interrupted"
+    assert any(c[0] == "interrupt" for c in prepared.runner.calls)  # the handler still runs
+    # everything is put back: handler, wake-up fd
+    assert signal.getsignal(signal.SIGINT) is before
+    assert signal.set_wakeup_fd(-1) == -1
