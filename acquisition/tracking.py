@@ -359,8 +359,9 @@ def _coarse(W: np.ndarray, ref: _Reference, L: int,
     if step % 2 == 0:
         par = L % 2
         lags = np.arange(-(L - par), L + 1, step)
-        Wd = _every_other_float32(W, par)
-        C = Wd @ _toeplitz(ref.q[::2], lags // 2, (L - par) // 2, _blas_width(lags.size))
+        T = _toeplitz(ref.q[::2], lags // 2, (L - par) // 2, _blas_width(lags.size))
+        # (odd L with an even gate length: the last decimated sample is beyond every lag)
+        C = _every_other_float32(W, par)[:, : T.shape[0]] @ T
     else:
         lags = np.arange(-L, L + 1, step)
         if lags[-1] != L:

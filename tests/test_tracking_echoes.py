@@ -301,3 +301,18 @@ def test_echo_cut_by_the_record_edge_is_unbiased():
     err = (res.delay_s - (arrival - arrival[0])) * FS
     assert not res.lost.any()
     assert np.abs(err).max() < 0.05  # measured 0.037
+
+
+@pytest.mark.parametrize("max_lag", [11, 12, 13])
+@pytest.mark.parametrize("gate", [(120, 380), (120, 381)])
+def test_any_lag_range_and_gate_length(max_lag, gate):
+    # The coarse pass decimates the windows by 2: an odd lag range with an even gate length
+    # used to fail on a size mismatch (one decimated sample more than the lag matrix).
+    rng = np.random.default_rng(14)
+    d = _sine_displacement(300)
+    codes, off = synth_echoes(_arrival(d), snr_db=30.0, rng=rng)
+    opts = TrackingOptions(max_lag_samples=max_lag, gate=gate)
+    res = track_echoes(codes, off, FS, C, options=opts)
+    crb_m = C / 2 * delay_crb_s(amplitude_counts=100.0, noise_sd_counts=noise_sd_counts(100, 30))
+    assert not res.lost.any()
+    assert np.std(res.displacement_m - (d - d[0])) < 1.3 * crb_m
