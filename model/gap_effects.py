@@ -10,8 +10,10 @@ dynamic stiffness linearly::
 with a_m = −ω², a_k = 1, a_c = iω for the plain viscous model (eq. 4.54). A candidate
 *effect* (sim-to-real gap hypothesis) may change the frequency factors (eq. 7.1-7.3:
 frequency-dependent stiffness, hysteretic damping), add a low-rank ΔZ (added mass, missing
-ligament, support, soft-tissue loading), change an output row (sensor misorientation) or
-multiply outputs/inputs by a measurement-chain gain (soft tissue, fixture resonance).
+ligament, support, soft-tissue loading) — or a ΔZ_j present only in the columns of input j,
+i.e. only while the shaker drives there (tissue under the shaker: ``H[:, :, j] =
+O (Z + ΔZ_j)⁻¹ i_j``) —, change an output row (sensor misorientation) or multiply
+outputs/inputs by a measurement-chain gain (soft tissue, fixture resonance).
 
 All functions here are pure numerics on arrays (no I/O). Frequencies in Hz, ω in rad/s,
 SI units throughout. This module deliberately shares no code with the simulator's effect
@@ -207,6 +209,9 @@ class EffectTerms:
     a_k: np.ndarray | None = None
     a_c: np.ndarray | None = None
     dZ: np.ndarray | None = None  # (n_f, n, n) complex
+    # per input: extra (n_f, n, n) dynamic stiffness present only while that input is
+    # driven (something the shaker brings with it in that input's setups), None = none
+    dZ_input: tuple[np.ndarray | None, ...] | None = None
     out_gain: np.ndarray | None = None  # (n_f, n_out) complex
     in_gain: np.ndarray | None = None  # (n_f, n_in) complex
     out_rows: np.ndarray | None = None  # (n_out, n)
@@ -216,7 +221,8 @@ def evaluate(ctx: Context, theta: np.ndarray, terms: EffectTerms | None = None,
              jacobian: bool = False) -> tuple[np.ndarray, np.ndarray | None]:
     """H (n_f, n_out, n_in) and, optionally, ∂H/∂log θ (n_f, n_out, n_in, n_p).
 
-    One batched solve ``Z⁻¹ [Oᵀ Iᵀ]`` per call; the Jacobian uses the atoms:
+    One batched solve ``Z⁻¹ [Oᵀ Iᵀ]`` per call (one more per input that carries its own
+    ``dZ_input``: column j is then ``O (Z + ΔZ_j)⁻¹ i_j``); the Jacobian uses the atoms:
     ``∂H/∂θ_p = −(Z⁻¹Oᵀ)ᵀ ∂Z/∂θ_p (Z⁻¹Iᵀ)`` (Z complex symmetric).
     """
     base = ctx.base
@@ -231,32 +237,46 @@ def evaluate(ctx: Context, theta: np.ndarray, terms: EffectTerms | None = None,
         Z = Z + terms.dZ
     o = ctx.out_rows if terms.out_rows is None else terms.out_rows
     i = ctx.in_rows
-    n_out = o.shape[0]
-    rhs = np.concatenate([o, i]).T.astype(complex)
-    X = np.linalg.solve(Z, np.broadcast_to(rhs, (w.size, *rhs.shape)))
-    A, B = X[..., :n_out], X[..., n_out:]
-    H = o @ B
+    n_out, n_in = o.shape[0], i.shape[0]
+    # (dynamic stiffness, input columns) solved together
+    groups: list[tuple[np.ndarray, list[int]]] = []
+    if terms.dZ_input is None:
+        groups.append((Z, list(range(n_in))))
+    else:
+        plain = [j for j in range(n_in) if terms.dZ_input[j] is None]
+        if plain:
+            groups.append((Z, plain))
+        groups.extend((Z + d, [j]) for j, d in enumerate(terms.dZ_input) if d is not None)
+    H = np.empty((w.size, n_out, n_in), complex)
+    dH = np.empty((w.size, n_out, n_in, base.n_params), complex) if jacobian else None
+    if jacobian:
+        coef_kind = np.stack([a_m, a_k, a_c], axis=1)  # (n_f, 3)
+        theta = np.asarray(theta, float)
+        c = base.weights * coef_kind[:, base.kinds] * theta[base.params]  # d/dlog θ
+        P = np.zeros((c.shape[1], base.n_params))
+        P[np.arange(c.shape[1]), base.params] = 1.0
+    for Zg, cols in groups:
+        rhs = np.concatenate([o, i[cols]]).T.astype(complex)
+        X = np.linalg.solve(Zg, np.broadcast_to(rhs, (w.size, *rhs.shape)))
+        A, B = X[..., :n_out], X[..., n_out:]
+        H[:, :, cols] = o @ B
+        if dH is None:
+            continue
+        a = base.vectors @ A  # (n_f, n_a, n_out)
+        b = base.vectors @ B  # (n_f, n_a, n_cols)
+        n_f, n_a = c.shape
+        outer = (a * c[:, :, None])[:, :, :, None] * b[:, :, None, :]  # (n_f, n_a, n_out, n_c)
+        d = -(outer.reshape(n_f, n_a, n_out * len(cols)).transpose(0, 2, 1) @ P)
+        dH[:, :, cols, :] = d.reshape(n_f, n_out, len(cols), base.n_params)
     gain = np.ones(H.shape, complex)
     if terms.out_gain is not None:
         gain = gain * terms.out_gain[:, :, None]
     if terms.in_gain is not None:
         gain = gain * terms.in_gain[:, None, :]
     H = H * gain
-    if not jacobian:
+    if dH is None:
         return H, None
-    a = base.vectors @ A  # (n_f, n_a, n_out)
-    b = base.vectors @ B  # (n_f, n_a, n_in)
-    coef_kind = np.stack([a_m, a_k, a_c], axis=1)  # (n_f, 3)
-    theta = np.asarray(theta, float)
-    c = base.weights * coef_kind[:, base.kinds] * theta[base.params]  # d/dlog θ
-    n_f, n_a = c.shape
-    n_in = b.shape[2]
-    outer = (a * c[:, :, None])[:, :, :, None] * b[:, :, None, :]  # (n_f, n_a, n_out, n_in)
-    P = np.zeros((n_a, base.n_params))
-    P[np.arange(n_a), base.params] = 1.0
-    dH = -(outer.reshape(n_f, n_a, n_out * n_in).transpose(0, 2, 1) @ P)
-    dH = dH.reshape(n_f, n_out, n_in, base.n_params) * gain[..., None]
-    return H, dH
+    return H, dH * gain[..., None]
 
 
 # ---------------------------------------------------------------------------------------
@@ -353,30 +373,53 @@ def _global_candidates() -> list[Candidate]:
 
 
 def _tissue_candidates(ctx: Context) -> list[Candidate]:
-    """Soft tissue between skin and bone at one channel (thesis ch. 8: the probe sits on the
-    skin): a tissue mass m on a spring-damper (f_t, ζ_t) to the bone point; the channel
-    measures (output) or is driven through (input) that mass. Exact condensation of the
-    extra DOF: the bone sees ΔZ = −ω² m T g gᵀ and the channel the transmissibility T."""
+    """Soft tissue between skin and bone (thesis ch. 8: the probe sits on the skin, the
+    shaker pushes through it): a tissue mass m on a spring-damper (f_t, ζ_t) to the bone
+    point, coupled on every axis. Exact condensation of the extra DOF: the bone point sees
+    ``ΔZ = −ω² m T GᵀG`` and the channel the transmissibility ``T`` (force into the tissue
+    mass F: ``(Z + ΔZ) u = T Gᵀ d F``, ``T = k*/(k* − ω²m)``, ``k* = k + iωc``).
+
+    Three variants:
+
+    * ``tissue at output``: the probe reads the tissue mass (T on that output row), the
+      tissue loads the bone in every FRF;
+    * ``tissue at input``: the shaker drives the tissue mass (T on that input column), the
+      tissue stays attached to the bone in every FRF (it loads the columns of the other
+      inputs too);
+    * ``tissue under the shaker``: the tissue is a subsystem only while the shaker pushes
+      on it — in the setups that drive that input, so ΔZ and T act on that input's column
+      alone (``O (Z + ΔZ_j)⁻¹ i_j T``) and the other inputs' FRFs see the bare bone; the
+      measured FRF of a session is assembled setup by setup (one excitation point each,
+      thesis table 6.3), and the tissue's own mass at rest is part of the bone mass that
+      parameter updating fits. At one input, or at every driven input with one shared
+      tissue (the real shaker always pushes through skin).
+    """
     cands = []
     lo = np.array([np.log(1.0), np.log(0.02), np.log(1e-4)])
     hi = np.array([np.log(5000.0), np.log(3.0), np.log(2.0)])
     starts = tuple(np.array([np.log(f), np.log(0.3), np.log(0.02)]) for f in _f_starts(ctx))
+    labels = ("log_f", "log_zeta", "log_m")
 
     def describe(u: np.ndarray) -> dict[str, float]:
         return {"frequency_hz": float(np.exp(u[0])), "damping_ratio": float(np.exp(u[1])),
                 "mass_kg": float(np.exp(u[2]))}
 
+    def tissue(u: np.ndarray, c: Context, bone: str, pos: np.ndarray
+               ) -> tuple[np.ndarray, np.ndarray]:
+        """(T (n_f,), ΔZ (n_f, n, n)) of the tissue at a point of ``bone``."""
+        T = _sdof_transmissibility(c.omega, np.exp(u[0]), np.exp(u[1]))
+        G = _point_block(c, bone, pos)
+        dZ = (-(c.omega**2) * np.exp(u[2]) * T)[:, None, None] * (G.T @ G)[None]
+        return T, dZ
+
     for side, names in (("output", ctx.out_names), ("input", ctx.in_names)):
         for j, name in enumerate(names):
             def build(u: np.ndarray, c: Context, j: int = j, side: str = side) -> EffectTerms:
-                T = _sdof_transmissibility(c.omega, np.exp(u[0]), np.exp(u[1]))
                 if side == "output":
                     bone, pos = c.out_bones[j], c.out_position_m[j]
                 else:
                     bone, pos = c.in_bones[j], c.in_position_m[j]
-                # the tissue mass is coupled on every axis: it loads the bone point in 3D
-                G = _point_block(c, bone, pos)
-                dZ = (-(c.omega**2) * np.exp(u[2]) * T)[:, None, None] * (G.T @ G)[None]
+                T, dZ = tissue(u, c, bone, pos)
                 n_ch = len(c.out_names) if side == "output" else len(c.in_names)
                 gain = np.ones((c.omega.size, n_ch), complex)
                 gain[:, j] = T
@@ -385,9 +428,31 @@ def _tissue_candidates(ctx: Context) -> list[Candidate]:
                 return EffectTerms(dZ=dZ, in_gain=gain)
 
             bone = ctx.out_bones[j] if side == "output" else ctx.in_bones[j]
-            cands.append(Candidate("soft_tissue", f"tissue at {side}", name, side,
-                                   ("log_f", "log_zeta", "log_m"), lo, hi, starts, build,
-                                   describe, bone))
+            cands.append(Candidate("soft_tissue", f"tissue at {side}", name, side, labels,
+                                   lo, hi, starts, build, describe, bone))
+
+    bones = set(ctx.base.bones)
+    driven = [j for j, b in enumerate(ctx.in_bones) if b in bones]
+    places = [([j], ctx.in_names[j], "input", ctx.in_bones[j]) for j in driven]
+    if len(driven) > 1:
+        # the whole drive chain, no place to choose: fitted jointly like the global
+        # effects (screening with the base fit frozen misranks it: a tissue in every
+        # column is what parameter updating distorts the base most to absorb)
+        places.append((driven, "all inputs", "global", ""))
+    for cols, name, kind, bone in places:
+        def sbuild(u: np.ndarray, c: Context, cols: list[int] = cols) -> EffectTerms:
+            dZs: list[np.ndarray | None] = [None] * len(c.in_names)
+            gain = np.ones((c.omega.size, len(c.in_names)), complex)
+            for j in cols:
+                T, dZs[j] = tissue(u, c, c.in_bones[j], c.in_position_m[j])
+                gain[:, j] = T
+            return EffectTerms(dZ_input=tuple(dZs), in_gain=gain)
+
+        # the shared tissue at every drive point is its own variant (one place): ranked
+        # against the one-input variant, not hidden behind it as a fourth place
+        variant = "tissue under the shaker" + (", every input" if len(cols) > 1 else "")
+        cands.append(Candidate("soft_tissue", variant, name, kind, labels, lo, hi, starts,
+                               sbuild, describe, bone))
     return cands
 
 
