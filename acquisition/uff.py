@@ -1,7 +1,8 @@
 """Universal File Format (UFF) interchange of FRF sets with other modal tools, through pyuff.
 
 Export (:func:`write_uff`): dataset 164 (SI units), the measurement points as nodes in dataset
-2411 (double precision; or 15), one dataset 58 per measured FRF (function type 4, receptance:
+2411 (double precision; or 15; channels at one point along the global axes share its node,
+a direction off the axes gets a node of its own), one dataset 58 per measured FRF (function type 4, receptance:
 ordinate displacement over force), and optionally identified modes as dataset 55 (complex
 modes, one per mode, node vectors in the global frame).
 
@@ -140,12 +141,21 @@ def uff_datasets(frf: FrfSet, modes: UffModes | None = None, binary: bool = True
         raise ValueError(f"geometry dataset must be 15 or 2411, got {geometry}")
     nodes: dict[tuple, int] = {}
     coords: list[np.ndarray] = []
+    taken: dict[tuple[int, int], str] = {}  # (node, direction code) -> channel name
 
     def node_of(channels: Channels, k: int) -> int:
-        key = (channels.name[k], channels.bone[k], tuple(channels.position_m[k]))
+        # Channels at one point along global axes share a node (+X, +Y, ... of one point;
+        # a drive point is the same node as its response), as other modal tools expect.
+        # A direction off the axes (code 0) cannot be told apart in dataset 58: own node.
+        name, code = channels.name[k], direction_code(channels.direction[k])
+        point = (channels.bone[k], tuple(float(x) for x in channels.position_m[k]))
+        key: tuple = point if code != 0 else (name, *point)
+        if key in nodes and taken.get((nodes[key], code), name) != name:
+            key = (name, *point)  # another channel already has this node and direction
         if key not in nodes:
             nodes[key] = len(nodes) + 1
             coords.append(channels.position_m[k])
+        taken[(nodes[key], code)] = name
         return nodes[key]
 
     out_nodes = [node_of(frf.outputs, o) for o in range(len(frf.outputs))]

@@ -209,6 +209,9 @@ def test_round_trip_property(tmp_path_factory, n_out, n_in, n_f, seed, names):
     H = rng.normal(size=(n_f, n_out, n_in)) + 1j * rng.normal(size=(n_f, n_out, n_in))
     H[rng.random(H.shape) < 0.2] = np.nan
     H[:, 0, 0] = 1e-7 * (1 + 1j)  # every line keeps at least one measured FRF
+    # ... and every channel one measured value (a channel without any has no UFF record)
+    H[0, :, 0] = np.where(np.isnan(H[0, :, 0]), 2e-7, H[0, :, 0])
+    H[0, 0, :] = np.where(np.isnan(H[0, 0, :]), 3e-7, H[0, 0, :])
     frf = FrfSet(f, H, out, inp)
     path = tmp_path_factory.mktemp("prop") / "p.uff"
     write_uff(path, frf)
@@ -225,3 +228,30 @@ def test_unwritable_names_are_refused(tmp_path):
     frf.outputs.name[0] = " padded"
     with pytest.raises(ValueError, match="cannot be written"):
         write_uff(tmp_path / "n.uff", frf)
+
+
+def test_channels_of_one_point_share_a_node(tmp_path):
+    """+X and +Y of one point are one UFF node, and a drive point is the node of its
+    response (what other modal tools need to see a point and a driving-point FRF); a
+    direction off the axes keeps a node of its own; the re-import is unchanged."""
+    p = np.array([0.1, -0.05, 0.02])
+    q = np.array([-0.1, 0.0, 0.03])
+    tilted = np.array([0.6, 0.8, 0.0])
+    out = Channels(["A_x", "A_y", "A_t", "B_x"], ["sacrum"] * 4, np.array([p, p, p, q]),
+                   np.array([[1.0, 0, 0], [0, 1.0, 0], tilted, [-1.0, 0, 0]]))
+    inp = Channels(["A_x"], ["sacrum"], np.array([p]), np.array([[1.0, 0, 0]]))
+    f = np.array([10.0, 20.0, 30.0])
+    H = (np.arange(12).reshape(3, 4, 1) + 1) * (1 + 0.5j) * 1e-6
+    path = tmp_path / "shared.uff"
+    write_uff(path, FrfSet(f, H, out, inp))
+    records = {r["id2"].split()[-1]: r for r in pyuff.UFF(str(path)).read_sets()
+               if r["type"] == 58}
+    node = {name: int(r["rsp_node"]) for name, r in records.items()}
+    assert node["A_x"] == node["A_y"] != node["B_x"]
+    assert node["A_t"] not in (node["A_x"], node["B_x"])
+    assert {int(r["ref_node"]) for r in records.values()} == {node["A_x"]}  # driving point
+    assert int(records["A_y"]["rsp_dir"]) == 2 and int(records["B_x"]["rsp_dir"]) == -1
+    back, _ = read_uff(path)
+    assert back.outputs.name == out.name and back.inputs.name == inp.name
+    np.testing.assert_array_equal(back.H, H)
+    np.testing.assert_array_equal(back.outputs.position_m, out.position_m)
