@@ -691,6 +691,9 @@ def parse_protocol(text: str, source: str = "<string>", limits: BenchLimits | No
                         p.add("sweep.step_hz", f"gives {n} steps, more than {MAX_STEPS}")
                     else:
                         freqs = [round(start + i * step, 9) for i in range(n)]  # type: ignore
+                        if freqs[0] <= 0.0:  # a stepped sine needs a frequency (1 nHz grid)
+                            p.add("sweep.start_hz", f"must be > 0 Hz, got {start!r}")
+                            freqs = None
     order = _string(sw, "order", "sweep", p, "up", ("up", "down"))
     drive = _number(sw, "drive_vpp", "sweep", p, minimum=0.0)
     profile = _drive_profile(sw, limits, p)

@@ -147,6 +147,8 @@ def test_down_order_and_list():
         (lambda d: d["subject"].update(position="upside-down"), "subject.position",
          "must be one of"),
         (lambda d: d["sweep"].update(start_hz=-5.0), "sweep.start_hz", "must be > 0"),
+        # rounds to 0 Hz on the 1 nHz grid (hypothesis found a ZeroDivisionError here)
+        (lambda d: d["sweep"].update(start_hz=1.5e-73), "sweep.start_hz", "must be > 0"),
     ],
 )
 def test_each_rule_names_key_and_rule(mutate, key, rule):
