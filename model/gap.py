@@ -19,9 +19,12 @@ Method (``docs/gap-diagnosis.md`` has the long version):
 5. **Which.** Each candidate of :mod:`pelvislab.model.gap_effects` is screened at every
    place with the base parameters frozen, and the best places are then fitted jointly with
    all base parameters. Candidates are ranked by held-out χ² plus 2 per parameter (AIC).
-6. **Verdict.** ``none`` when the base gap is at noise level and no candidate improves the
-   held-out fit significantly; the best candidate when it brings the gap near noise or
-   removes most of it; ``unexplained`` otherwise (``where`` still points at the region).
+6. **Verdict.** The null hypothesis is parameter updating plus the measurement chain's
+   tolerances: one real gain per FRF within ``calibration_tol`` (calibration, tracking)
+   and a probe axis within ``tilt_tol_deg``. ``none`` when the base gap is at noise level
+   and no candidate improves the held-out fit significantly against that null; the best
+   candidate not itself within the tolerances when it does and brings the gap near noise
+   or removes most of it; ``unexplained`` otherwise (``where`` still points at the region).
 
 Numerics only: arrays in, dict out; no I/O.
 """
@@ -67,7 +70,15 @@ class GapOptions:
       when σ is estimated from the data;
     * ``variants_per_effect``: best-screened variants of each effect that get a joint fit
       with the base parameters (global ones always), at ``places_per_variant`` best places
-      plus the place carrying the largest residual share.
+      plus the place carrying the largest residual share;
+    * ``calibration_tol``: relative gain error each measured FRF may carry from the
+      measurement chain (force and displacement calibration, tracking). The null hypothesis
+      of the verdict is "parameter updating plus per-FRF gains within this tolerance": an
+      effect is named only if it is significant also against that null, and a candidate
+      that is itself such a gain (a 1/cos misorientation gain <= 1 + ``calibration_tol``)
+      is not named;
+    * ``tilt_tol_deg``: probe-axis tilt within the mounting tolerance of a transducer; a
+      fitted misorientation tilt at or below it is not named.
     """
 
     holdout_every: int = 4
@@ -92,6 +103,8 @@ class GapOptions:
     robust_scale: float = 3.0
     effects: tuple[str, ...] | None = None
     seed: int = 0
+    calibration_tol: float = 0.005
+    tilt_tol_deg: float = 1.0
 
 
 @dataclass
@@ -238,6 +251,30 @@ def excess_gap(chi2: float, n_lines: int) -> float:
     ``shrink = 1 − gap_after/gap_before`` is the fraction of the model error removed.
     """
     return float(np.sqrt(max(chi2 / n_lines - 1.0, 0.0)))
+
+
+def calibrated_chi2(H: np.ndarray, sigma: np.ndarray, H_model: np.ndarray,
+                    fit_mask: np.ndarray, held_mask: np.ndarray, tol: float
+                    ) -> tuple[float, np.ndarray]:
+    """Held-out χ² of a model allowed one real gain per FRF within ``1 ± tol``.
+
+    The measurement chain scales each FRF by a calibration factor known only to a
+    tolerance (force and displacement calibration, tracking); the gain g of each FRF is
+    the weighted least-squares scale of ``H_model`` onto ``H`` on the *fitted* lines,
+    g = Σ Re(conj(H_model) H)/σ² / Σ |H_model|²/σ², clipped to [1 − tol, 1 + tol], and
+    the χ² = Σ |g H_model − H|²/σ² is taken over the *held-out* lines. Arrays are
+    (n_f, n_out, n_in); masks select usable lines. Returns (χ², gains (n_out, n_in)).
+    """
+    w = np.where(fit_mask, 1.0 / np.where(fit_mask, sigma, 1.0) ** 2, 0.0)
+    Hm = np.where(fit_mask, H_model, 0)
+    Hd = np.where(fit_mask, H, 0)
+    num = np.sum(w * (np.conj(Hm) * Hd).real, axis=0)
+    den = np.sum(w * np.abs(Hm) ** 2, axis=0)
+    g = np.where(den > 0, num / np.where(den > 0, den, 1.0), 1.0)
+    g = np.clip(g, 1.0 - tol, 1.0 + tol)
+    d = np.where(held_mask, g[None] * H_model - np.where(held_mask, H, 0), 0)
+    r2 = np.abs(d) ** 2 / np.where(held_mask, sigma, 1.0) ** 2
+    return float(np.sum(r2)), g
 
 
 @dataclass
@@ -417,6 +454,8 @@ class CandidateResult:
     chi2_heldout: float
     score: float
     screened_places: int
+    chi2_calibrated: float = float("nan")  # held-out χ² with per-FRF gains within tolerance
+    tolerance_note: str = ""  # why the fitted effect is within the chain's tolerance
 
     def as_dict(self, gap_before: float, evidence: str) -> dict[str, object]:
         c = self.candidate
@@ -434,6 +473,9 @@ class CandidateResult:
             "bone": c.bone,
             "n_params": c.n_params,
             "score": _round(self.score),
+            "chi2_held_out": _round(self.chi2_heldout),
+            "chi2_held_out_calibrated": _round(self.chi2_calibrated),
+            "within_tolerance": self.tolerance_note or None,
         }
 
 
@@ -649,6 +691,23 @@ def _significance_threshold(res: CandidateResult, opt: GapOptions, chi2_base: fl
     return crit
 
 
+def _within_tolerance(res: CandidateResult, opt: GapOptions) -> str:
+    """Why a fitted candidate cannot be told from the measurement chain's own tolerance
+    ("" when it can): a misorientation tilt within the probe's mounting tolerance
+    (``tilt_tol_deg``), or a 1/cos gain (thesis fig. 6.9) within the calibration tolerance
+    of a channel's gain (``calibration_tol``)."""
+    if res.candidate.effect != "sensor_misorientation":
+        return ""
+    p = res.candidate.describe(res.u)
+    if "tilt_deg" in p and p["tilt_deg"] <= opt.tilt_tol_deg:
+        return (f"tilt {p['tilt_deg']:.2g} deg at {res.candidate.place} <= "
+                f"{opt.tilt_tol_deg:g} deg (probe mounting tolerance)")
+    if "gain" in p and p["gain"] - 1.0 <= opt.calibration_tol:
+        return (f"gain {p['gain']:.4g} at {res.candidate.place} within 1 + "
+                f"{opt.calibration_tol:g} (calibration tolerance)")
+    return ""
+
+
 def _top_place(where: dict[str, object], place_kind: str) -> str:
     """The output, input or bone carrying the largest residual share."""
     key = {"output": "outputs", "input": "inputs", "bone": "bones", "joint": "bones"}.get(
@@ -824,45 +883,91 @@ def diagnose(data: GapData, model: PelvisModel, options: GapOptions | None = Non
         if cur is None or res.score < cur.score:
             best_by_effect[res.candidate.effect] = res
     ranked = sorted(best_by_effect.values(), key=lambda r: r.score)
-    best = ranked[0] if ranked else None
+
+    # Null hypothesis of the verdict: parameter updating plus the measurement chain's
+    # tolerances (a gain per FRF within calibration_tol, a probe axis within tilt_tol_deg).
+    # Every ranked candidate gets the held-out chi2 with per-FRF gains within tolerance too.
+    fit_mask = data.mask & ~held_lines[:, None, None]
+    held_mask = data.mask & held_lines[:, None, None]
+    chi2_cal_base, gains_base = calibrated_chi2(data.H, data.sigma, H_base, fit_mask,
+                                                held_mask, opt.calibration_tol)
+    for res in ranked:
+        H_res, _ = evaluate(ctx, res.theta, res.candidate.build(res.u, ctx))
+        res.chi2_calibrated = calibrated_chi2(data.H, data.sigma, H_res, fit_mask, held_mask,
+                                              opt.calibration_tol)[0]
+        res.tolerance_note = _within_tolerance(res, opt)
+    gap_cal_before = excess_gap(chi2_cal_base, held.n)
+    # the gains are part of the null only when the data show them: their held-out chi2
+    # drop must pass the one-parameter test at p_value (out of sample, a drop expected
+    # <= 0 without calibration errors); else the null is updating alone, as before
+    crit_cal = float(chi2_dist.isf(opt.p_value, 1))
+    calibration_evident = chi2_base - chi2_cal_base > crit_cal
+    # the verdict looks at the best candidate that is not itself within the tolerances
+    nameable = [r for r in ranked if not r.tolerance_note]
+    best = nameable[0] if nameable else None
+    skipped = [r for r in ranked[:ranked.index(best) if best is not None else len(ranked)]]
+    skip_txt = "; ".join(f"{r.candidate.effect}: {r.tolerance_note}" for r in skipped)
 
     # Verdict
     verdict = "unexplained"
     reason = ""
     if best is None:
-        verdict = "none" if gap_before <= opt.none_gap else "unexplained"
-        reason = "no candidates"
+        significant, shrink, crit, improvement, improvement_cal = False, 0.0, 0.0, 0.0, 0.0
+        best_name = "none outside the tolerances"
     else:
         improvement = chi2_base - best.chi2_heldout
+        improvement_cal = chi2_cal_base - best.chi2_calibrated
         shrink = 1.0 - best.gap_after / gap_before if gap_before > 0 else 0.0
         crit = _significance_threshold(best, opt, chi2_base, data.noise_source == "H_std")
-        significant = improvement > crit
-        explains = best.gap_after <= opt.near_noise_gap or shrink >= opt.min_shrink
-        if gap_before <= opt.none_gap and not significant:
-            verdict = "none"
-            reason = (f"base gap {gap_before:.3g} <= {opt.none_gap} and the best candidate "
-                      f"({best.candidate.effect}) lowers the held-out chi2 by "
-                      f"{improvement:.3g} < {crit:.3g} (not significant)")
-        elif gap_before <= opt.near_noise_gap and not (significant and shrink >= opt.small_shrink):
-            # the model error is already below the noise: an effect must remove a good part
-            # of it to be worth naming (a tiny systematic, e.g. a 0.5 % channel gain of the
-            # full chain, is statistically significant on precise data but not a gap)
-            verdict = "none"
-            reason = (f"base gap {gap_before:.3g} <= {opt.near_noise_gap} (below the noise) and "
-                      f"the best candidate ({best.candidate.effect}) removes only "
-                      f"{shrink:.0%} of it (< {opt.small_shrink:.0%})")
-        elif significant and explains:
-            verdict = best.candidate.effect
-            reason = (f"{best.candidate.effect} brings the held-out gap from {gap_before:.3g} "
-                      f"to {best.gap_after:.3g} (shrink {shrink:.0%})")
-        else:
-            verdict = "unexplained"
-            reason = (f"best candidate {best.candidate.effect} leaves gap {best.gap_after:.3g} "
-                      f"(> {opt.near_noise_gap}) and shrink {shrink:.0%} (< {opt.min_shrink:.0%})")
+        # significant against updating alone and against updating + calibration tolerance
+        significant = improvement > crit and (improvement_cal > crit
+                                               or not calibration_evident)
+        best_name = best.candidate.effect
+    if best is None and not ranked:
+        verdict = "none" if gap_before <= opt.none_gap else "unexplained"
+        reason = "no candidates"
+    elif gap_before <= opt.none_gap and not significant:
+        verdict = "none"
+        reason = (f"base gap {gap_before:.3g} <= {opt.none_gap} and the best candidate "
+                  f"({best_name}) lowers the held-out chi2 by {improvement:.3g}"
+                  + (f" (by {improvement_cal:.3g} with per-FRF gains within "
+                     f"+-{opt.calibration_tol:.2%}), not both > " if calibration_evident
+                     else " <= ")
+                  + f"{crit:.3g} (not significant)")
+    elif gap_before <= opt.near_noise_gap and not (significant and shrink >= opt.small_shrink):
+        # the model error is already below the noise: an effect must remove a good part
+        # of it to be worth naming
+        verdict = "none"
+        reason = (f"base gap {gap_before:.3g} <= {opt.near_noise_gap} (below the noise) and "
+                  f"the best candidate ({best_name}) "
+                  + (f"removes only {shrink:.0%} of it (< {opt.small_shrink:.0%})"
+                     if significant else
+                     f"is not significant (chi2 drop {improvement:.3g}"
+                     + (f", {improvement_cal:.3g} against per-FRF gains within "
+                        f"+-{opt.calibration_tol:.2%}" if calibration_evident else "")
+                     + f"; needs > {crit:.3g})"))
+    elif not significant and calibration_evident and gap_cal_before <= opt.near_noise_gap:
+        verdict = "none"
+        reason = (f"per-FRF gains within +-{opt.calibration_tol:.2%} (calibration tolerance) "
+                  f"bring the base gap from {gap_before:.3g} to {gap_cal_before:.3g} and the "
+                  f"best candidate ({best_name}) is not significant beyond them")
+    elif significant and (best.gap_after <= opt.near_noise_gap or shrink >= opt.min_shrink):
+        verdict = best.candidate.effect
+        reason = (f"{best.candidate.effect} brings the held-out gap from {gap_before:.3g} "
+                  f"to {best.gap_after:.3g} (shrink {shrink:.0%})")
+    else:
+        verdict = "unexplained"
+        reason = (f"best candidate {best_name} leaves gap "
+                  f"{best.gap_after if best is not None else gap_before:.3g} "
+                  f"(> {opt.near_noise_gap}) and shrink {shrink:.0%} (< {opt.min_shrink:.0%})"
+                  + ("" if significant else " or is not significant"))
+    if skip_txt:
+        reason += f" [not named, within the measurement chain's tolerance: {skip_txt}]"
     candidates = [r.as_dict(gap_before, _evidence(r, where, chi2_base, held.n)) for r in ranked]
     H_best = None
-    if best is not None:
-        H_best, _ = evaluate(ctx, best.theta, best.candidate.build(best.u, ctx))
+    shown = best if best is not None else (ranked[0] if ranked else None)
+    if shown is not None:
+        H_best, _ = evaluate(ctx, shown.theta, shown.candidate.build(shown.u, ctx))
     residual_map = normalised_residual(data, H_base, fill=np.nan)
     timing["total_s"] = time.perf_counter() - t0
     report: dict[str, object] = {
@@ -884,7 +989,20 @@ def diagnose(data: GapData, model: PelvisModel, options: GapOptions | None = Non
         "thresholds": {"none_gap": opt.none_gap, "near_noise_gap": opt.near_noise_gap,
                        "min_shrink": opt.min_shrink, "small_shrink": opt.small_shrink,
                        "p_value": opt.p_value,
-                       "significance_rel_estimated_noise": opt.significance_rel},
+                       "significance_rel_estimated_noise": opt.significance_rel,
+                       "calibration_tol": opt.calibration_tol,
+                       "tilt_tol_deg": opt.tilt_tol_deg},
+        "calibration": {"tolerance_rel": opt.calibration_tol,
+                        "chi2_before": _round(chi2_cal_base),
+                        "gap_before": _round(gap_cal_before),
+                        "in_null": bool(calibration_evident),
+                        "chi2_drop_needed": _round(crit_cal),
+                        "max_gain_deviation": _round(float(np.max(np.abs(gains_base - 1.0))))
+                        if gains_base.size else 0.0,
+                        "note": "held-out chi2 / gap of the base model with one real gain "
+                                "per FRF within 1 +- tolerance, fitted on the fitted lines; "
+                                "part of the verdict's null hypothesis (in_null) when it "
+                                "lowers the base chi2 by more than chi2_drop_needed"},
         "timing_s": {k: _round(v, 4) for k, v in timing.items()},
     }
     return Diagnosis(report, H_base, H_best, residual_map, data, timing)
