@@ -2,9 +2,9 @@
 
 Export (:func:`write_uff`): dataset 164 (SI units), the measurement points as nodes in dataset
 2411 (double precision; or 15; channels at one point along the global axes share its node,
-a direction off the axes gets a node of its own), one dataset 58 per measured FRF (function type 4, receptance:
-ordinate displacement over force), and optionally identified modes as dataset 55 (complex
-modes, one per mode, node vectors in the global frame).
+a direction off the axes gets a node of its own), one dataset 58 per measured FRF (function
+type 4, receptance: ordinate displacement over force), and optionally identified modes as
+dataset 55 (complex modes, one per mode, node vectors in the global frame).
 
 Import (:func:`read_uff`): every dataset 58 of FRF type (function type 4; also 0 "general"
 with complex data), whatever its response quantity: displacement (receptance), velocity
