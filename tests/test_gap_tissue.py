@@ -12,21 +12,12 @@ from __future__ import annotations
 
 import numpy as np
 
-from pelvislab.acquisition.frfset import Channels
 from pelvislab.model.frf import Points, frf
 from pelvislab.model.gap import GapOptions, _context, diagnose, prepare_data
 from pelvislab.model.gap_effects import candidate_library, evaluate
 from pelvislab.model.pelvis import Body, Dashpot, Spring, default_model
+from pelvislab.tests.test_gap_diagnosis import F_HZ, IN, OUT
 
-F_HZ = np.arange(5.0, 300.1, 5.0)
-OUT = Channels(
-    ["sacrum_x", "sias_R_x", "sias_L_y"], ["sacrum", "innominate_right", "innominate_left"],
-    np.array([[-0.16, 0.0, -0.06], [0.0, -0.11, 0.0], [-0.01, 0.12, -0.01]]),
-    np.array([[-1.0, 0, 0], [1, 0, 0], [0, 1, 0]]),
-)
-IN = Channels(["sips_R_x", "sips_L_x"], ["innominate_right", "innominate_left"],
-              np.array([[-0.14, -0.045, 0.02], [-0.14, 0.045, 0.02]]),
-              np.array([[1.0, 0, 0], [1, 0, 0]]))
 # tissue: k, c, m -> f_t = sqrt(k/m)/2 pi ~ 159 Hz, zeta = c / (2 sqrt(k m)) = 0.075
 K_T, C_T, M_T = 1.0e5, 15.0, 0.1
 U_T = np.log([np.sqrt(K_T / M_T) / (2 * np.pi), C_T / (2 * np.sqrt(K_T * M_T)), M_T])
