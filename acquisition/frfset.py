@@ -155,52 +155,127 @@ def write_frf(target: h5py.File | h5py.Group | str | Path, frf: FrfSet, name: st
 
 
 def _read_strings(dataset: h5py.Dataset) -> list[str]:
-    return [v.decode() if isinstance(v, bytes) else str(v) for v in dataset[()]]
+    """Names/bones as str, whatever string layout the writer chose: variable- or
+    fixed-length, ASCII or UTF-8, bytes or str (fixed-length padding removed)."""
+    values = np.asarray(dataset[()]).reshape(-1)
+    return [(v.decode("utf-8", "replace") if isinstance(v, bytes) else str(v)).strip(" \x00")
+            for v in values]
+
+
+def _scalar_attr(value: object) -> object:
+    """An attribute as a python scalar: bytes decoded, one-element arrays unwrapped (writers
+    differ: str or bytes, numpy or python scalars, fixed- or variable-length strings)."""
+    if isinstance(value, np.ndarray):
+        if value.size != 1:
+            return value
+        value = value.reshape(-1)[0]
+    if isinstance(value, bytes):
+        return value.decode("utf-8", "replace").strip(" \x00")
+    if isinstance(value, np.generic):
+        return value.item()
+    return value
+
+
+def _dataset(group: h5py.Group, name: str) -> h5py.Dataset:
+    try:
+        item = group[name]
+    except KeyError:
+        raise FrfFileError(f"{group.name} lacks the required dataset {name!r}") from None
+    if not isinstance(item, h5py.Dataset):
+        raise FrfFileError(f"{group.name}/{name} is a group, expected a dataset")
+    return item
+
+
+def _read_complex(dataset: h5py.Dataset) -> np.ndarray:
+    """``H`` (design 4.2: complex128). HDF5 has no complex type: writers store a compound of
+    two floats, h5py as ("r", "i"), other tools as ("real", "imag"), ("re", "im") ...; a
+    two-float compound is read as real, imaginary in field order. Real data is refused (a
+    receptance is complex; a dropped imaginary part would be read as phase 0)."""
+    data = dataset[()]
+    dtype = data.dtype
+    if dtype.names is not None:
+        fields = [dtype.fields[n][0] for n in dtype.names]
+        if len(fields) == 2 and all(f.kind == "f" and f.shape == () for f in fields):
+            return data[dtype.names[0]] + 1j * data[dtype.names[1]].astype(np.float64)
+        raise FrfFileError(f"{dataset.name} is a compound {dtype}; expected complex128 "
+                           "(a compound of two floats: real, imaginary)")
+    if dtype.kind != "c":
+        raise FrfFileError(f"{dataset.name} has type {dtype} {data.shape}; design 4.2 stores "
+                           "H as complex128 (n_f, n_out, n_in)")
+    return data.astype(np.complex128)
 
 
 def _read_channels(group: h5py.Group, where: str) -> Channels:
-    try:
-        return Channels(
-            _read_strings(group["name"]), _read_strings(group["bone"]),
-            group["position_m"][()], group["direction"][()],
-        )
-    except KeyError as exc:
-        raise FrfFileError(f"{where} lacks a required dataset: {exc}") from None
+    if not isinstance(group, h5py.Group):
+        raise FrfFileError(f"{where} is a dataset, expected a group")
+    names = _read_strings(_dataset(group, "name"))
+    n = len(names)
+    arrays = {}
+    for key in ("position_m", "direction"):
+        a = np.asarray(_dataset(group, key)[()], dtype=float)
+        if a.shape != (n, 3):  # a transposed (3, n) array must not be silently reshaped
+            raise FrfFileError(f"{where}/{key} has shape {a.shape}, expected (n, 3) = ({n}, 3)")
+        arrays[key] = a
+    direction = arrays["direction"]
+    # rounded on writing (e.g. 0.866): renormalise rows within 1e-3 of unit length that
+    # Channels (1e-6) would refuse; exact unit vectors are kept bit for bit
+    off = np.abs(np.linalg.norm(direction, axis=1) - 1.0)
+    rounded = (off > 1e-6) & (off < 1e-3)
+    if rounded.any():
+        direction = direction.copy()
+        direction[rounded] /= np.linalg.norm(direction[rounded], axis=1)[:, None]
+    return Channels(names, _read_strings(_dataset(group, "bone")), arrays["position_m"], direction)
 
 
 def read_frf_group(group: h5py.Group) -> FrfSet:
-    """Read an open ``/frf`` group, checking its schema and version."""
-    schema = group.attrs.get("schema")
-    if isinstance(schema, bytes):
-        schema = schema.decode()
+    """Read an open ``/frf`` group, checking its schema and version.
+
+    Accepts what design 4.2 leaves to the writer: string and scalar attribute types,
+    fixed/variable-length strings, float32 arrays, complex stored under other field names,
+    extra attributes/datasets/groups (ignored), and frequency lines in any order (a
+    downward sweep written in acquisition order; sorted here, with every per-line array).
+    """
+    if not isinstance(group, h5py.Group):
+        raise FrfFileError(f"{group.name} is a dataset, expected the FRF group of design 4.2")
+    schema = _scalar_attr(group.attrs.get("schema"))
     if schema != FRF_SCHEMA:
         raise FrfFileError(f"{group.name} has schema {schema!r}, expected {FRF_SCHEMA!r}")
-    version = int(group.attrs.get("schema_version", -1))
-    if version != FRF_SCHEMA_VERSION:
-        raise FrfFileError(
-            f"{group.name} has schema_version {version}; this pelvislab reads {FRF_SCHEMA_VERSION}"
-        )
+    raw_version = _scalar_attr(group.attrs.get("schema_version", -1))
     try:
-        frequency = group["frequency_hz"][()]
-        H = group["H"][()]
-    except KeyError as exc:
-        raise FrfFileError(f"{group.name} lacks a required dataset: {exc}") from None
+        version = int(raw_version)  # type: ignore[call-overload]
+    except (TypeError, ValueError):
+        version = -1
+    if version != FRF_SCHEMA_VERSION:
+        raise FrfFileError(f"{group.name} has schema_version {raw_version}; this pelvislab "
+                           f"reads {FRF_SCHEMA_VERSION}")
+    frequency = np.asarray(_dataset(group, "frequency_hz")[()], dtype=float).reshape(-1)
+    H = _read_complex(_dataset(group, "H"))
     attrs = {k: group.attrs[k] for k in group.attrs if k not in ("schema", "schema_version")}
+    for name in ("outputs", "inputs"):
+        if name not in group:
+            raise FrfFileError(f"{group.name} lacks the group {name!r}")
+    H_std = np.asarray(_dataset(group, "H_std")[()], dtype=float) if "H_std" in group else None
+    acquired = (np.asarray(_dataset(group, "acquired_at_s")[()], dtype=float).reshape(-1)
+                if "acquired_at_s" in group else None)
+    if frequency.size > 1 and frequency.size == H.shape[0] and np.all(np.isfinite(frequency)):
+        order = np.argsort(frequency, kind="stable")
+        if np.any(np.diff(frequency[order]) == 0):
+            raise FrfFileError(f"{group.name}/frequency_hz holds a frequency twice")
+        if np.any(order != np.arange(frequency.size)):
+            frequency, H = frequency[order], H[order]
+            if H_std is not None and H_std.shape[:1] == order.shape:
+                H_std = H_std[order]
+            if acquired is not None and acquired.shape == order.shape:
+                acquired = acquired[order]
     return FrfSet(
         frequency_hz=frequency,
         H=H,
-        outputs=_read_channels(group["outputs"], f"{group.name}/outputs")
-        if "outputs" in group else _missing(group, "outputs"),
-        inputs=_read_channels(group["inputs"], f"{group.name}/inputs")
-        if "inputs" in group else _missing(group, "inputs"),
-        H_std=group["H_std"][()] if "H_std" in group else None,
-        acquired_at_s=group["acquired_at_s"][()] if "acquired_at_s" in group else None,
+        outputs=_read_channels(group["outputs"], f"{group.name}/outputs"),
+        inputs=_read_channels(group["inputs"], f"{group.name}/inputs"),
+        H_std=H_std,
+        acquired_at_s=acquired,
         attrs=attrs,
     )
-
-
-def _missing(group: h5py.Group, name: str) -> Channels:
-    raise FrfFileError(f"{group.name} lacks the group {name!r}")
 
 
 def read_frf(path: str | Path, name: str = "frf") -> FrfSet:
@@ -215,4 +290,6 @@ def read_frf(path: str | Path, name: str = "frf") -> FrfSet:
     with handle:
         if name not in handle:
             raise FrfFileError(f"{path} holds no /{name} group (no FRFs measured yet?)")
+        if not isinstance(handle[name], h5py.Group):
+            raise FrfFileError(f"{path}: /{name} is a dataset, expected the group of design 4.2")
         return read_frf_group(handle[name])

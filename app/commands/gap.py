@@ -95,14 +95,17 @@ def diagnose_file(path: str | Path, model_path: str | Path | None = None,
     from pelvislab.model.pelvis import load_model
 
     frf = read_frf(path)
+    H_std, warnings = usable_std(frf)
     model = load_model(model_path)
     if effects is not None:
         unknown = sorted(set(effects) - set(EFFECT_NAMES))
         if unknown:
             raise ValueError(f"unknown effect(s) {unknown}; known: {', '.join(EFFECT_NAMES)}")
-    data = prepare_data(frf.frequency_hz, frf.H, frf.H_std, frf.outputs, frf.inputs)
+    data = prepare_data(frf.frequency_hz, frf.H, H_std, frf.outputs, frf.inputs)
     result = diagnose(data, model, GapOptions(effects=effects), progress=progress)
     document = dict(result.report)
+    if warnings:
+        document["warnings"] = warnings
     document["source"] = {"file": str(Path(path).resolve()),
                           "model": str(model_path) if model_path else "appendix_e (default)"}
     residual = np.abs(np.asarray(result.residual_map))
@@ -114,6 +117,38 @@ def diagnose_file(path: str | Path, model_path: str | Path | None = None,
                 labels.append(f"{out} / {inp}")
     residual_rows = np.array(rows) if rows else np.zeros((0, frf.frequency_hz.size))
     return GapReport(document, residual_rows, labels, np.asarray(frf.frequency_hz), result)
+
+
+MIN_FREQUENCY_LINES = 12
+"""Fewest measured frequency lines ``gap diagnose`` accepts: every 4th line is held out,
+so 12 leave 9 to fit and 3 to judge the fit on."""
+
+
+def usable_std(frf: Any) -> tuple[Any, list[str]]:
+    """``frf.H_std`` if it can weight the fit, else ``None`` (noise then estimated from the
+    data) with the reason; refuses a set with no measured line or fewer than
+    :data:`MIN_FREQUENCY_LINES` frequency lines.
+
+    A writer may store ``H_std`` as zeros (noise-free synthetic data) or NaN everywhere
+    (no uncertainty known): design 4.2 makes ``H_std`` optional, so such a file is read as
+    one without it rather than refused.
+    """
+    import numpy as np
+
+    measured = np.isfinite(frf.H)
+    if not measured.any():
+        raise ValueError("/frf/H holds no measured line (every value is NaN)")
+    n_lines = int(np.any(measured, axis=(1, 2)).sum())
+    if n_lines < MIN_FREQUENCY_LINES:
+        raise ValueError(f"/frf has {n_lines} measured frequency lines; the diagnosis needs "
+                         f">= {MIN_FREQUENCY_LINES} (every 4th is held out)")
+    if frf.H_std is None:
+        return None, []
+    good = np.isfinite(frf.H_std) & (frf.H_std > 0)
+    if good[measured].any():
+        return frf.H_std, []
+    return None, ["H_std holds no positive finite value on the measured lines; "
+                  "the noise is estimated from the data instead"]
 
 
 def _diagnose(args: argparse.Namespace) -> int:
@@ -130,6 +165,8 @@ def _diagnose(args: argparse.Namespace) -> int:
             print(f"pelvislab gap diagnose: warning: no plots ({exc})", file=sys.stderr)
     document = report.to_json()
     document["plots"] = plots
+    for w in document.get("warnings", []):
+        print(f"pelvislab gap diagnose: warning: {w}", file=sys.stderr)
     write_json(out, document)
     print(format_report(document))
     print(f"\nJSON: {out}")
