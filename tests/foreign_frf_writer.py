@@ -100,6 +100,7 @@ class Variant:
     name: str
     note: str
     grid: str = "1hz"  # 1hz: 5-200 Hz in 1 Hz | log: 180 log-spaced 5-250 Hz | 2.5hz | dc
+    # (0-200 Hz in 1 Hz) | dense (5-200 Hz in 0.25 Hz, 781 lines)
     order: str = "up"  # "down": lines in acquisition order of a downward sweep
     with_std: bool = True
     std_unmeasured: str = "nan"  # nan | zero (H_std at unmeasured pairs)
@@ -122,7 +123,8 @@ class Variant:
     tilted_rounded: bool = False  # SIAS y pick-ups tilted 30 deg up, directions to 3 decimals
     std_zero: bool = False  # H_std written as zeros (noise-free claim)
     std_scale: float = 1.0  # H_std written as std_scale x the true complex-error std
-    noise: str = "peak"  # peak: sigma = noise_rel x the FRF's peak | relative: x |H| per line
+    noise: str = "peak"  # peak: sigma = noise_rel x the FRF's peak | relative: x |H| per
+    # line | drive_profile: peak-based x 0.5 V / face_up drive level (25x at 5 Hz, 1x >= 40 Hz)
     bad: str = ""  # a defect the reader must refuse
     seed: int = 7
     noise_rel: float = 0.005
@@ -170,6 +172,12 @@ VARIANTS = [
             seed=24),
     Variant("v18_relative_noise", "noise 1 % of |H| per line (not of the peak), no H_std",
             noise="relative", noise_rel=0.01, with_std=False, seed=25),
+    Variant("v19_drive_noise", "noise 0.2 % of peak x 0.5 V / face_up drive level (25x "
+            "at 5 Hz), no H_std", noise="drive_profile", noise_rel=0.002, with_std=False,
+            seed=26),
+    Variant("v19b_drive_noise_std", "as v19 with H_std", noise="drive_profile",
+            noise_rel=0.002, seed=26),
+    Variant("v20_dense", "781 lines: 5-200 Hz in 0.25 Hz", grid="dense", seed=27),
     Variant("bad_no_frf", "session file without /frf", root="session", bad="no_frf",
             expect="error"),
     Variant("bad_H_transposed", "H stored (n_f, n_in, n_out)", bad="H_transposed",
@@ -179,6 +187,8 @@ VARIANTS = [
             bad="pos_transposed", expect="error"),
     Variant("bad_real_H", "H stored as float64 (imaginary part dropped)", bad="real_H",
             expect="error"),
+    Variant("bad_H_last_axis_2", "H as float64 (n_f, n_out, n_in, 2) real/imag (4.2 says "
+            "complex128)", bad="H_pairs", expect="error"),
     Variant("bad_frf_dataset", "/frf is a dataset, not a group", bad="frf_dataset",
             expect="error"),
     Variant("bad_few_lines", "3 frequency lines", bad="few_lines", expect="error"),
@@ -197,6 +207,8 @@ def grid(kind: str) -> np.ndarray:
         return np.geomspace(5.0, 250.0, 180)
     if kind == "dc":
         return np.arange(0.0, 200.5, 1.0)
+    if kind == "dense":
+        return np.arange(5.0, 200.01, 0.25)
     raise ValueError(kind)
 
 
@@ -227,6 +239,10 @@ def synthesise(v: Variant) -> dict:
     sigma = v.noise_rel * np.max(np.abs(H), axis=0, keepdims=True) * np.ones(H.shape)
     if v.noise == "relative":
         sigma = v.noise_rel * np.abs(H)
+    if v.noise == "drive_profile":  # displacement noise / force: face_up's drive profile
+        pts = np.array([[5.0, 0.02], [15.0, 0.05], [20.0, 0.12], [30.0, 0.3], [40.0, 0.5]])
+        level = np.exp(np.interp(np.log(f_model), np.log(pts[:, 0]), np.log(pts[:, 1])))
+        sigma = sigma * (0.5 / level)[:, None, None]
     H = H + sigma / np.sqrt(2) * (rng.normal(size=H.shape) + 1j * rng.normal(size=H.shape))
     outs = Points(outs.name, outs.bone, outs.position_m, written_dirs)
     if v.off_bone_output:
@@ -380,6 +396,8 @@ def write_variant(path: str | Path, v: Variant, d: dict | None = None) -> Path:
         g.create_dataset("frequency_hz", data=f.astype(v.real_dtype), **kw)
         if v.bad == "real_H":
             g.create_dataset("H", data=H.real.astype(np.float64), **kw)
+        elif v.bad == "H_pairs":
+            g.create_dataset("H", data=np.stack([H.real, H.imag], axis=-1), **kw)
         else:
             _complex_dataset(g, "H", H, v.complex_fields, **kw)
         if v.with_std:
