@@ -95,3 +95,15 @@ def test_rounded_direction_renormalised_but_wrong_length_refused(tmp_path):
     d["outs"].direction = 2 * d["outs"].direction
     with pytest.raises(FrfFileError, match="unit vectors"):
         read_frf(write_variant(tmp_path / "g.h5", dataclasses.replace(v), d))
+
+
+def test_residual_map_columns_sit_at_their_frequency():
+    from pelvislab.app.commands.gap import uniform_columns
+
+    cols, f0, df = uniform_columns(np.arange(5.0, 200.5, 1.0))
+    assert np.array_equal(cols, np.arange(196)) and (f0, df) == (5.0, 1.0)
+    f = np.geomspace(5.0, 250.0, 180)  # log grid: line 90 is at ~36 Hz, not at ~127 Hz
+    cols, f0, df = uniform_columns(f)
+    centre = f0 + df * np.arange(cols.size)
+    assert np.all(np.abs(f[cols] - centre) <= np.diff(f).max() / 2 + 1e-9)
+    assert abs(centre[np.flatnonzero(cols == 90)].mean() - f[90]) < 0.5

@@ -201,6 +201,26 @@ def format_report(report: dict) -> str:
     return "\n".join(lines)
 
 
+def uniform_columns(frequency_hz: Any, max_columns: int = 4000) -> tuple[Any, float, float]:
+    """Image columns for a frequency grid: ``(line index per column, first column's
+    frequency, column width)``. A uniform grid maps one line per column; a non-uniform one
+    (log-spaced, gaps) is resampled at its smallest spacing (at most ``max_columns``), each
+    column showing the nearest line, so features sit at their true frequency."""
+    import numpy as np
+
+    f = np.asarray(frequency_hz, float)
+    if f.size < 2:
+        return np.zeros(f.size, int), float(f[0]) if f.size else 0.0, 1.0
+    steps = np.diff(f)
+    if np.allclose(steps, steps.mean(), rtol=1e-3):
+        return np.arange(f.size), float(f[0]), float(steps.mean())
+    df = max(float(steps.min()), float(f[-1] - f[0]) / (max_columns - 1))
+    grid = f[0] + df * np.arange(int(np.floor((f[-1] - f[0]) / df)) + 1)
+    right = np.clip(np.searchsorted(f, grid), 1, f.size - 1)
+    nearest = np.where(grid - f[right - 1] <= f[right] - grid, right - 1, right)
+    return nearest, float(f[0]), df
+
+
 def _plots(result: object, out: Path) -> list[str]:
     """Residual map and measured/base/best FRF of the worst FRF as PNG (pyqtgraph)."""
     import numpy as np
@@ -213,7 +233,9 @@ def _plots(result: object, out: Path) -> list[str]:
     data = result.data  # type: ignore[attr-defined]
     rmap = np.abs(result.residual_map)  # type: ignore[attr-defined]
     n_f, n_out, n_in = rmap.shape
-    img = np.nan_to_num(rmap.reshape(n_f, n_out * n_in))
+    f = np.asarray(data.frequency_hz, float)
+    columns, f0, df = uniform_columns(f)  # a non-uniform grid drawn at its true frequencies
+    img = np.nan_to_num(rmap.reshape(n_f, n_out * n_in))[columns]
     paths = []
     stem = out.with_suffix("")
     # 1. residual map: frequency x (output, input), |r| in noise units, log colour
@@ -223,9 +245,7 @@ def _plots(result: object, out: Path) -> list[str]:
     plot.setTitle("normalised residual |H - H_base| / sigma (log10)")
     image = pg.ImageItem(np.log10(np.maximum(img, 1e-2)))
     image.setColorMap(pg.colormap.get("viridis"))
-    f = data.frequency_hz
-    df = (f[-1] - f[0]) / max(n_f - 1, 1)
-    image.setRect(pg.QtCore.QRectF(f[0], 0, df * n_f, n_out * n_in))
+    image.setRect(pg.QtCore.QRectF(f0 - df / 2, 0, df * columns.size, n_out * n_in))
     plot.addItem(image)
     plot.setLabel("bottom", "frequency", units="Hz")
     plot.setLabel("left", "FRF index (output-major)")
