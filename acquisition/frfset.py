@@ -238,7 +238,7 @@ def read_frf_group(group: h5py.Group) -> FrfSet:
     if not isinstance(group, h5py.Group):
         raise FrfFileError(f"{group.name} is a dataset, expected the FRF group of design 4.2")
     schema = _scalar_attr(group.attrs.get("schema"))
-    if schema != FRF_SCHEMA:
+    if not isinstance(schema, str) or schema != FRF_SCHEMA:
         raise FrfFileError(f"{group.name} has schema {schema!r}, expected {FRF_SCHEMA!r}")
     raw_version = _scalar_attr(group.attrs.get("schema_version", -1))
     try:

@@ -107,3 +107,13 @@ def test_residual_map_columns_sit_at_their_frequency():
     centre = f0 + df * np.arange(cols.size)
     assert np.all(np.abs(f[cols] - centre) <= np.diff(f).max() / 2 + 1e-9)
     assert abs(centre[np.flatnonzero(cols == 90)].mean() - f[90]) < 0.5
+
+
+def test_odd_schema_attribute_gives_a_clear_error(tmp_path):
+    import h5py
+
+    path = write_variant(tmp_path / "f.h5", GOOD[0])
+    with h5py.File(path, "r+") as handle:
+        handle["frf"].attrs["schema"] = ["pelvislab-frf", "pelvislab-session"]
+    with pytest.raises(FrfFileError, match="has schema"):
+        read_frf(path)
