@@ -47,6 +47,9 @@ from pelvislab.model.gap_effects import (
     base_structure,
     candidate_library,
     evaluate,
+    line_spring_basis,
+    line_spring_parameters,
+    response_vectors,
 )
 from pelvislab.model.pelvis import PelvisModel
 from pelvislab.model.rigid_body import filter_bones, filter_global
@@ -326,6 +329,10 @@ class _Model:
 
     def jacobian(self, x: np.ndarray) -> np.ndarray:
         theta, u = self.split(x)
+        if self.cand is not None and u.size:
+            terms = self.terms(u)
+            if _only_dZ(terms):
+                return self._jacobian_dZ(theta, u, terms)
         blocks = []
         if self.fixed_theta is None:
             H, dH = self.H(x, jac=True)
@@ -346,6 +353,31 @@ class _Model:
             if cols:
                 blocks.append(np.stack(cols, axis=1))
         return np.concatenate(blocks, axis=1)
+
+
+    def _jacobian_dZ(self, theta: np.ndarray, u: np.ndarray, terms: EffectTerms
+                     ) -> np.ndarray:
+        """Jacobian when the effect enters only through ΔZ: differences of ΔZ (cheap,
+        no solve) contracted with the one solve's ``Z⁻¹Oᵀ``, ``Z⁻¹Iᵀ``; exact for the base
+        parameters, forward differences (step 1e-6) in the effect parameters."""
+        dirs = np.empty((u.size, *terms.dZ.shape), complex)
+        for k in range(u.size):
+            h = 1e-6 * max(1.0, abs(u[k]))
+            uk = u.copy()
+            uk[k] += h
+            dZk = self.cand.build(uk, self.lines.ctx).dZ
+            dirs[k] = (dZk - terms.dZ) / h
+        _, dH = evaluate(self.lines.ctx, theta, terms, jacobian=True, dZ_directions=dirs)
+        self.nfev += 1
+        J = self.lines.jac(dH)
+        return J[:, theta.size:] if self.fixed_theta is not None else J
+
+
+def _only_dZ(terms: EffectTerms | None) -> bool:
+    """Whether an effect changes the model only through the common ΔZ."""
+    return (terms is not None and terms.dZ is not None and terms.dZ_input is None
+            and terms.a_m is None and terms.a_k is None and terms.a_c is None
+            and terms.out_gain is None and terms.in_gain is None and terms.out_rows is None)
 
 
 def _lsq(model: _Model, x0: np.ndarray, lo: np.ndarray, hi: np.ndarray, max_nfev: int,
@@ -508,16 +540,93 @@ def _screen(cand: Candidate, fit: _Lines, theta: np.ndarray, options: GapOptions
     return best
 
 
+def _line_spring_start(cand: Candidate, fit: _Lines, theta: np.ndarray, options: GapOptions
+                      ) -> tuple[float, np.ndarray] | None:
+    """Linearised start of a line-spring candidate (missing ligament), *with* the base
+    parameters free: (robust cost of the linearised fit, effect parameters u).
+
+    To first order a spring ``ΔK = Qᵀ w wᵀ Q`` (Q: :func:`line_spring_basis`) changes the
+    FRF by ``δH_oi = −(wᵀ Q a_o)(wᵀ Q b_i)`` with ``a_o = Z⁻¹o``, ``b_i = Z⁻¹i``, and
+    parameter updating by ``J δθ``. The updating is projected out of the residual
+    (variable projection: δθ is linear), the symmetric ``S = w wᵀ`` is first fitted
+    linearly (21 coefficients), its leading positive eigenvectors start a least-squares
+    fit of the rank-1 form, and the best w is mapped to the closest line through the
+    place (:func:`line_spring_parameters`). Unlike a screen with the base frozen, a base
+    fit that has absorbed part of the spring does not hide it, and no line search from
+    fixed directions is needed. ``None`` when the place has no such start."""
+    place = cand.line_spring
+    if place is None:
+        return None
+    ctx = fit.ctx
+    Q = line_spring_basis(ctx.base, place)
+    r = Q.shape[0]
+    H, dH = evaluate(ctx, theta, jacobian=True)
+    r0 = fit.residual(H)
+    Ju, sv, _ = np.linalg.svd(fit.jac(dH), full_matrices=False)
+    Jq = Ju[:, sv > 1e-10 * sv[0]]  # orthonormal basis of what updating can do
+
+    def proj(x: np.ndarray) -> np.ndarray:
+        return x - Jq @ (Jq.T @ x)
+
+    A, B = response_vectors(ctx, theta)
+    QA = np.einsum("rn,fno->for", Q, A)  # (n_f, n_out, r)
+    QB = np.einsum("rn,fni->fir", Q, B)  # (n_f, n_in, r)
+    # linear fit of a symmetric S: δH = −Σ_ab S_ab QA_a QB_b
+    pairs = [(a, b) for a in range(r) for b in range(a, r)]
+    feats = np.empty((*H.shape, len(pairs)), complex)
+    for k, (a, b) in enumerate(pairs):
+        f = QA[:, :, None, a] * QB[:, None, :, b]
+        if a != b:
+            f = f + QA[:, :, None, b] * QB[:, None, :, a]
+        feats[..., k] = -f
+    F = proj(fit.jac(feats))
+    s_lin, *_ = np.linalg.lstsq(F, -proj(r0), rcond=None)
+    S = np.zeros((r, r))
+    for k, (a, b) in enumerate(pairs):
+        S[a, b] = S[b, a] = s_lin[k]
+    lam, vec = np.linalg.eigh(S)
+    starts = [np.sqrt(lam[k]) * vec[:, k] for k in np.argsort(-lam)[:2] if lam[k] > 0]
+    if not starts:
+        return None
+
+    def dH_of(w: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        alpha = QA @ w  # (n_f, n_out)
+        beta = QB @ w  # (n_f, n_in)
+        return -alpha[:, :, None] * beta[:, None, :], alpha, beta
+
+    def resid(w: np.ndarray) -> np.ndarray:
+        return proj(r0 + fit.jac(dH_of(w)[0][..., None])[:, 0])
+
+    def jac(w: np.ndarray) -> np.ndarray:
+        _, alpha, beta = dH_of(w)
+        d = -(QA[:, :, None, :] * beta[:, None, :, None]
+              + alpha[:, :, None, None] * QB[:, None, :, :])
+        return proj(fit.jac(d))
+
+    best = (float("inf"), starts[0])
+    for w0 in starts:
+        sol = least_squares(resid, w0, jac=jac, method="trf", loss="soft_l1",
+                            f_scale=options.robust_scale, max_nfev=30, x_scale="jac")
+        if sol.cost < best[0]:
+            best = (float(sol.cost), sol.x)
+    u, _misfit = line_spring_parameters(ctx.base, place, Q.T @ best[1])
+    return best[0], np.clip(u, cand.lower + 1e-9, cand.upper - 1e-9)
+
+
 def _joint_start(cand: Candidate, fit: _Lines, thetas: Sequence[np.ndarray], u0: np.ndarray,
-                 bounds: _Bounds, options: GapOptions) -> tuple[float, np.ndarray]:
-    """Short joint fit (base + effect) from each base start; the best (robust cost, x)."""
-    n = len(thetas[0])
+                 bounds: _Bounds, options: GapOptions,
+                 pairs: Sequence[tuple[np.ndarray, np.ndarray]] = ()
+                 ) -> tuple[float, np.ndarray]:
+    """Short joint fit (base + effect) from each base start with ``u0`` and from each
+    (θ, u) of ``pairs``; the best (robust cost, x)."""
+    n = bounds.lo.size
     model = _Model(fit, cand, None, n)
     lo = np.concatenate([bounds.lo, cand.lower])
     hi = np.concatenate([bounds.hi, cand.upper])
-    best = (float("inf"), np.concatenate([np.log(thetas[0]), u0]))
-    for theta in thetas:
-        x0 = np.concatenate([np.log(theta), u0])
+    first = (thetas[0], u0) if thetas else pairs[0]
+    best = (float("inf"), np.concatenate([np.log(first[0]), first[1]]))
+    for theta, u in [*((t, u0) for t in thetas), *pairs]:
+        x0 = np.concatenate([np.log(theta), u])
         x, cost = _lsq(model, x0, lo, hi, options.max_nfev_short, options.robust_scale)
         if cost < best[0]:
             best = (cost, x)
@@ -775,8 +884,19 @@ def diagnose(data: GapData, model: PelvisModel, options: GapOptions | None = Non
     fit_mask = ~held_lines
     coarse_mask = fit_mask & (np.cumsum(fit_mask) % 2 == 1)
     coarse = _Lines.build(ctx, data, coarse_mask) if coarse_mask.sum() >= 20 else fit
+    # a base fit absorbs a missing spring by driving the joint's springs far from any
+    # plausible value (up to their x30 bounds); the spring is then fitted again from the
+    # model's own stiffness and mass with the fitted damping (damping may be orders of
+    # magnitude from nominal, stiffness is not), started linearised (_line_spring_start)
+    is_c = np.array([nm.startswith("c_") for nm in names])
+    theta_undistorted = np.where(is_c, theta, start)
+    spring_starts: dict[Candidate, tuple[np.ndarray, np.ndarray]] = {}
     for cand in cands:
         cost, u = _screen(cand, coarse, theta, opt)
+        if cand.line_spring is not None:
+            lin = _line_spring_start(cand, coarse, theta_undistorted, opt)
+            if lin is not None:
+                spring_starts[cand] = (theta_undistorted, lin[1])
         by_variant.setdefault((cand.effect, cand.variant), []).append((cost, cand, u))
     timing["screen_s"] = time.perf_counter() - t1
     if progress:
@@ -804,7 +924,11 @@ def diagnose(data: GapData, model: PelvisModel, options: GapOptions | None = Non
             for item in items[opt.places_per_variant:]:
                 if top and top in (item[1].place, item[1].bone):
                     chosen.append(item)  # every place on that channel or bone
-            jobs.extend((cand, u, len(items)) for _cost, cand, u in chosen)
+            jobs.extend((cand, u, len(items), True) for _cost, cand, u in chosen)
+            # line springs: also every other place (a handful), from the linearised start
+            # only (their screen with the absorbing base frozen misranks places)
+            jobs.extend((cand, u, len(items), False) for _cost, cand, u in items
+                        if cand in spring_starts and not any(cand is c for _, c, _ in chosen))
     # a local effect drags the base fit; refit the base without the output (input) that
     # carries most of the residual and use it as a second start for candidates there
     clean: dict[tuple[str, str], np.ndarray] = {}
@@ -825,13 +949,16 @@ def diagnose(data: GapData, model: PelvisModel, options: GapOptions | None = Non
     # stage 1: short joint fits from every base start; stage 2: the most promising jobs
     # (and every global one) are fitted to convergence
     starts_out = []
-    for cand, u, n_screened in jobs:
+    for cand, u, n_screened, all_starts in jobs:
         # second start: the best grid point before least squares, not yet contorted by the
         # base fit's attempt to absorb the effect
         thetas = [theta] + ([np.exp(base.grid_start)] if base.grid_start is not None else [])
         if (cand.place_kind, cand.place) in clean:
             thetas.append(clean[(cand.place_kind, cand.place)])
-        cost, x = _joint_start(cand, fit, thetas, u, bounds, opt)
+        if not all_starts:
+            thetas = []
+        pairs = [spring_starts[cand]] if cand in spring_starts else []
+        cost, x = _joint_start(cand, fit, thetas, u, bounds, opt, pairs)
         starts_out.append((cost + opt.robust_scale**2 * cand.n_params, cand, x, n_screened))
     starts_out.sort(key=lambda t: t[0])
     for rank, (_cost, cand, x, n_screened) in enumerate(starts_out):

@@ -26,6 +26,7 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
+from scipy.optimize import least_squares
 
 from pelvislab.model.assembly import connector_vector, point_rows
 from pelvislab.model.pelvis import PelvisModel
@@ -218,12 +219,16 @@ class EffectTerms:
 
 
 def evaluate(ctx: Context, theta: np.ndarray, terms: EffectTerms | None = None,
-             jacobian: bool = False) -> tuple[np.ndarray, np.ndarray | None]:
+             jacobian: bool = False, dZ_directions: np.ndarray | None = None
+             ) -> tuple[np.ndarray, np.ndarray | None]:
     """H (n_f, n_out, n_in) and, optionally, ∂H/∂log θ (n_f, n_out, n_in, n_p).
 
     One batched solve ``Z⁻¹ [Oᵀ Iᵀ]`` per call (one more per input that carries its own
     ``dZ_input``: column j is then ``O (Z + ΔZ_j)⁻¹ i_j``); the Jacobian uses the atoms:
-    ``∂H/∂θ_p = −(Z⁻¹Oᵀ)ᵀ ∂Z/∂θ_p (Z⁻¹Iᵀ)`` (Z complex symmetric).
+    ``∂H/∂θ_p = −(Z⁻¹Oᵀ)ᵀ ∂Z/∂θ_p (Z⁻¹Iᵀ)`` (Z complex symmetric). With ``jacobian`` and
+    ``dZ_directions`` (k, n_f, n, n), k more columns ``−(Z⁻¹Oᵀ)ᵀ D_k (Z⁻¹Iᵀ)`` follow:
+    the derivative of H along changes D_k of the common ΔZ (effect parameters that enter
+    only through ``dZ``), without a solve per direction.
     """
     base = ctx.base
     terms = terms or EffectTerms()
@@ -248,7 +253,9 @@ def evaluate(ctx: Context, theta: np.ndarray, terms: EffectTerms | None = None,
             groups.append((Z, plain))
         groups.extend((Z + d, [j]) for j, d in enumerate(terms.dZ_input) if d is not None)
     H = np.empty((w.size, n_out, n_in), complex)
-    dH = np.empty((w.size, n_out, n_in, base.n_params), complex) if jacobian else None
+    n_extra = 0 if dZ_directions is None else dZ_directions.shape[0]
+    dH = (np.empty((w.size, n_out, n_in, base.n_params + n_extra), complex) if jacobian
+          else None)
     if jacobian:
         coef_kind = np.stack([a_m, a_k, a_c], axis=1)  # (n_f, 3)
         theta = np.asarray(theta, float)
@@ -267,7 +274,10 @@ def evaluate(ctx: Context, theta: np.ndarray, terms: EffectTerms | None = None,
         n_f, n_a = c.shape
         outer = (a * c[:, :, None])[:, :, :, None] * b[:, :, None, :]  # (n_f, n_a, n_out, n_c)
         d = -(outer.reshape(n_f, n_a, n_out * len(cols)).transpose(0, 2, 1) @ P)
-        dH[:, :, cols, :] = d.reshape(n_f, n_out, len(cols), base.n_params)
+        dH[:, :, cols, :base.n_params] = d.reshape(n_f, n_out, len(cols), base.n_params)
+        if n_extra:
+            ext = -(A.transpose(0, 2, 1)[None] @ dZ_directions @ B[None])  # (k, n_f, o, c)
+            dH[:, :, cols, base.n_params:] = ext.transpose(1, 2, 3, 0)
     gain = np.ones(H.shape, complex)
     if terms.out_gain is not None:
         gain = gain * terms.out_gain[:, :, None]
@@ -282,6 +292,19 @@ def evaluate(ctx: Context, theta: np.ndarray, terms: EffectTerms | None = None,
 # ---------------------------------------------------------------------------------------
 # Candidate library
 # ---------------------------------------------------------------------------------------
+
+@dataclass(frozen=True, eq=False)
+class LineSpringPlace:
+    """Where a line spring may act: between ``bone_a`` and ``bone_b`` (``""``: ground),
+    along a line through ``centre_m + d`` with every component of ``d`` within
+    ``reach_m``; its stiffness is ``k0_n_per_m |v|²`` (see :func:`_ligament_candidates`)."""
+
+    bone_a: str
+    bone_b: str
+    centre_m: np.ndarray
+    k0_n_per_m: float
+    reach_m: float
+
 
 @dataclass(frozen=True, eq=False)
 class Candidate:
@@ -303,6 +326,9 @@ class Candidate:
     build: Callable[[np.ndarray, Context], EffectTerms]
     describe: Callable[[np.ndarray], dict[str, float]]
     bone: str = ""  # the bone the place belongs to ("" when not on one bone)
+    # for a line spring (missing ligament): where it acts, so that the diagnosis can
+    # compute a linearised start (:func:`line_spring_basis`, :func:`line_spring_parameters`)
+    line_spring: LineSpringPlace | None = None
 
     @property
     def n_params(self) -> int:
@@ -574,8 +600,76 @@ def _ligament_candidates(ctx: Context) -> list[Candidate]:
                                ("vx", "vy", "vz", "dx", "dy", "dz"),
                                np.array([-30, -30, -30, -lim, -lim, -lim], float),
                                np.array([30, 30, 30, lim, lim, lim], float), starts, build,
-                               describe, ba))
+                               describe, ba, LineSpringPlace(ba, bb, centre, k0, lim)))
     return cands
+
+
+def line_spring_rows(base: BaseStructure, place: LineSpringPlace, point_m: np.ndarray
+                     ) -> np.ndarray:
+    """(3, n_dof) rows of the relative x, y, z displacement of ``bone_a`` with respect to
+    ``bone_b`` (or ground) at ``point_m``: a spring of stiffness k along the unit vector n
+    through that point adds ``k g gᵀ`` with ``g = nᵀ G`` (eq. 4.12-4.13, zero rest
+    elongation)."""
+    p = np.tile(np.asarray(point_m, float), (3, 1))
+    G = base.rows([place.bone_a] * 3, p, np.eye(3))
+    if place.bone_b:
+        G = G - base.rows([place.bone_b] * 3, p, np.eye(3))
+    return G
+
+
+def line_spring_basis(base: BaseStructure, place: LineSpringPlace) -> np.ndarray:
+    """(r, n_dof) orthonormal rows spanning every line-spring vector ``g = nᵀ G(p)`` of the
+    place (r = 6 for two rigid bones or a bone and ground: the relative rigid motion).
+
+    Any line spring there is ``ΔK = Qᵀ (k w wᵀ) Q`` for some w in this basis, which makes
+    the first-order FRF change a quadratic form in w (used for the linearised start)."""
+    h = place.reach_m
+    pts = [place.centre_m + h * e for e in (np.zeros(3), *np.eye(3))]
+    G = np.concatenate([line_spring_rows(base, place, p) for p in pts])
+    _, sv, Vt = np.linalg.svd(G, full_matrices=False)
+    return Vt[sv > 1e-9 * sv[0]]
+
+
+def line_spring_parameters(base: BaseStructure, place: LineSpringPlace, g: np.ndarray
+                           ) -> tuple[np.ndarray, float]:
+    """Candidate parameters ``u = (v, d)`` of the line spring whose ``√k₀ vᵀ G(centre + d)``
+    is closest to the generalised vector ``g`` (n_dof; sign free), with |d_i| <= reach.
+
+    A vector g of the relative-motion space is a line (Plücker coordinates) only on a
+    5-dimensional subset; the closest line is taken. Returns (u, relative misfit)."""
+    g = np.asarray(g, float)
+    norm_g = float(np.linalg.norm(g))
+    if norm_g == 0.0:
+        return np.concatenate([np.eye(3)[0], np.zeros(3)]), 1.0
+    sk = np.sqrt(place.k0_n_per_m)
+
+    def solve(d: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        Gt = sk * line_spring_rows(base, place, place.centre_m + d).T  # (n, 3)
+        v, *_ = np.linalg.lstsq(Gt, g, rcond=None)
+        return v, (Gt @ v - g) / norm_g
+
+    lim = place.reach_m * (1 - 1e-6)
+    best = (np.inf, np.zeros(3), np.zeros(3))
+    for d0 in (np.zeros(3), *(s * 0.5 * lim * e for e in np.eye(3) for s in (-1, 1))):
+        sol = least_squares(lambda d: solve(d)[1], d0, bounds=(-lim, lim), method="trf",
+                            max_nfev=40)
+        if sol.cost < best[0]:
+            best = (sol.cost, sol.x, solve(sol.x)[0])
+    cost, d, v = best
+    return np.concatenate([v, d]), float(np.sqrt(2 * cost))
+
+
+def response_vectors(ctx: Context, theta: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``(Z⁻¹Oᵀ, Z⁻¹Iᵀ)`` of the base model at ``theta``: (n_f, n_dof, n_out) and
+    (n_f, n_dof, n_in); the first-order change of H for a stiffness change ΔK is
+    ``δH = −(Z⁻¹Oᵀ)ᵀ ΔK (Z⁻¹Iᵀ)`` (Z complex symmetric)."""
+    w = ctx.omega
+    M, K, C = ctx.base.matrices(theta)
+    Z = (-(w**2)[:, None, None] * M + K[None] + 1j * w[:, None, None] * C).astype(complex)
+    n_out = ctx.out_rows.shape[0]
+    rhs = np.concatenate([ctx.out_rows, ctx.in_rows]).T.astype(complex)
+    X = np.linalg.solve(Z, np.broadcast_to(rhs, (w.size, *rhs.shape)))
+    return X[..., :n_out], X[..., n_out:]
 
 
 def _support_candidates(ctx: Context) -> list[Candidate]:
