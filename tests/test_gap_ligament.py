@@ -100,3 +100,30 @@ def test_dZ_only_jacobian_matches_differences_of_the_whole_model():
             assert np.max(np.abs(J[:, k] - fd)) < 1e-3 * np.max(np.abs(fd)) + 1e-9, (effect, k)
         checked += 1
     assert checked == 3
+
+
+def test_noise_estimate_follows_noise_that_varies_along_frequency():
+    """σ from running third differences follows noise 20x larger at the low end (a drive
+    profile) and noise proportional to |H|, where one σ per FRF is > 3x worse in mean
+    |e|²/σ²; constant noise keeps one σ per FRF."""
+    from pelvislab.model.gap import estimate_noise
+
+    rng = np.random.default_rng(11)
+    f = np.arange(5.0, 300.1, 1.0)
+    H = frf(true_model(), f, OUT, IN)
+    peak = np.max(np.abs(H), axis=0, keepdims=True)
+    shapes = {"drive profile": 0.002 * peak * (1 + 19 * np.exp(-(f - 5.0) / 30.0))[:, None, None],
+              "relative": 0.01 * np.abs(H)}
+    for name, sigma in shapes.items():
+        e = sigma / np.sqrt(2) * (rng.normal(size=H.shape) + 1j * rng.normal(size=H.shape))
+        est = estimate_noise(H + e)
+        z2 = np.mean(np.abs(e) ** 2 / est**2)
+        one = estimate_noise(H + e, noise_form_gain=np.inf)  # one σ per FRF
+        z2_one = np.mean(np.abs(e) ** 2 / one**2)
+        ratio = np.median(est / sigma)
+        assert 0.6 < z2 < 2.5 and 0.75 < ratio < 1.33 and z2_one > 3 * z2, (name, z2, z2_one)
+    # constant noise keeps one σ per FRF
+    sigma = 0.01 * peak * np.ones(H.shape)
+    e = sigma / np.sqrt(2) * (rng.normal(size=H.shape) + 1j * rng.normal(size=H.shape))
+    est = estimate_noise(H + e)
+    assert np.all(np.ptp(est, axis=0) == 0.0)
