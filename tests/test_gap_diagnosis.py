@@ -284,3 +284,19 @@ def test_cli_errors_are_one_line(tmp_path, capsys):
                  "--effects", "telepathy"])
     assert code == 1
     assert "telepathy" in capsys.readouterr().err
+
+
+def test_false_none_counts_absorbed_sets_apart_but_keeps_them():
+    from pelvislab.model.gap_benchmark import _score
+
+    def entry(kind, verdict, gap):
+        return {"kind": kind, "verdict": verdict, "correct": kind == verdict,
+                "place_correct": None, "shrink": None, "gap_before": gap, "none_gap": 0.5,
+                "wall_time_s": 1.0, "cpu_time_s": 1.0}
+
+    cases = [entry("added_mass", "none", 0.04), entry("added_mass", "none", 0.9),
+             entry("none", "none", 0.0), entry("added_mass", "added_mass", 2.0)]
+    res = _score(cases, ["none", "added_mass"], ["none", "added_mass", "unexplained"])
+    assert res["false_none"] == 2
+    assert res["false_none_absorbed_by_updating"] == 1
+    assert res["verdict_accuracy"] == 0.5
