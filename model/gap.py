@@ -936,7 +936,8 @@ def diagnose(data: GapData, model: PelvisModel, options: GapOptions | None = Non
     # a base fit absorbs a missing spring by driving the joint's springs far from any
     # plausible value (up to their x30 bounds); the spring is then fitted again from the
     # model's own stiffness and mass with the fitted damping (damping may be orders of
-    # magnitude from nominal, stiffness is not), started linearised (_line_spring_start)
+    # magnitude from nominal, stiffness is not), started linearised (_line_spring_start);
+    # an added mass likewise (screened there)
     is_c = np.array([nm.startswith("c_") for nm in names])
     theta_undistorted = np.where(is_c, theta, start)
     spring_starts: dict[Candidate, tuple[np.ndarray, np.ndarray]] = {}
@@ -946,6 +947,9 @@ def diagnose(data: GapData, model: PelvisModel, options: GapOptions | None = Non
             lin = _line_spring_start(cand, coarse, theta_undistorted, opt)
             if lin is not None:
                 spring_starts[cand] = (theta_undistorted, lin[1])
+        elif cand.effect == "added_mass":
+            spring_starts[cand] = (theta_undistorted,
+                                   _screen(cand, coarse, theta_undistorted, opt)[1])
         by_variant.setdefault((cand.effect, cand.variant), []).append((cost, cand, u))
     timing["screen_s"] = time.perf_counter() - t1
     if progress:
