@@ -146,3 +146,29 @@ def test_added_mass_absorbed_by_the_base_fit_is_found_on_its_bone():
     assert case.place == "innominate_right"
     assert rep["verdict"] == "added_mass", rep["verdict_reason"]
     assert rep["candidates"][0]["place"] == "innominate_right"
+
+
+def test_noise_estimate_is_not_switched_by_one_outlier_nor_by_unmeasured_lines():
+    """One line 50σ off, a block of unmeasured lines or an all-zero FRF must not turn
+    constant noise into a varying σ (found in review: before the cap, one spike switched
+    every FRF and σ ranged 0.01-61x the truth)."""
+    from pelvislab.model.gap import estimate_noise
+
+    rng = np.random.default_rng(4)
+    f = np.arange(5.0, 300.1, 1.0)
+    H = frf(true_model(), f, OUT, IN)
+    sigma = 0.01 * np.max(np.abs(H), axis=0, keepdims=True) * np.ones(H.shape)
+    Hn = H + sigma / np.sqrt(2) * (rng.normal(size=H.shape) + 1j * rng.normal(size=H.shape))
+    Hn[140] += 50 * sigma[140]
+    Hn[60:100, 0, 0] = np.nan
+    Hn[:, 2, 1] = 0.0
+    est = estimate_noise(Hn)
+    measured = np.isfinite(Hn)
+    for o in range(3):
+        for i in range(2):
+            if o == 2 and i == 1:
+                assert np.all(est[:, o, i] == 0.0)
+                continue
+            e = est[measured[:, o, i], o, i]
+            assert np.ptp(e) == 0.0, (o, i)  # one σ kept
+            assert 0.85 < e[0] / sigma[0, o, i] < 1.2, (o, i)
