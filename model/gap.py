@@ -676,6 +676,35 @@ def _line_spring_start(cand: Candidate, fit: _Lines, theta: np.ndarray, options:
     return best[0], np.clip(u, cand.lower + 1e-9, cand.upper - 1e-9)
 
 
+def _refit_damping(fit: _Lines, theta: np.ndarray, is_c: np.ndarray, options: GapOptions
+                   ) -> np.ndarray:
+    """``theta`` with only its damping parameters (``is_c``) refitted (robust least
+    squares in log, 30 evaluations, within 10⁻⁴ … 10⁶ of the start)."""
+    model = _Model(fit, None, None, theta.size)
+    x_base = np.log(theta)
+
+    def residual(xc: np.ndarray) -> np.ndarray:
+        x = x_base.copy()
+        x[is_c] = xc
+        return model.residual(x)
+
+    def jacobian(xc: np.ndarray) -> np.ndarray:
+        x = x_base.copy()
+        x[is_c] = xc
+        return model.jacobian(x)[:, is_c]
+
+    c0 = x_base[is_c]
+    try:
+        sol = least_squares(residual, c0, jac=jacobian, method="trf", loss="soft_l1",
+                            f_scale=options.robust_scale, max_nfev=30, x_scale="jac",
+                            bounds=(c0 - np.log(1e4), c0 + np.log(1e6)))
+    except (np.linalg.LinAlgError, ValueError):
+        return theta.copy()
+    out = theta.copy()
+    out[is_c] = np.exp(sol.x)
+    return out
+
+
 def _joint_start(cand: Candidate, fit: _Lines, thetas: Sequence[np.ndarray], u0: np.ndarray,
                  bounds: _Bounds, options: GapOptions,
                  pairs: Sequence[tuple[np.ndarray, np.ndarray]] = ()
@@ -951,19 +980,23 @@ def diagnose(data: GapData, model: PelvisModel, options: GapOptions | None = Non
     # plausible value (up to their x30 bounds); the spring is then fitted again from the
     # model's own stiffness and mass with the fitted damping (damping may be orders of
     # magnitude from nominal, stiffness is not), started linearised (_line_spring_start);
-    # an added mass likewise (screened there)
+    # an added mass likewise (screened there). When the base fit also drove the damping
+    # far off (a strong spring: x8500 on a chain set), the damping is refitted with the
+    # stiffness and mass at nominal as a second undistorted start for the springs.
     is_c = np.array([nm.startswith("c_") for nm in names])
     theta_undistorted = np.where(is_c, theta, start)
-    spring_starts: dict[Candidate, tuple[np.ndarray, np.ndarray]] = {}
+    theta_damping_refit = _refit_damping(coarse, theta_undistorted, is_c, opt)
+    spring_starts: dict[Candidate, list[tuple[np.ndarray, np.ndarray]]] = {}
     for cand in cands:
         cost, u = _screen(cand, coarse, theta, opt)
         if cand.line_spring is not None:
-            lin = _line_spring_start(cand, coarse, theta_undistorted, opt)
-            if lin is not None:
-                spring_starts[cand] = (theta_undistorted, lin[1])
+            for th_u in (theta_undistorted, theta_damping_refit):
+                lin = _line_spring_start(cand, fit, th_u, opt)
+                if lin is not None:
+                    spring_starts.setdefault(cand, []).append((th_u, lin[1]))
         elif cand.effect == "added_mass":
-            spring_starts[cand] = (theta_undistorted,
-                                   _screen(cand, coarse, theta_undistorted, opt)[1])
+            spring_starts[cand] = [(theta_undistorted,
+                                    _screen(cand, coarse, theta_undistorted, opt)[1])]
         by_variant.setdefault((cand.effect, cand.variant), []).append((cost, cand, u))
     timing["screen_s"] = time.perf_counter() - t1
     if progress:
@@ -1024,7 +1057,7 @@ def diagnose(data: GapData, model: PelvisModel, options: GapOptions | None = Non
             thetas.append(clean[(cand.place_kind, cand.place)])
         if not all_starts:
             thetas = []
-        pairs = [spring_starts[cand]] if cand in spring_starts else []
+        pairs = spring_starts.get(cand, [])
         cost, x = _joint_start(cand, fit, thetas, u, bounds, opt, pairs)
         starts_out.append((cost + opt.robust_scale**2 * cand.n_params, cand, x, n_screened))
     starts_out.sort(key=lambda t: t[0])
