@@ -980,7 +980,8 @@ def diagnose(data: GapData, model: PelvisModel, options: GapOptions | None = Non
     # plausible value (up to their x30 bounds); the spring is then fitted again from the
     # model's own stiffness and mass with the fitted damping (damping may be orders of
     # magnitude from nominal, stiffness is not), started linearised (_line_spring_start);
-    # an added mass likewise (screened there). When the base fit also drove the damping
+    # an added mass and frequency-dependent stiffness likewise (screened there: a base
+    # fit absorbs f_k by stiffening every spring). When the base fit also drove the damping
     # far off (a strong spring: x8500 on a chain set), the damping is refitted with the
     # stiffness and mass at nominal as a second undistorted start for the springs.
     is_c = np.array([nm.startswith("c_") for nm in names])
@@ -997,6 +998,9 @@ def diagnose(data: GapData, model: PelvisModel, options: GapOptions | None = Non
         elif cand.effect == "added_mass":
             spring_starts[cand] = [(theta_undistorted,
                                     _screen(cand, coarse, theta_undistorted, opt)[1])]
+        elif cand.effect == "frequency_dependent_stiffness":
+            spring_starts[cand] = [(th_u, _screen(cand, coarse, th_u, opt)[1])
+                                   for th_u in (theta_undistorted, theta_damping_refit)]
         by_variant.setdefault((cand.effect, cand.variant), []).append((cost, cand, u))
     timing["screen_s"] = time.perf_counter() - t1
     if progress:
