@@ -207,3 +207,23 @@ def test_frequency_dependent_stiffness_on_the_full_chain_is_found():
     best = rep["candidates"][0]
     assert best["shrink"] > 0.6
     assert 3.5 < best["params"]["f_k"] < 5.0
+
+
+def test_dense_grid_ranks_starts_on_every_other_line_with_the_same_result():
+    """Above ``dense_lines`` fitted lines (100 here, to keep the test short; 300 by
+    default) the short fits that rank the starts use every other fitted line: same
+    verdict, place and gap as with all lines."""
+    from pelvislab.model.pelvis import PointMass
+
+    f = np.arange(5.0, 300.1, 1.5)
+    subject = true_model().with_point_mass(
+        PointMass("extra", "innominate_left", np.array([-0.05, 0.09, 0.02]), 0.25))
+    H, sigma = noisy(frf(subject, f, OUT, IN), np.random.default_rng(8))
+    data = prepare_data(f, H, sigma, OUT, IN)
+    reps = [diagnose(data, default_model(), GapOptions(effects=("added_mass",),
+                                                       dense_lines=n)).report
+            for n in (100, 10**9)]
+    for rep in reps:
+        assert rep["verdict"] == "added_mass", rep["verdict_reason"]
+        assert rep["candidates"][0]["place"] == "innominate_left"
+    assert abs(reps[0]["candidates"][0]["gap_after"] - reps[1]["candidates"][0]["gap_after"]) < 0.2
