@@ -572,13 +572,10 @@ def _ligament_candidates(ctx: Context) -> list[Candidate]:
     for bone in ctx.base.bones:
         places.append((f"{bone} to ground", bone, "", ctx.base.reference_point(bone)))
     for joint, ba, bb, centre in places:
-        def build(u: np.ndarray, c: Context, ba: str = ba, bb: str = bb,
-                  centre: np.ndarray = centre) -> EffectTerms:
-            p = centre + u[3:6]
-            G = _point_block(c, ba, p)
-            if bb:
-                G = G - _point_block(c, bb, p)  # (3, n)
-            g = u[:3] @ G
+        place = LineSpringPlace(ba, bb, centre, k0, lim)
+
+        def build(u: np.ndarray, c: Context, place: LineSpringPlace = place) -> EffectTerms:
+            g = u[:3] @ line_spring_rows(c.base, place, place.centre_m + u[3:6])
             dK = k0 * np.outer(g, g)
             return EffectTerms(dZ=np.broadcast_to(dK.astype(complex),
                                                   (c.omega.size, *dK.shape)))
@@ -600,7 +597,7 @@ def _ligament_candidates(ctx: Context) -> list[Candidate]:
                                ("vx", "vy", "vz", "dx", "dy", "dz"),
                                np.array([-30, -30, -30, -lim, -lim, -lim], float),
                                np.array([30, 30, 30, lim, lim, lim], float), starts, build,
-                               describe, ba, LineSpringPlace(ba, bb, centre, k0, lim)))
+                               describe, ba, place))
     return cands
 
 
