@@ -35,6 +35,12 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     d.add_argument("--json", required=True, metavar="OUT", help="write the diagnosis JSON here")
     d.add_argument("--effects", metavar="LIST",
                    help="comma-separated candidate effects to try (default: all)")
+    d.add_argument("--updating-range", type=float, default=None, metavar="FACTOR",
+                   help="stiffness and mass are updated within the model's values x/÷ "
+                        "FACTOR (default 1.6: subjects within +-30 %% of the model)")
+    d.add_argument("--damping-max", type=float, default=None, metavar="FACTOR",
+                   help="damping is updated up to FACTOR times the model's values "
+                        "(default 3e4: appendix E's 0.8 N s/m -> 24000 N s/m)")
     d.add_argument("--no-plots", action="store_true", help="do not write PNG plots")
     d.set_defaults(handler=_diagnose)
     b = sub.add_parser("benchmark", help="diagnose data sets with a withheld effect each")
@@ -81,8 +87,13 @@ class GapReport:
 
 def diagnose_file(path: str | Path, model_path: str | Path | None = None,
                   progress: Callable[[str], None] | None = None,
-                  effects: tuple[str, ...] | None = None) -> GapReport:
+                  effects: tuple[str, ...] | None = None,
+                  updating_range: float | None = None,
+                  damping_max: float | None = None) -> GapReport:
     """Sim-to-real gap diagnosis of the /frf of ``path`` (session or FRF-only file).
+
+    ``updating_range`` / ``damping_max`` override :class:`GapOptions`' prior ranges of the
+    parameter updating (factors on the model's values, > 1).
 
     The one entry point of the CLI and the GUI's replay view; the numerics are
     :func:`pelvislab.model.gap.diagnose`.
@@ -94,6 +105,11 @@ def diagnose_file(path: str | Path, model_path: str | Path | None = None,
     from pelvislab.model.gap_effects import EFFECT_NAMES
     from pelvislab.model.pelvis import load_model
 
+    ranges = {k: v for k, v in (("updating_range", updating_range),
+                                 ("damping_max", damping_max)) if v is not None}
+    for key, value in ranges.items():
+        if not value > 1.0:
+            raise ValueError(f"--{key.replace('_', '-')} must be a factor > 1, got {value}")
     frf = read_frf(path)
     H_std, warnings = usable_std(frf)
     model = load_model(model_path)
@@ -102,7 +118,7 @@ def diagnose_file(path: str | Path, model_path: str | Path | None = None,
         if unknown:
             raise ValueError(f"unknown effect(s) {unknown}; known: {', '.join(EFFECT_NAMES)}")
     data = prepare_data(frf.frequency_hz, frf.H, H_std, frf.outputs, frf.inputs)
-    result = diagnose(data, model, GapOptions(effects=effects), progress=progress)
+    result = diagnose(data, model, GapOptions(effects=effects, **ranges), progress=progress)
     document = dict(result.report)
     if warnings:
         document["warnings"] = warnings
@@ -156,7 +172,8 @@ def _diagnose(args: argparse.Namespace) -> int:
     effects = None
     if args.effects:
         effects = tuple(e.strip() for e in args.effects.split(",") if e.strip())
-    report = diagnose_file(args.session, args.model, _progress(), effects)
+    report = diagnose_file(args.session, args.model, _progress(), effects,
+                           args.updating_range, args.damping_max)
     plots: list[str] = []
     if not args.no_plots:
         try:
@@ -182,6 +199,10 @@ def format_report(report: dict) -> str:
              f"  gap before (held-out model error beyond noise, in sigma; 0 = noise level): "
              f"{report['gap_before']:.3g}"
              f"   noise: {report.get('noise', {}).get('source', '?')}"]
+    at_bound = report.get("base_fit", {}).get("at_bound", {})
+    if at_bound:
+        lines.append("  updating ended at the bounds of its range (x model value): " + ", ".join(
+            f"{n} {v:.3g}" for n, v in at_bound.items()))
     where = report["where"]
     lines.append("where:")
     lines.append("  bands:   " + ", ".join(

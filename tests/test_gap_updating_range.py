@@ -1,0 +1,76 @@
+"""The prior range of the parameter updating (issue 10): "updating alone explains the data"
+must mean updating to plausible values. With wide bounds (springs x30, damping x1e6) a base
+fit absorbs an effect with implausible parameters and the verdict is a false ``none``."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from pelvislab.acquisition.frfset import FrfSet, write_frf
+from pelvislab.app.cli import main
+from pelvislab.model.frf import frf
+from pelvislab.model.gap import GapOptions, _base_bounds, at_bound, diagnose, prepare_data
+from pelvislab.model.pelvis import default_model
+from pelvislab.tests.benchmarks.bench_gap import make_generator
+from pelvislab.tests.test_gap_diagnosis import F_HZ, IN, OUT, noisy, true_model
+
+
+def write_frf_file(path):
+    Hn, sigma = noisy(frf(true_model(), F_HZ, OUT, IN), np.random.default_rng(2))
+    write_frf(path, FrfSet(F_HZ, Hn, OUT, IN, H_std=sigma))
+    return path
+
+
+def test_bounds_follow_the_updating_range_and_reject_factors_below_one():
+    names = ("m_sacrum", "k_io_R", "c_sij_R")
+    start = np.array([0.36, 1e6, 0.8])
+    b = _base_bounds(names, start, 1.6, 3e4)
+    np.testing.assert_allclose(np.exp(b.lo[:2]), start[:2] / 1.6)
+    np.testing.assert_allclose(np.exp(b.hi[:2]), start[:2] * 1.6)
+    np.testing.assert_allclose(np.exp([b.lo[2], b.hi[2]]), [0.8e-4, 0.8 * 3e4])
+    with pytest.raises(ValueError, match="> 1"):
+        _base_bounds(names, start, 0.9, 3e4)
+    theta = np.array([0.36, 1.6e6, 100.0])
+    assert at_bound(names, theta, start, b) == {"k_io_R": 1.6}
+
+
+def test_effect_absorbed_by_implausible_updating_is_named():
+    """Seed 2026, frequency-dependent stiffness #1 of the benchmark (f_k 3.12): x30 bounds
+    let the base fit absorb it (every spring x1.5-2.4, base gap 0, verdict none); within
+    the default range the springs end at their bound and the effect is named."""
+    gen, _ = make_generator("auto", 2026)
+    case = gen("frequency_dependent_stiffness", 1)
+    data = prepare_data(case.frequency_hz, case.H, case.H_std, case.outputs, case.inputs)
+    effects = ("frequency_dependent_stiffness", "hysteretic_damping")
+    wide = diagnose(data, default_model(), GapOptions(effects=effects, updating_range=30.0,
+                                                      damping_max=1e6)).report
+    assert wide["verdict"] == "none"
+    rep = diagnose(data, default_model(), GapOptions(effects=effects)).report
+    assert rep["verdict"] == "frequency_dependent_stiffness"
+    assert rep["base_fit"]["at_bound"]
+    assert max(rep["base_fit"]["at_bound"].values()) == pytest.approx(1.6, rel=0.02)
+
+
+def test_cli_refuses_an_updating_range_below_one(tmp_path, capsys):
+    path = write_frf_file(tmp_path / "s.h5")
+    code = main(["gap", "diagnose", str(path), "--json", str(tmp_path / "o.json"),
+                 "--updating-range", "0.8"])
+    assert code == 1
+    err = capsys.readouterr().err
+    assert "--updating-range must be a factor > 1" in err
+    assert len(err.strip().splitlines()) == 1
+    assert not (tmp_path / "o.json").exists()
+
+
+def test_cli_reports_the_range_in_the_json(tmp_path):
+    path = write_frf_file(tmp_path / "s.h5")
+    out = tmp_path / "o.json"
+    code = main(["gap", "diagnose", str(path), "--json", str(out), "--effects", "added_mass",
+                 "--updating-range", "2", "--damping-max", "1e5", "--no-plots"])
+    assert code == 0
+    base = json.loads(out.read_text())["base_fit"]
+    assert base["updating_range"] == 2.0 and base["damping_max"] == 1e5
+    assert isinstance(base["at_bound"], dict)
