@@ -370,8 +370,10 @@ def _base_bounds(names: Sequence[str], start: np.ndarray, updating_range: float,
                  damping_max: float) -> _Bounds:
     """Bounds of log θ: stiffness and mass within ``start`` ×/÷ ``updating_range``;
     damping from 1e-4 to ``damping_max`` times ``start`` (design 4.5 parameters)."""
-    if updating_range <= 1.0 or damping_max <= 1.0:
-        raise ValueError("updating_range and damping_max must be > 1 (factors on the model)")
+    if not (np.isfinite(updating_range) and np.isfinite(damping_max)
+            and updating_range > 1.0 and damping_max > 1.0):
+        raise ValueError("updating_range and damping_max must be finite factors > 1 on the "
+                         f"model, got {updating_range}, {damping_max}")
     lo = np.empty(len(names))
     hi = np.empty(len(names))
     for j, n in enumerate(names):
@@ -389,7 +391,8 @@ def at_bound(names: Sequence[str], theta: np.ndarray, start: np.ndarray, bounds:
     as ``{name: value / model value}``: updating wanted to go further (a sign of a model
     form error, or of a parameter the data do not determine)."""
     x = np.log(theta)
-    hit = (x <= bounds.lo + rel_tol) | (x >= bounds.hi - rel_tol)
+    tol = np.minimum(rel_tol, 0.25 * (bounds.hi - bounds.lo))
+    hit = (x <= bounds.lo + tol) | (x >= bounds.hi - tol)
     return {n: _round(float(theta[j] / start[j]), 4)
             for j, n in enumerate(names) if hit[j]}
 
@@ -526,7 +529,9 @@ def fit_base(fit: _Lines, start: np.ndarray, names: Sequence[str], options: GapO
     # 1. grid over a common damping decade and global stiffness/mass scales: the damping
     #    may be orders of magnitude away from the nominal values (thesis tables 6.2 vs E).
     grid = []
-    decades = np.arange(-2.0, 5.01, 0.5) if initial is None else np.array([])
+    # (decades above the damping cap collapse onto it: one grid point there)
+    decades = (np.unique(np.minimum(np.arange(-2.0, 5.01, 0.5), np.log10(options.damping_max)))
+               if initial is None else np.array([]))
     for x in initial or []:
         grid.append((_robust_cost(model.residual(x), options.robust_scale), x))
     for dc in decades:
@@ -550,7 +555,8 @@ def fit_base(fit: _Lines, start: np.ndarray, names: Sequence[str], options: GapO
             xs = starts[k]
         else:
             # random restarts around the best grid point and around the best fit in turn:
-            # a fit stuck with one spring at its bound (x30) is not left by small steps
+            # a fit stuck with one spring at its bound is not left by small steps (springs
+            # +-0.4 in log nearly span the default range of +-0.47; clipped at its bounds)
             xs = (starts[0] if (k - len(starts)) % 2 == 0 else best_x).copy()
             xs[is_k] += rng.uniform(-0.4, 0.4, is_k.sum())
             xs[is_m] += rng.uniform(-0.25, 0.25, is_m.sum())
@@ -710,10 +716,10 @@ def _line_spring_start(cand: Candidate, fit: _Lines, theta: np.ndarray, options:
     return best[0], np.clip(u, cand.lower + 1e-9, cand.upper - 1e-9)
 
 
-def _refit_damping(fit: _Lines, theta: np.ndarray, is_c: np.ndarray, options: GapOptions
-                   ) -> np.ndarray:
+def _refit_damping(fit: _Lines, theta: np.ndarray, is_c: np.ndarray, options: GapOptions,
+                   bounds: _Bounds) -> np.ndarray:
     """``theta`` with only its damping parameters (``is_c``) refitted (robust least
-    squares in log, 30 evaluations, within 10⁻⁴ … 10⁶ of the start)."""
+    squares in log, 30 evaluations, within the updating range ``bounds``)."""
     model = _Model(fit, None, None, theta.size)
     x_base = np.log(theta)
 
@@ -727,11 +733,12 @@ def _refit_damping(fit: _Lines, theta: np.ndarray, is_c: np.ndarray, options: Ga
         x[is_c] = xc
         return model.jacobian(x)[:, is_c]
 
-    c0 = x_base[is_c]
+    lo, hi = bounds.lo[is_c], bounds.hi[is_c]
+    c0 = np.clip(x_base[is_c], lo + 1e-9, hi - 1e-9)
     try:
         sol = least_squares(residual, c0, jac=jacobian, method="trf", loss="soft_l1",
                             f_scale=options.robust_scale, max_nfev=30, x_scale="jac",
-                            bounds=(c0 - np.log(1e4), c0 + np.log(1e6)))
+                            bounds=(lo, hi))
     except (np.linalg.LinAlgError, ValueError):
         return theta.copy()
     out = theta.copy()
@@ -1011,16 +1018,18 @@ def diagnose(data: GapData, model: PelvisModel, options: GapOptions | None = Non
     coarse_mask = fit_mask & (np.cumsum(fit_mask) % 2 == 1)
     coarse = _Lines.build(ctx, data, coarse_mask) if coarse_mask.sum() >= 20 else fit
     # a base fit absorbs a missing spring by driving the joint's springs far from any
-    # plausible value (up to their x30 bounds); the spring is then fitted again from the
-    # model's own stiffness and mass with the fitted damping (damping may be orders of
-    # magnitude from nominal, stiffness is not), started linearised (_line_spring_start);
+    # plausible value (to x30 with the earlier bounds; to the updating range's edge now);
+    # the spring is then fitted again from the model's own stiffness and mass with the
+    # fitted damping (damping may be orders of magnitude from nominal, stiffness is not),
+    # started linearised (_line_spring_start);
     # an added mass and frequency-dependent stiffness likewise (screened there: a base
     # fit absorbs f_k by stiffening every spring). When the base fit also drove the damping
     # far off (a strong spring: x8500 on a chain set), the damping is refitted with the
     # stiffness and mass at nominal as a second undistorted start for the springs.
     is_c = np.array([nm.startswith("c_") for nm in names])
     theta_undistorted = np.where(is_c, theta, start)
-    theta_damping_refit = _refit_damping(coarse, theta_undistorted, is_c, opt)
+    bounds = _base_bounds(names, start, opt.updating_range, opt.damping_max)
+    theta_damping_refit = _refit_damping(coarse, theta_undistorted, is_c, opt, bounds)
     spring_starts: dict[Candidate, list[tuple[np.ndarray, np.ndarray]]] = {}
     for cand in cands:
         cost, u = _screen(cand, coarse, theta, opt)
@@ -1040,7 +1049,6 @@ def diagnose(data: GapData, model: PelvisModel, options: GapOptions | None = Non
     if progress:
         progress(f"screened {len(cands)} candidate places in {timing['screen_s']:.1f} s")
     t2 = time.perf_counter()
-    bounds = _base_bounds(names, start, opt.updating_range, opt.damping_max)
     results: list[CandidateResult] = []
     jobs = []
     for items in by_variant.values():

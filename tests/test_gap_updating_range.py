@@ -31,8 +31,9 @@ def test_bounds_follow_the_updating_range_and_reject_factors_below_one():
     np.testing.assert_allclose(np.exp(b.lo[:2]), start[:2] / 1.6)
     np.testing.assert_allclose(np.exp(b.hi[:2]), start[:2] * 1.6)
     np.testing.assert_allclose(np.exp([b.lo[2], b.hi[2]]), [0.8e-4, 0.8 * 3e4])
-    with pytest.raises(ValueError, match="> 1"):
-        _base_bounds(names, start, 0.9, 3e4)
+    for bad in ((0.9, 3e4), (float("nan"), 3e4), (1.6, float("inf"))):
+        with pytest.raises(ValueError, match="finite factors > 1"):
+            _base_bounds(names, start, *bad)
     theta = np.array([0.36, 1.6e6, 100.0])
     assert at_bound(names, theta, start, b) == {"k_io_R": 1.6}
 
@@ -60,7 +61,7 @@ def test_cli_refuses_an_updating_range_below_one(tmp_path, capsys):
                  "--updating-range", "0.8"])
     assert code == 1
     err = capsys.readouterr().err
-    assert "--updating-range must be a factor > 1" in err
+    assert "--updating-range must be a finite factor > 1" in err
     assert len(err.strip().splitlines()) == 1
     assert not (tmp_path / "o.json").exists()
 
@@ -68,12 +69,14 @@ def test_cli_refuses_an_updating_range_below_one(tmp_path, capsys):
 def test_cli_reports_the_range_in_the_json(tmp_path):
     path = write_frf_file(tmp_path / "s.h5")
     out = tmp_path / "o.json"
+    # the file's subject has io_R at 1.2x appendix E: a range of 1.1 stops it at the bound
     code = main(["gap", "diagnose", str(path), "--json", str(out), "--effects", "added_mass",
-                 "--updating-range", "2", "--damping-max", "1e5", "--no-plots"])
+                 "--updating-range", "1.1", "--damping-max", "1e5", "--no-plots"])
     assert code == 0
     base = json.loads(out.read_text())["base_fit"]
-    assert base["updating_range"] == 2.0 and base["damping_max"] == 1e5
-    assert isinstance(base["at_bound"], dict)
+    assert base["updating_range"] == 1.1 and base["damping_max"] == 1e5
+    assert base["at_bound"]["k_io_R"] == pytest.approx(1.1, rel=1e-3)
+    assert base["parameters"]["k_io_R"] == pytest.approx(1.1e6, rel=1e-3)
 
 
 def test_runner_up_effect_is_polished_out_of_its_local_minimum():

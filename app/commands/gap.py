@@ -108,8 +108,9 @@ def diagnose_file(path: str | Path, model_path: str | Path | None = None,
     ranges = {k: v for k, v in (("updating_range", updating_range),
                                  ("damping_max", damping_max)) if v is not None}
     for key, value in ranges.items():
-        if not value > 1.0:
-            raise ValueError(f"--{key.replace('_', '-')} must be a factor > 1, got {value}")
+        if not (np.isfinite(value) and value > 1.0):
+            raise ValueError(f"--{key.replace('_', '-')} must be a finite factor > 1, "
+                             f"got {value}")
     frf = read_frf(path)
     H_std, warnings = usable_std(frf)
     model = load_model(model_path)
