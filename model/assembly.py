@@ -10,7 +10,8 @@ Kinematics (eq. 4.9): a point ``p`` of body ``b`` moves by ``u_b + θ_b × ρ`` 
   and drop out of the linearisation).
 - Dashpots (eq. 4.15-4.16 with ch. 5.4): reaction to the relative velocity projected on the
   joint normal ``n``: ``C += c g gᵀ`` with ``g = T_aᵀ n − T_bᵀ n``, both bodies evaluated at
-  the midpoint of the two attachment points (see :func:`connector_vector`).
+  the midpoint of the two attachment points, or each at its own point when the model's
+  ``dashpot_lever`` is ``"points"`` (see :func:`connector_vector`).
 
 All functions are pure; matrices are (n_dof, n_dof) float64, SI units.
 """
@@ -78,20 +79,38 @@ def connector_vector(model: PelvisModel, element: Spring | Dashpot) -> np.ndarra
     (all springs, eq. 4.13, and the appendix E dashpots except S1 whose printed points are
     0.7 mm apart but not exactly along the joint normal) this is identical to taking each
     body at its own point; in general it keeps the element blind to rigid-body motion of the
-    whole model, so K and C annihilate the six rigid-body modes (ch. 5.3-5.4).
+    whole model, so K and C annihilate the six rigid-body modes (ch. 5.3-5.4). A model read
+    with ``dashpot_lever = "points"`` evaluates each body of a dashpot at its own point
+    instead (eq. 4.16 and fig. 5.6 literally; with appendix E's printed S1 pair its C then
+    damps a rigid rotation of the whole pelvis slightly).
     """
     g = np.zeros(model.n_dof)
-    if element.body_b == GROUND:
-        x = element.point_a_m
-    else:
-        x = 0.5 * (element.point_a_m + element.point_b_m)
-    for body, sign in ((element.body_a, 1.0), (element.body_b, -1.0)):
+    for body, sign, x in zip((element.body_a, element.body_b), (1.0, -1.0),
+                             _evaluation_points(model, element), strict=True):
         if body == GROUND:
             continue
         b = model.body_index(body)
         rho = x - model.bodies[b].com_m
         g[6 * b:6 * b + 6] += sign * (element.axis @ point_transform(rho))
     return g
+
+
+def _reads_own_points(model: PelvisModel, element: Spring | Dashpot) -> bool:
+    """Whether each body of ``element`` is evaluated at its own attachment point: dashpots
+    of a model read with ``dashpot_lever = "points"`` (eq. 4.16 literally)."""
+    return isinstance(element, Dashpot) and model.dashpot_lever == "points"
+
+
+def _evaluation_points(model: PelvisModel, element: Spring | Dashpot
+                       ) -> tuple[np.ndarray, np.ndarray]:
+    """Where end a's and end b's bodies are evaluated (m): the midpoint of the two points
+    (point a when grounded), or each body at its own point (:func:`_reads_own_points`)."""
+    if element.body_b == GROUND:
+        return element.point_a_m, element.point_a_m
+    if _reads_own_points(model, element):
+        return element.point_a_m, element.point_b_m
+    x = 0.5 * (element.point_a_m + element.point_b_m)
+    return x, x
 
 
 def connector_vector_derivative(model: PelvisModel, element: Spring | Dashpot, end: str,
@@ -119,15 +138,18 @@ def connector_vector_derivative(model: PelvisModel, element: Spring | Dashpot, e
     if isinstance(element, Spring) and length > 1e-9 and np.allclose(np.abs(e @ d), length):
         sign = -1.0 if end == "a" else 1.0
         de = sign * (unit - e * e[axis]) / length * float(np.sign(e @ d))
-    x = a if grounded else 0.5 * (a + b)
+    own = _reads_own_points(model, element) and not grounded
     dg = np.zeros(model.n_dof)
-    for body, sgn in ((element.body_a, 1.0), (element.body_b, -1.0)):
+    for body, sgn, this_end, x in zip((element.body_a, element.body_b), (1.0, -1.0), "ab",
+                                      _evaluation_points(model, element), strict=True):
         if body == GROUND:
             continue
         k = model.body_index(body)
         rho = x - model.bodies[k].com_m
+        # read at its own point, a body's lever moves only with its own end
+        dxk = (unit if this_end == end else np.zeros(3)) if own else dx
         dg[6 * k:6 * k + 3] += sgn * de
-        dg[6 * k + 3:6 * k + 6] += sgn * (np.cross(dx, e) + np.cross(rho, de))
+        dg[6 * k + 3:6 * k + 6] += sgn * (np.cross(dxk, e) + np.cross(rho, de))
     return dg
 
 

@@ -29,6 +29,9 @@ import numpy as np
 GROUND = "ground"
 """Reserved body name: a spring or dashpot end on ``ground`` is fixed in space."""
 
+DASHPOT_LEVERS = ("midpoint", "points")
+"""Readings of where a dashpot takes its bodies' velocities (:attr:`PelvisModel.dashpot_lever`)."""
+
 MODEL_SCHEMA = "pelvislab-model"
 MODEL_SCHEMA_VERSION = 1
 DEFAULT_MODEL_PATH = Path(__file__).with_name("appendix_e.toml")
@@ -241,8 +244,18 @@ class PelvisModel:
     point_masses: tuple[PointMass, ...] = ()
     frequency_dependence: FrequencyDependence = field(default_factory=FrequencyDependence)
     name: str = "model"
+    dashpot_lever: str = "midpoint"
+    """Where a dashpot reads its bodies' velocities (thesis ch. 5.4, fig. 5.6):
+    ``"midpoint"``, both bodies at the midpoint of the two attachment points (blind to
+    rigid motion of the whole model); ``"points"``, each body at its own attachment point
+    (eq. 4.16 read literally). The two agree when the points are offset along the axis;
+    appendix E's printed S1 pair is 0.71 mm off the joint normal (see
+    :attr:`dashpot_lever_matters`)."""
 
     def __post_init__(self) -> None:
+        if self.dashpot_lever not in DASHPOT_LEVERS:
+            raise ModelError(f"model {self.name!r}: dashpot_lever must be one of "
+                             f"{DASHPOT_LEVERS}, got {self.dashpot_lever!r}")
         object.__setattr__(self, "bodies", tuple(self.bodies))
         object.__setattr__(self, "springs", tuple(self.springs))
         object.__setattr__(self, "dashpots", tuple(self.dashpots))
@@ -310,7 +323,22 @@ class PelvisModel:
                 return d
         raise KeyError(f"no dashpot named {name!r}")
 
+    @property
+    def dashpot_lever_matters(self) -> bool:
+        """Whether the two dashpot readings (:attr:`dashpot_lever`) give different damping:
+        some dashpot between two bodies has its points offset off its axis (> 1 µm)."""
+        for d in self.dashpots:
+            if d.body_b == GROUND or d.body_a == GROUND:
+                continue
+            if np.linalg.norm(np.cross(d.point_b_m - d.point_a_m, d.axis)) > 1e-6:
+                return True
+        return False
+
     # -- programmatic extension (each returns a new model) --------------------------------
+    def with_dashpot_lever(self, lever: str) -> PelvisModel:
+        """A copy reading the dashpots with ``lever`` (``"midpoint"`` or ``"points"``)."""
+        return replace(self, dashpot_lever=lever)
+
     def with_body(self, body: Body) -> PelvisModel:
         """A copy with one more rigid body (6 more DOFs, appended at the end)."""
         return replace(self, bodies=(*self.bodies, body))
@@ -429,7 +457,7 @@ class PelvisModel:
         pms = tuple(PointMass(swap_name(p.name), swap(p.body), flip @ p.position_m, p.mass_kg)
                     for p in self.point_masses)
         return PelvisModel(bodies, springs, dashpots, pms, self.frequency_dependence,
-                           self.name + " (mirrored)")
+                           self.name + " (mirrored)", self.dashpot_lever)
 
 
 # ---------------------------------------------------------------------------------------
@@ -475,11 +503,13 @@ def parse_model(data: Mapping[str, Any], source: str = "<model>") -> PelvisModel
     inertia_kg_m2), ``[[spring]]`` (name, group, side, body_a, point_a_m|_mm, body_b,
     point_b_m|_mm, stiffness_n_per_m, optional axis), ``[[dashpot]]`` (same with
     coefficient_n_s_per_m), ``[[point_mass]]`` (name, body, position_m|_mm, mass_kg),
-    optional ``[frequency_dependence]`` (f_k, f_c, f_max_hz). Errors name the entry.
+    optional ``[frequency_dependence]`` (f_k, f_c, f_max_hz), optional top-level
+    ``dashpot_lever`` ("midpoint", the default, or "points"). Errors name the entry.
     """
     where = f"model file {source}"
     _check_keys(data, {"schema", "schema_version", "name", "description", "body", "spring",
-                       "dashpot", "point_mass", "frequency_dependence"}, where)
+                       "dashpot", "point_mass", "frequency_dependence", "dashpot_lever"},
+                where)
     if data.get("schema", MODEL_SCHEMA) != MODEL_SCHEMA:
         raise ModelError(f"{where}: schema is {data.get('schema')!r}, expected {MODEL_SCHEMA!r}")
     version = data.get("schema_version", MODEL_SCHEMA_VERSION)
@@ -530,7 +560,8 @@ def parse_model(data: Mapping[str, Any], source: str = "<model>") -> PelvisModel
         freq = FrequencyDependence(float(fd.get("f_k", 0.0)), float(fd.get("f_c", 0.0)),
                                    float(fd.get("f_max_hz", 300.0)))
         return PelvisModel(tuple(bodies), tuple(springs), tuple(dashpots), tuple(pms), freq,
-                           str(data.get("name", Path(source).stem)))
+                           str(data.get("name", Path(source).stem)),
+                           str(data.get("dashpot_lever", "midpoint")))
     except ModelError as exc:
         raise ModelError(f"{where}: {exc}") from None
 
