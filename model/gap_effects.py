@@ -23,7 +23,7 @@ generator (``sim_instruments``): the withheld-effect benchmark must stay blind.
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 from scipy.optimize import least_squares
@@ -479,7 +479,7 @@ def _tissue_candidates(ctx: Context) -> list[Candidate]:
         variant = "tissue under the shaker" + (", every input" if len(cols) > 1 else "")
         cands.append(Candidate("soft_tissue", variant, name, kind, labels, lo, hi, starts,
                                sbuild, describe, bone))
-    return cands
+    return cands + _armature_candidates(ctx, suspended=False)
 
 
 def _orientation_candidates(ctx: Context) -> list[Candidate]:
@@ -543,9 +543,14 @@ def _mass_candidates(ctx: Context) -> list[Candidate]:
             return {"mass_kg": float(np.exp(u[0])), "x_m": float(p[0]), "y_m": float(p[1]),
                     "z_m": float(p[2])}
 
-        lim = 0.08
-        starts = tuple(np.array([np.log(m), *off]) for m in (0.05, 0.2)
-                       for off in ((0, 0, 0), (0.03, 0, 0), (-0.03, 0, 0), (0, 0, 0.03)))
+        # within 12 cm of the centre of mass on every axis (an innominate reaches ~10 cm
+        # from it: a 384 g mass at the ischial spine, 8.5 cm below, was out of reach at
+        # 8 cm), started also at every measured point of the bone (a probe holder)
+        lim = 0.12
+        offsets = [(0, 0, 0), (0.03, 0, 0), (-0.03, 0, 0), (0, 0, 0.03)]
+        offsets += [tuple(p - ref) for b, p in _channel_points(ctx)
+                    if b == bone and np.all(np.abs(p - ref) < lim)]
+        starts = tuple(np.array([np.log(m), *off]) for m in (0.05, 0.2) for off in offsets)
         cands.append(Candidate("added_mass", "point mass", bone, "bone",
                                ("log_m", "dx", "dy", "dz"),
                                np.array([np.log(1e-3), -lim, -lim, -lim]),
@@ -669,11 +674,41 @@ def response_vectors(ctx: Context, theta: np.ndarray) -> tuple[np.ndarray, np.nd
     return X[..., :n_out], X[..., n_out:]
 
 
+def _channel_points(ctx: Context) -> list[tuple[str, np.ndarray]]:
+    """(bone, position in m) of every measured point, outputs then inputs."""
+    points = [(b, np.asarray(p, float)) for b, p in zip(ctx.out_bones, ctx.out_position_m,
+                                                         strict=True)]
+    if ctx.in_position_m is not None:
+        points += [(b, np.asarray(p, float)) for b, p in zip(ctx.in_bones, ctx.in_position_m,
+                                                              strict=True)]
+    return points
+
+
+def _contact_points(ctx: Context) -> list[tuple[str, str, np.ndarray]]:
+    """Where a support may touch each bone: (bone, label, point in m). The bone's centre of
+    mass (label "") and every measured point on it (label " at NAME"): a subject lies on
+    the landmarks the probes and the shaker reach (face-up: sacrum and PSIS on the bed)."""
+    places = []
+    for bone in ctx.base.bones:
+        places.append((bone, "", ctx.base.reference_point(bone)))
+        seen: list[np.ndarray] = []
+        channels = [*zip(ctx.out_names, ctx.out_bones, ctx.out_position_m, strict=True)]
+        if ctx.in_position_m is not None:
+            channels += zip(ctx.in_names, ctx.in_bones, ctx.in_position_m, strict=True)
+        for name, b, pos in channels:
+            if b != bone or any(np.linalg.norm(pos - q) < 0.01 for q in seen):
+                continue  # one contact per spot (x and y probes of one landmark share it)
+            seen.append(pos)
+            places.append((bone, f" at {name}", np.asarray(pos, float)))
+    return places
+
+
 def _support_candidates(ctx: Context) -> list[Candidate]:
     """Support / fixture resonances (thesis ch. 10-11: foam and frame resonances drove the
     measured response).
 
-    * ``bed``: the pelvis touches a support body (exam bed, foam, frame) at a bone: a mass
+    * ``bed``: the pelvis touches a support body (exam bed, foam, frame) at a bone (at its
+      centre of mass or at one of its measured points, :func:`_contact_points`): a mass
       m on its own suspension (f_s, ζ_s, i.e. k_s = m(2πf_s)², c_s = 2ζ_s m 2πf_s) in
       contact through a stiffness k_c, along one axis or all three. Condensing the support
       DOF gives the dynamic stiffness seen by the bone point
@@ -694,8 +729,7 @@ def _support_candidates(ctx: Context) -> list[Candidate]:
         return {"frequency_hz": float(np.exp(u[0])), "damping_ratio": float(np.exp(u[1])),
                 "mass_kg": float(np.exp(u[2])), "contact_stiffness_n_per_m": float(np.exp(u[3]))}
 
-    for bone in ctx.base.bones:
-        ref = ctx.base.reference_point(bone)
+    for bone, point, ref in _contact_points(ctx):
         for axname, dirs in axes.items():
             def build(u: np.ndarray, c: Context, bone: str = bone, ref: np.ndarray = ref,
                       dirs: np.ndarray = dirs) -> EffectTerms:
@@ -708,7 +742,7 @@ def _support_candidates(ctx: Context) -> list[Candidate]:
                 return EffectTerms(dZ=keff[:, None, None] * (G.T @ G)[None])
 
             cands.append(Candidate(
-                "support_resonance", "bed contact", f"{bone} {axname}", "bone",
+                "support_resonance", "bed contact", f"{bone}{point} {axname}", "bone",
                 ("log_f", "log_zeta", "log_m", "log_kc"), lo, hi, starts, build, describe,
                 bone))
     places = [(j, name) for j, name in enumerate(ctx.in_names)]
@@ -734,7 +768,119 @@ def _support_candidates(ctx: Context) -> list[Candidate]:
             np.array([np.log(5000.0), np.log(3.0), np.log(20.0)]), estarts, ebuild,
             lambda u: {"frequency_hz": float(np.exp(u[0])), "damping_ratio": float(np.exp(u[1])),
                        "mass_ratio": float(np.exp(u[2]))}))
+    cands += _armature_candidates(ctx, suspended=True)
     return cands
+
+
+def _armature_candidates(ctx: Context, suspended: bool) -> list[Candidate]:
+    """A mass between the force and the bone, along the drive axis, only in the setups that
+    drive that input: the shaker's moving mass m on its suspension (k_s, 5 % damping) when
+    the force is the coil force of the calibrated drive chain (design 2), pushing the bone
+    through a contact/stinger (k_t, c_t) — ``support_resonance`` (``suspended``); or a lump
+    of tissue under the shaker with no suspension — ``soft_tissue``. Condensing the mass's
+    DOF (z_t = k_t + iωc_t, z_s = k_s + iωc_s, D = z_t + z_s − ω²m): the bone point sees
+    ``ΔZ_j = z_t (z_s − ω²m)/D · i_j i_jᵀ`` and receives ``T = z_t/D`` of the force, so
+    ``H[:, :, j] = O (Z + ΔZ_j)⁻¹ i_j T``. Parameters: f_t = √(k_t/m)/2π, ζ_t, m
+    (and f_s = √(k_s/m)/2π)."""
+    cands = []
+    bones = set(ctx.base.bones)
+    n_u = 4 if suspended else 3
+    lo = np.log([2.0, 0.003, 1e-3, 0.3][:n_u])
+    hi = np.log([5000.0, 2.0, 5.0, 200.0][:n_u])
+    starts = tuple(np.log([f, z, 0.1, 10.0][:n_u]) for f in _f_starts(ctx, 6)
+                   for z in ((0.05,) if suspended else (0.3,)))
+    labels = ("log_f_contact", "log_zeta_contact", "log_m", "log_f_suspension")[:n_u]
+
+    def describe(u: np.ndarray) -> dict[str, float]:
+        d = {"contact_frequency_hz": float(np.exp(u[0])),
+             "contact_damping_ratio": float(np.exp(u[1])), "mass_kg": float(np.exp(u[2]))}
+        if u.size > 3:
+            d["suspension_frequency_hz"] = float(np.exp(u[3]))
+        return d
+
+    for j, name in enumerate(ctx.in_names):
+        if ctx.in_bones[j] not in bones:
+            continue
+
+        def build(u: np.ndarray, c: Context, j: int = j) -> EffectTerms:
+            w = c.omega
+            m = np.exp(u[2])
+            wt = 2 * np.pi * np.exp(u[0])
+            zt = m * wt**2 + 2j * np.exp(u[1]) * m * wt * w
+            zs = 0.0
+            if u.size > 3:
+                ws = 2 * np.pi * np.exp(u[3])
+                zs = m * ws**2 + 2j * 0.05 * m * ws * w
+            D = zt + zs - w**2 * m
+            dZs: list[np.ndarray | None] = [None] * len(c.in_names)
+            dZs[j] = (zt * (zs - w**2 * m) / D)[:, None, None] * np.outer(
+                c.in_rows[j], c.in_rows[j])[None]
+            gain = np.ones((w.size, len(c.in_names)), complex)
+            gain[:, j] = zt / D
+            return EffectTerms(dZ_input=tuple(dZs), in_gain=gain)
+
+        if suspended:
+            cands.append(Candidate("support_resonance", "shaker armature on its suspension",
+                                   name, "input", labels, lo, hi, starts, build, describe,
+                                   ctx.in_bones[j]))
+        else:
+            cands.append(Candidate("soft_tissue", "tissue under the shaker, along its axis",
+                                   name, "input", labels, lo, hi, starts, build, describe,
+                                   ctx.in_bones[j]))
+    return cands
+
+
+def _dashpot_damping_candidates(ctx: Context) -> list[Candidate]:
+    """One damping coefficient per dashpot instead of one per joint (design 4.5's groups):
+    appendix E has 8 dashpots, a subject need not damp its three sacroiliac dashpots alike.
+    Extra non-negative damping Δc_d on each dashpot's own atom, ``ΔC = Σ Δc_d g_d g_dᵀ``
+    (with the group coefficient free to go down, any pattern ≥ 0 is reachable). This is
+    parameter updating, not an unmodelled effect: when it explains the data the verdict is
+    ``none`` (``NULL_EXTENSIONS``). Only for models with a group of several dashpots."""
+    base = ctx.base
+    is_c = base.kinds == KIND_C
+    groups = base.params[is_c]
+    if is_c.sum() < 2 or np.unique(groups).size == groups.size:
+        return []
+    g = base.vectors[is_c] * np.sqrt(base.weights[is_c])[:, None]  # (n_d, n_dof)
+    outer = g[:, :, None] * g[:, None, :]
+    n_d = g.shape[0]
+    names = [base.names[p] for p in groups]
+    labels = tuple(f"log_dc_{i}_{names[i]}" for i in range(n_d))
+
+    def build(u: np.ndarray, c: Context) -> EffectTerms:
+        dC = np.tensordot(np.exp(u), outer, axes=1)
+        return EffectTerms(dZ=(1j * c.omega)[:, None, None] * dC[None])
+
+    def describe(u: np.ndarray) -> dict[str, float]:
+        return {f"extra_c_{i}_{names[i]}_n_s_per_m": float(np.exp(x)) for i, x in enumerate(u)}
+
+    starts = tuple(np.full(n_d, np.log(v)) for v in (1.0, 30.0, 300.0))
+    return [Candidate(PER_DASHPOT_DAMPING, "one coefficient per dashpot", "all dashpots",
+                      "global", labels, np.full(n_d, np.log(1e-3)), np.full(n_d, np.log(1e5)),
+                      starts, build, describe)]
+
+
+def with_extension(cand: Candidate, extension: Candidate) -> Candidate:
+    """``cand`` together with a ΔZ-only null extension (one damping per dashpot): the
+    effect's parameters, then the extension's; the extension's ΔZ adds to the effect's."""
+    n1 = cand.n_params
+
+    def build(u: np.ndarray, c: Context) -> EffectTerms:
+        terms = cand.build(u[:n1], c)
+        extra = extension.build(u[n1:], c).dZ
+        terms.dZ = extra if terms.dZ is None else terms.dZ + extra
+        return terms
+
+    def describe(u: np.ndarray) -> dict[str, float]:
+        return {**cand.describe(u[:n1]), **extension.describe(u[n1:])}
+
+    return replace(cand, variant=f"{cand.variant} + {extension.variant}",
+                   labels=cand.labels + extension.labels,
+                   lower=np.concatenate([cand.lower, extension.lower]),
+                   upper=np.concatenate([cand.upper, extension.upper]),
+                   starts=tuple(np.concatenate([s, extension.starts[0]]) for s in cand.starts),
+                   build=build, describe=describe)
 
 
 EFFECT_NAMES = (
@@ -742,13 +888,19 @@ EFFECT_NAMES = (
     "sensor_misorientation", "added_mass", "missing_ligament",
 )
 
+PER_DASHPOT_DAMPING = "per_dashpot_damping"
+NULL_EXTENSIONS = (PER_DASHPOT_DAMPING,)
+"""Candidates that are parameter updating beyond design 4.5's parametrisation, not effects:
+fitted and ranked like the effects, but a verdict for one of them is ``none``."""
+
 
 def candidate_library(ctx: Context, effects: Sequence[str] | None = None) -> list[Candidate]:
     """All candidate extensions at all places for the channels of ``ctx``."""
     cands = (_global_candidates() + _support_candidates(ctx) + _tissue_candidates(ctx)
-             + _orientation_candidates(ctx) + _mass_candidates(ctx) + _ligament_candidates(ctx))
+             + _orientation_candidates(ctx) + _mass_candidates(ctx) + _ligament_candidates(ctx)
+             + _dashpot_damping_candidates(ctx))
     if effects is not None:
-        unknown = sorted(set(effects) - set(EFFECT_NAMES))
+        unknown = sorted(set(effects) - set(EFFECT_NAMES) - set(NULL_EXTENSIONS))
         if unknown:
             raise ValueError(f"unknown effect(s) {unknown}; known: {list(EFFECT_NAMES)}")
         cands = [c for c in cands if c.effect in effects]

@@ -1,0 +1,188 @@
+"""Gap diagnosis (issue 10): candidate forms added after the blind judge-like check
+(``tests/judge_like_generator.py``), each against the model core's own extension methods
+(extra bodies on springs and dashpots: an independent code path).
+
+* support (bed) contact at a measured point of a bone, not only at its centre of mass;
+* the shaker's moving mass on its suspension between the coil force and the bone, in the
+  driven input's column only (support_resonance), and the same lump without suspension
+  (soft tissue under the shaker, along its axis);
+* one damping coefficient per dashpot (a null extension: verdict ``none``);
+* a tissue fitted rigid in the band is a mass, not a tissue.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from pelvislab.model.frf import Points, frf
+from pelvislab.model.gap import (
+    CandidateResult,
+    GapOptions,
+    _within_tolerance,
+    diagnose,
+    prepare_data,
+)
+from pelvislab.model.gap_effects import NULL_EXTENSIONS, evaluate
+from pelvislab.model.pelvis import GROUND, Body, Dashpot, Spring
+from pelvislab.tests.test_gap_diagnosis import (
+    F_HZ,
+    IN,
+    OUT,
+    ctx_for,
+    noisy,
+    pick,
+    true_model,
+)
+
+
+def _on_axis_body(model, name, mass_kg, point_m, axis, links):
+    """``model`` with a small body ``name`` at ``point_m`` joined along ``axis`` by
+    ``links``: [(other body, k, c)] (other body may be ground)."""
+    m = model.with_body(Body(name, mass_kg, point_m, 1e-6 * np.eye(3)))
+    for n, (other, k, c) in enumerate(links):
+        m = m.with_spring(Spring(f"{name}_k{n}", name, point_m, other, point_m, k, axis=axis))
+        if c > 0:
+            m = m.with_dashpot(Dashpot(f"{name}_c{n}", name, point_m, other, point_m, c,
+                                       axis=axis))
+    return m
+
+
+def test_bed_contact_at_a_measured_point_is_a_support_body_there():
+    m = true_model()
+    ctx = ctx_for(m)
+    cand = pick(ctx, "support_resonance", "innominate_right at sias_R_x x")
+    f_s, zeta, mass, kc = 60.0, 0.2, 1.5, 4e5
+    ws = 2 * np.pi * f_s
+    H, _ = evaluate(ctx, ctx.base.nominal, cand.build(np.log([f_s, zeta, mass, kc]), ctx))
+    point = OUT.position_m[1]
+    m2 = _on_axis_body(m, "bed", mass, point, np.eye(3)[0],
+                       [("innominate_right", kc, 0.0), (GROUND, mass * ws**2,
+                                                         2 * zeta * mass * ws)])
+    # the bed body's lateral and rotational DOFs carry only their own mass: give them a
+    # stiff grounding so that they stay out of the way (they are not coupled anyway)
+    for j, axis in enumerate(np.eye(3)[1:]):
+        m2 = m2.with_spring(Spring(f"bed_lat{j}", "bed", point, GROUND, point, 1e3,
+                                   axis=axis))
+    H2 = frf(m2, F_HZ, OUT, IN)
+    np.testing.assert_allclose(H, H2, rtol=1e-6, atol=1e-9 * np.abs(H2).max())
+
+
+def _driven_through(model, j, mass, kt, ct, ks, cs):
+    """Setup-wise FRF: column j driven through a mass on (kt, ct) to the bone and (ks, cs)
+    to ground along the drive axis; the other columns are the bare model."""
+    H = frf(model, F_HZ, OUT, IN)
+    point, axis = IN.position_m[j], IN.direction[j] / np.linalg.norm(IN.direction[j])
+    links = [(IN.bone[j], kt, ct)] + ([(GROUND, ks, cs)] if ks > 0 else [])
+    m2 = _on_axis_body(model, "armature", mass, point, axis, links)
+    bones = list(IN.bone)
+    bones[j] = "armature"
+    H[:, :, j] = frf(m2, F_HZ, OUT, Points(tuple(bones), IN.position_m, IN.direction))[:, :, j]
+    return H
+
+
+def test_shaker_armature_is_a_mass_between_the_coil_force_and_the_bone():
+    m = true_model()
+    ctx = ctx_for(m)
+    mass, f_t, z_t, f_s = 0.12, 140.0, 0.04, 12.0
+    wt, ws = 2 * np.pi * f_t, 2 * np.pi * f_s
+    cand = pick(ctx, "support_resonance", "sips_L_x", "shaker armature on its suspension")
+    assert cand.n_params == 4 and cand.place_kind == "input"
+    terms = cand.build(np.log([f_t, z_t, mass, f_s]), ctx)
+    H, _ = evaluate(ctx, ctx.base.nominal, terms)
+    H2 = _driven_through(m, 1, mass, mass * wt**2, 2 * z_t * mass * wt, mass * ws**2,
+                         2 * 0.05 * mass * ws)
+    np.testing.assert_allclose(H, H2, rtol=1e-6, atol=1e-9 * np.abs(H2).max())
+    # ∂H/∂log θ against central differences (step 1e-4: the sharp armature resonance
+    # makes forward differences of 1e-6 round-off limited at ~1e-4)
+    theta = ctx.base.nominal * np.linspace(0.8, 1.2, ctx.base.n_params)
+    _, dH = evaluate(ctx, theta, terms, jacobian=True)
+    for p in (0, 4, 15, 17):
+        up, down = theta.copy(), theta.copy()
+        up[p] *= np.exp(1e-4)
+        down[p] *= np.exp(-1e-4)
+        fd = (evaluate(ctx, up, terms)[0] - evaluate(ctx, down, terms)[0]) / 2e-4
+        assert np.abs(fd - dH[..., p]).max() < 1e-5 * np.abs(dH[..., p]).max(), p
+    # without suspension: tissue under the shaker along its axis
+    tissue = pick(ctx, "soft_tissue", "sips_L_x", "tissue under the shaker, along its axis")
+    assert tissue.n_params == 3
+    Ht, _ = evaluate(ctx, ctx.base.nominal, tissue.build(np.log([f_t, 0.3, mass]), ctx))
+    Ht2 = _driven_through(m, 1, mass, mass * wt**2, 2 * 0.3 * mass * wt, 0.0, 0.0)
+    np.testing.assert_allclose(Ht, Ht2, rtol=1e-6, atol=1e-9 * np.abs(Ht2).max())
+
+
+def _per_dashpot(model, values):
+    for d in model.dashpots:
+        model = model.replace_dashpot(d.name, coefficient_n_s_per_m=values[d.name])
+    return model
+
+
+VALUES = {"S1_R": 400.0, "S2_R": 150.0, "S3_R": 60.0, "S1_L": 900.0, "S2_L": 120.0,
+          "S3_L": 40.0, "P1": 20.0, "P2": 1500.0}
+
+
+def test_per_dashpot_damping_is_the_model_with_each_dashpots_own_coefficient():
+    m = true_model()  # every dashpot at 150 N s/m
+    ctx = ctx_for(m)
+    cand = pick(ctx, "per_dashpot_damping", "all dashpots")
+    assert cand.effect in NULL_EXTENSIONS and cand.n_params == 8
+    # group coefficients at the smallest of their dashpots, the rest as extras
+    theta = ctx.base.nominal.copy()
+    names = list(ctx.base.names)
+    low = {"c_sij_R": 60.0, "c_sij_L": 40.0, "c_pub": 20.0}
+    for n, v in low.items():
+        theta[names.index(n)] = v
+    order = [d.name for d in m.dashpots]
+    group = {d.name: f"c_{d.group}_{d.side}" if d.side else f"c_{d.group}" for d in m.dashpots}
+    extra = np.array([max(VALUES[d] - low[group[d]], 1e-3) for d in order])
+    H, _ = evaluate(ctx, theta, cand.build(np.log(extra), ctx))
+    H2 = frf(_per_dashpot(m, VALUES), F_HZ, OUT, IN)
+    # (the extras' lower bound 1e-3 N s/m stands for 0 on the three smallest dashpots)
+    assert np.abs(H - H2).max() < 1e-6 * np.abs(H2).max()
+
+
+def test_per_dashpot_damping_data_are_none():
+    # no effect, every dashpot its own coefficient (outside design 4.5's groups): the
+    # grouped base leaves a gap, the per-dashpot extension explains it -> none
+    rng = np.random.default_rng(4)
+    f = np.arange(5.0, 300.1, 2.5)
+    H = frf(_per_dashpot(true_model(), VALUES), f, OUT, IN)
+    Hn, sigma = noisy(H, rng, rel=0.002)
+    opts = GapOptions(effects=("per_dashpot_damping", "hysteretic_damping"), base_starts=2)
+    rep = diagnose(prepare_data(f, Hn, sigma, OUT, IN), true_model(), opts).report
+    assert rep["gap_before"] > 1.0, rep["gap_before"]
+    assert rep["candidates"][0]["effect"] == "per_dashpot_damping"
+    assert rep["verdict"] == "none", rep["verdict_reason"]
+    assert "each dashpot has its own coefficient" in rep["verdict_reason"]
+
+
+def test_an_effect_on_per_dashpot_damping_is_named_with_the_extension():
+    # hysteretic damping (eq. 7.2, f_c = 1) on a subject whose dashpots differ within a
+    # joint: neither the effect nor the extension alone reaches the noise; together they
+    # do, and the effect is significant beyond the extension
+    rng = np.random.default_rng(5)
+    f = np.arange(5.0, 300.1, 2.5)
+    model = _per_dashpot(true_model(), VALUES).with_frequency_dependence(f_c=1.0,
+                                                                         f_max_hz=f.max())
+    H = frf(model, f, OUT, IN)
+    Hn, sigma = noisy(H, rng, rel=0.002)
+    opts = GapOptions(effects=("per_dashpot_damping", "hysteretic_damping"), base_starts=2)
+    rep = diagnose(prepare_data(f, Hn, sigma, OUT, IN), true_model(), opts).report
+    assert rep["verdict"] == "hysteretic_damping", rep["verdict_reason"]
+    best = rep["candidates"][0]
+    assert best["variant"].endswith("+ one coefficient per dashpot")
+    assert best["gap_after"] <= 1.0
+
+
+def test_tissue_rigid_in_the_band_is_a_mass_not_a_tissue():
+    # a 130 g mass at a measured point was fitted as "tissue at output" at 5000 Hz (its
+    # bound) and beat the point-mass candidate by AIC: rigid in the band, not a tissue
+    ctx = ctx_for(true_model())
+    tissue = pick(ctx, "soft_tissue", "sias_R_x", "tissue at output")
+    opt = GapOptions()
+
+    def note(f_hz):
+        res = CandidateResult(tissue, np.log([f_hz, 0.3, 0.13]), np.ones(1), 0, 0, 0, 0, 1)
+        return _within_tolerance(res, opt, float(F_HZ.max()))
+
+    assert "added_mass" in note(5000.0)
+    assert note(250.0) == ""
