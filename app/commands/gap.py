@@ -34,7 +34,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     d.add_argument("--model", metavar="M.toml", help="base model; default: thesis appendix E")
     d.add_argument("--json", required=True, metavar="OUT", help="write the diagnosis JSON here")
     d.add_argument("--effects", metavar="LIST",
-                   help="comma-separated candidate effects to try (default: all)")
+                   help="comma-separated candidate effects to try (default: all, and "
+                        "per_dashpot_damping, an extension of parameter updating)")
     d.add_argument("--updating-range", type=float, default=None, metavar="FACTOR",
                    help="stiffness and mass are updated within the model's values x/÷ "
                         "FACTOR (default 1.6: subjects within +-30 %% of the model)")
@@ -102,7 +103,7 @@ def diagnose_file(path: str | Path, model_path: str | Path | None = None,
 
     from pelvislab.acquisition.frfset import read_frf
     from pelvislab.model.gap import GapOptions, diagnose, prepare_data
-    from pelvislab.model.gap_effects import EFFECT_NAMES
+    from pelvislab.model.gap_effects import EFFECT_NAMES, NULL_EXTENSIONS
     from pelvislab.model.pelvis import load_model
 
     ranges = {k: v for k, v in (("updating_range", updating_range),
@@ -115,9 +116,10 @@ def diagnose_file(path: str | Path, model_path: str | Path | None = None,
     H_std, warnings = usable_std(frf)
     model = load_model(model_path)
     if effects is not None:
-        unknown = sorted(set(effects) - set(EFFECT_NAMES))
+        unknown = sorted(set(effects) - set(EFFECT_NAMES) - set(NULL_EXTENSIONS))
         if unknown:
-            raise ValueError(f"unknown effect(s) {unknown}; known: {', '.join(EFFECT_NAMES)}")
+            raise ValueError(f"unknown effect(s) {unknown}; known: "
+                             f"{', '.join((*EFFECT_NAMES, *NULL_EXTENSIONS))}")
     data = prepare_data(frf.frequency_hz, frf.H, H_std, frf.outputs, frf.inputs)
     result = diagnose(data, model, GapOptions(effects=effects, **ranges), progress=progress)
     document = dict(result.report)
