@@ -1221,6 +1221,9 @@ def diagnose(data: GapData, model: PelvisModel, options: GapOptions | None = Non
                 continue
             if key not in (cand.bone, cand.place):
                 continue
+            if (lead.candidate.variant == cand.variant == "bed contact"
+                    and cand.place.rsplit(" ", 1)[0] != lead.candidate.place.rsplit(" ", 1)[0]):
+                continue  # a bed: every axis at the leader's contact point only (4, not 16)
             best_start = (float("inf"), None)
             probe = _Model(fit, cand, grid_theta, len(grid_theta))
             scored = []
