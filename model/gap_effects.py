@@ -548,7 +548,7 @@ def _mass_candidates(ctx: Context) -> list[Candidate]:
         # 8 cm), started also at every measured point of the bone (a probe holder)
         lim = 0.12
         offsets = [(0, 0, 0), (0.03, 0, 0), (-0.03, 0, 0), (0, 0, 0.03)]
-        offsets += [tuple(p - ref) for b, p in _channel_points(ctx)
+        offsets += [tuple(p - ref) for _name, b, p in _channel_points(ctx)
                     if b == bone and np.all(np.abs(p - ref) < lim)]
         starts = tuple(np.array([np.log(m), *off]) for m in (0.05, 0.2) for off in offsets)
         cands.append(Candidate("added_mass", "point mass", bone, "bone",
@@ -674,13 +674,13 @@ def response_vectors(ctx: Context, theta: np.ndarray) -> tuple[np.ndarray, np.nd
     return X[..., :n_out], X[..., n_out:]
 
 
-def _channel_points(ctx: Context) -> list[tuple[str, np.ndarray]]:
-    """(bone, position in m) of every measured point, outputs then inputs."""
-    points = [(b, np.asarray(p, float)) for b, p in zip(ctx.out_bones, ctx.out_position_m,
-                                                         strict=True)]
+def _channel_points(ctx: Context) -> list[tuple[str, str, np.ndarray]]:
+    """(name, bone, position in m) of every measured point, outputs then inputs."""
+    points = [(n, b, np.asarray(p, float)) for n, b, p in zip(
+        ctx.out_names, ctx.out_bones, ctx.out_position_m, strict=True)]
     if ctx.in_position_m is not None:
-        points += [(b, np.asarray(p, float)) for b, p in zip(ctx.in_bones, ctx.in_position_m,
-                                                              strict=True)]
+        points += [(n, b, np.asarray(p, float)) for n, b, p in zip(
+            ctx.in_names, ctx.in_bones, ctx.in_position_m, strict=True)]
     return points
 
 
@@ -692,10 +692,7 @@ def _contact_points(ctx: Context) -> list[tuple[str, str, np.ndarray]]:
     for bone in ctx.base.bones:
         places.append((bone, "", ctx.base.reference_point(bone)))
         seen: list[np.ndarray] = []
-        channels = [*zip(ctx.out_names, ctx.out_bones, ctx.out_position_m, strict=True)]
-        if ctx.in_position_m is not None:
-            channels += zip(ctx.in_names, ctx.in_bones, ctx.in_position_m, strict=True)
-        for name, b, pos in channels:
+        for name, b, pos in _channel_points(ctx):
             if b != bone or any(np.linalg.norm(pos - q) < 0.01 for q in seen):
                 continue  # one contact per spot (x and y probes of one landmark share it)
             seen.append(pos)
