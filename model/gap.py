@@ -54,6 +54,7 @@ from pelvislab.model.gap_effects import (
     response_vectors,
     with_extension,
 )
+from pelvislab.model.parallel import parallel_map
 from pelvislab.model.pelvis import PelvisModel
 from pelvislab.model.rigid_body import filter_bones, filter_global
 
@@ -104,7 +105,9 @@ class GapOptions:
       Wider bounds let the base fit absorb an effect with implausible values (a missing
       ligament by joint springs x30 and a joint locked by damping x1e6; frequency-dependent
       stiffness by every spring x2.4) and call it ``none`` (thesis ch. 6: the optimiser's
-      values are not to be trusted). A parameter ending at a bound is listed in the report.
+      values are not to be trusted). A parameter ending at a bound is listed in the report;
+    * ``jobs``: worker processes for the candidate fits (0 = every available core; 1 =
+      serial). The result does not depend on it (:func:`pelvislab.model.parallel.parallel_map`).
     """
 
     holdout_every: int = 4
@@ -133,6 +136,7 @@ class GapOptions:
     robust_scale: float = 3.0
     effects: tuple[str, ...] | None = None
     seed: int = 0
+    jobs: int = 0
     calibration_tol: float = 0.005
     tilt_tol_deg: float = 1.0
     updating_range: float = 1.6
@@ -1106,20 +1110,30 @@ def diagnose(data: GapData, model: PelvisModel, options: GapOptions | None = Non
     theta_undistorted = np.where(is_c, theta, start)
     bounds = _base_bounds(names, start, opt.updating_range, opt.damping_max)
     theta_damping_refit = _refit_damping(coarse, theta_undistorted, is_c, opt, bounds)
-    spring_starts: dict[Candidate, list[tuple[np.ndarray, np.ndarray]]] = {}
-    for cand in cands:
+    undistorted = (theta_undistorted, theta_damping_refit)
+
+    def screen_place(cand: Candidate) -> tuple[float, np.ndarray, list[tuple[int, np.ndarray]]]:
+        # (robust cost, u) with the base frozen, and the extra starts (index into
+        # ``undistorted``, u) of the effects a base fit absorbs
         cost, u = _screen(cand, coarse, theta, opt)
+        extra: list[tuple[int, np.ndarray]] = []
         if cand.line_spring is not None:
-            for th_u in (theta_undistorted, theta_damping_refit):
+            for k, th_u in enumerate(undistorted):
                 lin = _line_spring_start(cand, fit, th_u, opt)
                 if lin is not None:
-                    spring_starts.setdefault(cand, []).append((th_u, lin[1]))
+                    extra.append((k, lin[1]))
         elif cand.effect == "added_mass":
-            spring_starts[cand] = [(theta_undistorted,
-                                    _screen(cand, coarse, theta_undistorted, opt)[1])]
+            extra.append((0, _screen(cand, coarse, theta_undistorted, opt)[1]))
         elif cand.effect == "frequency_dependent_stiffness":
-            spring_starts[cand] = [(th_u, _screen(cand, coarse, th_u, opt)[1])
-                                   for th_u in (theta_undistorted, theta_damping_refit)]
+            extra.extend((k, _screen(cand, coarse, th_u, opt)[1])
+                         for k, th_u in enumerate(undistorted))
+        return cost, u, extra
+
+    spring_starts: dict[Candidate, list[tuple[np.ndarray, np.ndarray]]] = {}
+    for cand, (cost, u, extra) in zip(cands, parallel_map(screen_place, cands, opt.jobs),
+                                      strict=True):
+        if extra:
+            spring_starts[cand] = [(undistorted[k], u_k) for k, u_k in extra]
         by_variant.setdefault((cand.effect, cand.variant), []).append((cost, cand, u))
     timing["screen_s"] = time.perf_counter() - t1
     if progress:
@@ -1165,7 +1179,7 @@ def diagnose(data: GapData, model: PelvisModel, options: GapOptions | None = Non
                         if cand in spring_starts and not any(cand is c for _, c, _ in chosen))
     # a local effect drags the base fit; refit the base without the output (input) that
     # carries most of the residual and use it as a second start for candidates there
-    clean: dict[tuple[str, str], np.ndarray] = {}
+    clean_lines: dict[tuple[str, str], _Lines] = {}
     for kind, key, names_ in (("output", "outputs", data.out_names),
                               ("input", "inputs", data.in_names)):
         items = where.get(key, [])
@@ -1174,19 +1188,20 @@ def diagnose(data: GapData, model: PelvisModel, options: GapOptions | None = Non
         j = names_.index(items[0]["name"])
         lines = (_Lines.build(ctx, data, ~held_lines, exclude_output=j) if kind == "output"
                  else _Lines.build(ctx, data, ~held_lines, exclude_input=j))
-        if lines.n < 10 * len(names):
-            continue
-        inits = [np.log(theta)] + ([base.grid_start] if base.grid_start is not None else [])
-        clean[(kind, items[0]["name"])] = fit_base(lines, start, names, opt,
-                                                   initial=inits).values
+        if lines.n >= 10 * len(names):
+            clean_lines[(kind, items[0]["name"])] = lines
+    inits = [np.log(theta)] + ([base.grid_start] if base.grid_start is not None else [])
+    clean = dict(zip(clean_lines, parallel_map(
+        lambda lines: fit_base(lines, start, names, opt, initial=inits).values,
+        list(clean_lines.values()), opt.jobs), strict=True))
     timing["clean_refit_s"] = time.perf_counter() - t2
     # dense grids (more than dense_lines fitted lines): the short fits that only rank the
     # starts use every other fitted line (781 lines: 69 s of CPU before); the finish all
     short_lines = coarse if int(np.sum(fit_mask)) > opt.dense_lines else fit
     # stage 1: short joint fits from every base start; stage 2: the most promising jobs
     # (and every global one) are fitted to convergence
-    starts_out = []
-    for cand, u, n_screened, all_starts in jobs:
+    def start_job(job: tuple[Candidate, np.ndarray, int, bool]) -> tuple[float, np.ndarray]:
+        cand, u, _n_screened, all_starts = job
         # second start: the best grid point before least squares, not yet contorted by the
         # base fit's attempt to absorb the effect
         thetas = [theta] + ([np.exp(base.grid_start)] if base.grid_start is not None else [])
@@ -1195,15 +1210,20 @@ def diagnose(data: GapData, model: PelvisModel, options: GapOptions | None = Non
         if not all_starts:
             thetas = []
         pairs = spring_starts.get(cand, [])
-        cost, x = _joint_start(cand, short_lines, thetas, u, bounds, opt, pairs)
-        starts_out.append((cost + opt.robust_scale**2 * cand.n_params, cand, x, n_screened))
+        return _joint_start(cand, short_lines, thetas, u, bounds, opt, pairs)
+
+    starts_out = [(cost + opt.robust_scale**2 * cand.n_params, cand, x, n_screened)
+                  for (cost, x), (cand, _u, n_screened, _all)
+                  in zip(parallel_map(start_job, jobs, opt.jobs), jobs, strict=True)]
     starts_out.sort(key=lambda t: t[0])
-    for rank, (_cost, cand, x, n_screened) in enumerate(starts_out):
-        full = rank < opt.finish_jobs or cand.place_kind == "global"
-        th, uu, gfit, chi2 = _joint_finish(cand, fit, held, x, bounds, opt,
-                                           opt.max_nfev_joint if full else 0)
-        gap_after = excess_gap(chi2, held.n)
-        results.append(CandidateResult(cand, uu, th, gfit, gap_after, chi2,
+    finish = [(cand, x, opt.max_nfev_joint
+               if rank < opt.finish_jobs or cand.place_kind == "global" else 0)
+              for rank, (_cost, cand, x, _n) in enumerate(starts_out)]
+    for (th, uu, gfit, chi2), (_cost, cand, _x, n_screened) in zip(
+            parallel_map(lambda job: _joint_finish(job[0], fit, held, job[1], bounds, opt,
+                                                   job[2]), finish, opt.jobs),
+            starts_out, strict=True):
+        results.append(CandidateResult(cand, uu, th, gfit, excess_gap(chi2, held.n), chi2,
                                        chi2 + 2 * cand.n_params, n_screened))
     timing["joint_fit_s"] = time.perf_counter() - t2
     # polish: when the best candidate removes much but not all of the gap, its effect is
@@ -1217,13 +1237,14 @@ def diagnose(data: GapData, model: PelvisModel, options: GapOptions | None = Non
     for res in sorted(results, key=lambda r: r.score):
         leading.setdefault(res.candidate.effect, res)
     t3 = time.perf_counter()
+    grid_theta = np.exp(base.grid_start) if base.grid_start is not None else theta
+    polish: list[tuple[Candidate, int]] = []
     for lead in list(leading.values())[:opt.polish_effects]:
         if not (opt.polish and lead.candidate.place_kind != "global"
                 and gap_before > opt.none_gap and lead.gap_after > opt.near_noise_gap
                 and 1 - lead.gap_after / max(gap_before, 1e-12) >= opt.polish_min_shrink):
             continue
         key = lead.candidate.bone or lead.candidate.place
-        grid_theta = np.exp(base.grid_start) if base.grid_start is not None else theta
         for cand in cands:
             if cand.effect != lead.candidate.effect or cand.place_kind != lead.candidate.place_kind:
                 continue
@@ -1232,23 +1253,30 @@ def diagnose(data: GapData, model: PelvisModel, options: GapOptions | None = Non
             if (lead.candidate.variant == cand.variant == "bed contact"
                     and cand.place.rsplit(" ", 1)[0] != lead.candidate.place.rsplit(" ", 1)[0]):
                 continue  # a bed: every axis at the leader's contact point only (4, not 16)
-            best_start = (float("inf"), None)
-            probe = _Model(fit, cand, grid_theta, len(grid_theta))
-            scored = []
-            for u0 in cand.starts:
-                u0 = np.clip(u0, cand.lower + 1e-9, cand.upper - 1e-9)
-                scored.append((_robust_cost(probe.residual(u0), opt.robust_scale), u0))
-            scored.sort(key=lambda t: t[0])
-            for _c, u0 in scored[:2]:
-                cost, x = _joint_start(cand, short_lines, [grid_theta], u0, bounds, opt)
-                if cost < best_start[0]:
-                    best_start = (cost, x)
-            if best_start[1] is None:
-                continue
-            th, uu, gfit, chi2 = _joint_finish(cand, fit, held, best_start[1], bounds, opt,
-                                               opt.max_nfev_joint)
+            polish.append((cand, lead.screened_places))
+
+    def polish_place(cand: Candidate) -> tuple[np.ndarray, np.ndarray, float, float] | None:
+        best_start = (float("inf"), None)
+        probe = _Model(fit, cand, grid_theta, len(grid_theta))
+        scored = []
+        for u0 in cand.starts:
+            u0 = np.clip(u0, cand.lower + 1e-9, cand.upper - 1e-9)
+            scored.append((_robust_cost(probe.residual(u0), opt.robust_scale), u0))
+        scored.sort(key=lambda t: t[0])
+        for _c, u0 in scored[:2]:
+            cost, x = _joint_start(cand, short_lines, [grid_theta], u0, bounds, opt)
+            if cost < best_start[0]:
+                best_start = (cost, x)
+        if best_start[1] is None:
+            return None
+        return _joint_finish(cand, fit, held, best_start[1], bounds, opt, opt.max_nfev_joint)
+
+    for fitted, (cand, n_screened) in zip(
+            parallel_map(polish_place, [c for c, _n in polish], opt.jobs), polish, strict=True):
+        if fitted is not None:
+            th, uu, gfit, chi2 = fitted
             results.append(CandidateResult(cand, uu, th, gfit, excess_gap(chi2, held.n), chi2,
-                                           chi2 + 2 * cand.n_params, lead.screened_places))
+                                           chi2 + 2 * cand.n_params, n_screened))
     timing["polish_s"] = time.perf_counter() - t3
     # one entry per effect: its best-scoring variant and place
     best_by_effect = _best_by_effect(results)
@@ -1264,13 +1292,18 @@ def diagnose(data: GapData, model: PelvisModel, options: GapOptions | None = Non
         effects = sorted((r for r in best_by_effect.values()
                           if r.candidate.effect not in NULL_EXTENSIONS),
                          key=lambda r: r.score)[:opt.polish_effects]
-        for res in effects:
+        def with_null(res: CandidateResult) -> tuple[np.ndarray, np.ndarray, float, float]:
             cand = with_extension(res.candidate, null_ext.candidate)
             pairs = [(res.theta, np.concatenate([res.u, null_ext.u])),
                      (null_ext.theta, np.concatenate([res.u, null_ext.u]))]
             _c, x = _joint_start(cand, short_lines, [], res.u, bounds, opt, pairs)
-            th, uu, gfit, chi2 = _joint_finish(cand, fit, held, x, bounds, opt,
-                                               opt.max_nfev_joint)
+            return _joint_finish(cand, fit, held, x, bounds, opt, opt.max_nfev_joint)
+
+        for res, (th, uu, gfit, chi2) in zip(effects, parallel_map(with_null, effects, opt.jobs),
+                                             strict=True):
+            # the same extension again: with_extension is deterministic, and the worker's
+            # candidate (built in the child) cannot come back (closures do not pickle)
+            cand = with_extension(res.candidate, null_ext.candidate)
             combined = CandidateResult(cand, uu, th, gfit, excess_gap(chi2, held.n), chi2,
                                        chi2 + 2 * cand.n_params, res.screened_places)
             combined.beyond_null = null_ext.chi2_heldout - chi2

@@ -43,6 +43,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                    help="damping is updated up to FACTOR times the model's values "
                         "(default 3e4: appendix E's 0.8 N s/m -> 24000 N s/m)")
     d.add_argument("--no-plots", action="store_true", help="do not write PNG plots")
+    d.add_argument("--jobs", type=int, default=0, metavar="N",
+                   help="worker processes for the candidate fits (default 0: every core; "
+                        "1: serial). The result does not depend on it")
     d.set_defaults(handler=_diagnose)
     b = sub.add_parser("benchmark", help="diagnose data sets with a withheld effect each")
     b.add_argument("--json", required=True, metavar="OUT", help="write the benchmark JSON here")
@@ -62,6 +65,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                    help="comma-separated kinds to generate (default: none and every effect)")
     b.add_argument("--progress", dest="verbose_progress", action="store_true",
                    help="print one line per data set on stderr even when not a terminal")
+    b.add_argument("--jobs", type=int, default=0, metavar="N",
+                   help="worker processes for the candidate fits (default 0: every core; "
+                        "1: serial). The result does not depend on it")
     b.set_defaults(handler=_benchmark)
 
 
@@ -90,11 +96,13 @@ def diagnose_file(path: str | Path, model_path: str | Path | None = None,
                   progress: Callable[[str], None] | None = None,
                   effects: tuple[str, ...] | None = None,
                   updating_range: float | None = None,
-                  damping_max: float | None = None) -> GapReport:
+                  damping_max: float | None = None, jobs: int = 0) -> GapReport:
     """Sim-to-real gap diagnosis of the /frf of ``path`` (session or FRF-only file).
 
     ``updating_range`` / ``damping_max`` override :class:`GapOptions`' prior ranges of the
-    parameter updating (factors on the model's values, > 1).
+    parameter updating (factors on the model's values, > 1); ``jobs``: worker processes
+    (0 = every core; the GUI's worker thread runs it serially, see
+    :mod:`pelvislab.model.parallel`).
 
     The one entry point of the CLI and the GUI's replay view; the numerics are
     :func:`pelvislab.model.gap.diagnose`.
@@ -121,7 +129,10 @@ def diagnose_file(path: str | Path, model_path: str | Path | None = None,
             raise ValueError(f"unknown effect(s) {unknown}; known: "
                              f"{', '.join((*EFFECT_NAMES, *NULL_EXTENSIONS))}")
     data = prepare_data(frf.frequency_hz, frf.H, H_std, frf.outputs, frf.inputs)
-    result = diagnose(data, model, GapOptions(effects=effects, **ranges), progress=progress)
+    if jobs < 0:
+        raise ValueError(f"--jobs must be >= 0 (0 = every core), got {jobs}")
+    result = diagnose(data, model, GapOptions(effects=effects, jobs=jobs, **ranges),
+                      progress=progress)
     document = dict(result.report)
     if warnings:
         document["warnings"] = warnings
@@ -176,7 +187,7 @@ def _diagnose(args: argparse.Namespace) -> int:
     if args.effects:
         effects = tuple(e.strip() for e in args.effects.split(",") if e.strip())
     report = diagnose_file(args.session, args.model, _progress(), effects,
-                           args.updating_range, args.damping_max)
+                           args.updating_range, args.damping_max, args.jobs)
     plots: list[str] = []
     if not args.no_plots:
         try:
@@ -302,10 +313,13 @@ def _plots(result: object, out: Path) -> list[str]:
 
 
 def _benchmark(args: argparse.Namespace) -> int:
+    from pelvislab.model.gap import GapOptions
     from pelvislab.model.gap_benchmark import format_summary, run_benchmark
 
     if args.cases < 1:
         raise ValueError("--cases must be >= 1")
+    if args.jobs < 0:
+        raise ValueError(f"--jobs must be >= 0 (0 = every core), got {args.jobs}")
     if args.chain_cases < 0:
         raise ValueError("--chain-cases must be >= 0")
     if not 0.5 <= args.chain_step_hz <= 50:
@@ -330,7 +344,8 @@ def _benchmark(args: argparse.Namespace) -> int:
     result = run_benchmark(generator, kinds=kinds, cases_per_kind=args.cases,
                            progress=_progress() if not args.verbose_progress else
                            (lambda m: print(f"  {m}", file=sys.stderr, flush=True)),
-                           chain_generator=chain, chain_cases_per_kind=chain_cases)
+                           chain_generator=chain, chain_cases_per_kind=chain_cases,
+                           options=GapOptions(jobs=args.jobs))
     result["generator"] = " + ".join(names)
     result["command"] = "pelvislab gap benchmark " + " ".join(sys.argv[3:]) \
         if sys.argv[1:3] == ["gap", "benchmark"] else None

@@ -1,0 +1,93 @@
+"""Forked worker map (model/parallel.py) and the gap diagnosis' independence of it."""
+
+from __future__ import annotations
+
+import json
+import os
+import threading
+
+import numpy as np
+import pytest
+
+from pelvislab.acquisition.frfset import Channels
+from pelvislab.model.frf import frf
+from pelvislab.model.gap import GapOptions, diagnose, prepare_data
+from pelvislab.model.parallel import can_fork_workers, parallel_map, resolve_jobs
+from pelvislab.model.pelvis import default_model
+from pelvislab.tests.test_gap_diagnosis import F_HZ, IN, OUT, noisy, true_model
+
+needs_fork = pytest.mark.skipif(not can_fork_workers(), reason="cannot fork workers here")
+
+
+@needs_fork
+def test_results_in_task_order_from_other_processes_with_a_closure():
+    offset = np.arange(3.0)  # captured by the closure: nothing here is pickled going in
+
+    def task(k: int) -> tuple[int, np.ndarray, int]:
+        return k, offset * k, os.getpid()
+
+    out = parallel_map(task, list(range(12)), jobs=2)
+    assert [k for k, _, _ in out] == list(range(12))
+    for k, arr, _pid in out:
+        np.testing.assert_array_equal(arr, offset * k)
+    assert os.getpid() not in {pid for _, _, pid in out}
+
+
+@needs_fork
+def test_task_error_is_raised_in_the_caller():
+    def task(k: int) -> int:
+        if k == 3:
+            raise ValueError("task 3 failed")
+        return k
+
+    with pytest.raises(ValueError, match="task 3 failed"):
+        parallel_map(task, list(range(6)), jobs=2)
+
+
+def test_serial_when_jobs_is_one_or_another_thread_runs():
+    assert {pid for pid in parallel_map(lambda _k: os.getpid(), [0, 1, 2], jobs=1)} == {
+        os.getpid()}
+    pids: list[int] = []
+    started, release = threading.Event(), threading.Event()
+
+    def other() -> None:
+        started.set()
+        release.wait(10)
+
+    t = threading.Thread(target=other)
+    t.start()
+    started.wait(10)
+    try:
+        assert not can_fork_workers()
+        pids = parallel_map(lambda _k: os.getpid(), [0, 1, 2], jobs=2)
+    finally:
+        release.set()
+        t.join()
+    assert set(pids) == {os.getpid()}
+
+
+def test_jobs_validation():
+    assert resolve_jobs(0) >= 1
+    assert resolve_jobs(3) == 3
+    with pytest.raises(ValueError, match="jobs"):
+        resolve_jobs(-1)
+
+
+@needs_fork
+def test_gap_report_does_not_depend_on_the_number_of_workers():
+    rng = np.random.default_rng(5)
+    d = OUT.direction.copy()
+    t = np.radians(20.0)
+    d[1] = np.array([np.cos(t), 0.0, np.sin(t)])
+    tilted = Channels(OUT.name, OUT.bone, OUT.position_m, d)
+    Hn, sigma = noisy(frf(true_model(), F_HZ, tilted, IN), rng)
+    data = prepare_data(F_HZ, Hn, sigma, OUT, IN)
+    opts = dict(effects=("sensor_misorientation", "added_mass"), base_starts=1,
+                max_nfev_joint=20, max_nfev_short=8, finish_jobs=2)
+    reports = []
+    for jobs in (1, 2):
+        rep = dict(diagnose(data, default_model(), GapOptions(jobs=jobs, **opts)).report)
+        rep.pop("timing_s")
+        reports.append(json.dumps(rep, sort_keys=True))
+    assert reports[0] == reports[1]
+    assert json.loads(reports[0])["verdict"] == "sensor_misorientation"
