@@ -80,6 +80,9 @@ class GapOptions:
       and the best fit in turn) while the fitted-line gap is above ``restart_gap``;
     * ``max_nfev_base_finish``: evaluations more for a base-fit start that is the best so
       far but stopped at ``max_nfev_base`` (precise data need them to reach the noise);
+    * ``damping_scan_rounds``: rounds of a scan of each damping group over the grid's
+      decades, the others held, from the best grid point: one more base-fit start
+      (subjects whose joints' damping lies decades apart);
     * ``dense_lines``: above this many fitted lines, the short joint fits that rank the
       starts use every other fitted line (the fits to convergence use all);
     * ``variants_per_effect``: best-screened variants of each effect that get a joint fit
@@ -126,6 +129,7 @@ class GapOptions:
     dense_lines: int = 300
     max_nfev_base: int = 60
     max_nfev_base_finish: int = 300
+    damping_scan_rounds: int = 2
     max_nfev_screen: int = 12
     max_nfev_joint: int = 40
     max_nfev_short: int = 20
@@ -563,6 +567,26 @@ def fit_base(fit: _Lines, start: np.ndarray, names: Sequence[str], options: GapO
                 grid.append((_robust_cost(model.residual(x), options.robust_scale), x))
     grid.sort(key=lambda t: t[0])
     starts = [g[1] for g in grid[:2]]
+    if initial is None and is_c.sum() > 1:
+        # 1b. each damping group on its own: groups may sit decades apart (judge-like
+        #     seed-1357 set 14: c_pub 20, c_sij_L 2756 N s/m; the common decade and
+        #     restarts of x/÷e left c_pub at 186x the truth, fitted-line gap 51 where 1.3
+        #     was reachable). Coordinate scans over the same decades from the best grid
+        #     point, twice over the groups; the result is one more start (not the first:
+        #     with the stiffness frozen at the grid's, the scan can also lead into a wrong
+        #     basin - c_pub 3000 for 20 on a no-effect set the grid start fits to noise).
+        cost0, x = grid[0]
+        for _round in range(options.damping_scan_rounds):
+            for j in np.flatnonzero(is_c):
+                for dc in decades:
+                    xj = x.copy()
+                    xj[j] = np.clip(x_nom[j] + dc * np.log(10), bounds.lo[j] + 1e-9,
+                                    bounds.hi[j] - 1e-9)
+                    c = _robust_cost(model.residual(xj), options.robust_scale)
+                    if c < cost0:
+                        cost0, x = c, xj
+        if cost0 < grid[0][0]:
+            starts.append(x)
     rng = np.random.default_rng(options.seed)
     best_x, best_cost = starts[0], float("inf")
     n_starts = 0
@@ -608,7 +632,7 @@ class CandidateResult:
     candidate: Candidate
     u: np.ndarray
     theta: np.ndarray
-    gap_fit: float
+    chi2_fitted: float  # χ² on the fitted lines (in-sample)
     gap_after: float
     chi2_heldout: float
     score: float
@@ -636,6 +660,8 @@ class CandidateResult:
             "n_params": c.n_params,
             "score": _round(self.score),
             "chi2_held_out": _round(self.chi2_heldout),
+            "chi2_fitted": _round(self.chi2_fitted),
+            "places_tried": self.screened_places,
             "chi2_held_out_calibrated": _round(self.chi2_calibrated),
             "within_tolerance": self.tolerance_note or None,
         }
@@ -796,7 +822,7 @@ def _joint_start(cand: Candidate, fit: _Lines, thetas: Sequence[np.ndarray], u0:
 def _joint_finish(cand: Candidate, fit: _Lines, held: _Lines, x0: np.ndarray,
                   bounds: _Bounds, options: GapOptions, nfev: int
                   ) -> tuple[np.ndarray, np.ndarray, float, float]:
-    """Continue a joint fit; returns (θ, u, fitted-line gap, held-out χ²)."""
+    """Continue a joint fit; returns (θ, u, fitted-line χ², held-out χ²)."""
     n = bounds.lo.size
     if nfev > 0:
         model = _Model(fit, cand, None, n)
@@ -806,7 +832,7 @@ def _joint_finish(cand: Candidate, fit: _Lines, held: _Lines, x0: np.ndarray,
     th, u = np.exp(x0[:n]), x0[n:]
     Hf, _ = evaluate(fit.ctx, th, cand.build(u, fit.ctx))
     Hh, _ = evaluate(held.ctx, th, cand.build(u, held.ctx))
-    return th, u, fit.gap(Hf), held.chi2(Hh)
+    return th, u, fit.chi2(Hf), held.chi2(Hh)
 
 
 # ---------------------------------------------------------------------------------------
@@ -1084,6 +1110,7 @@ def diagnose(data: GapData, model: PelvisModel, options: GapOptions | None = Non
     theta = base.values
     H_base, _ = evaluate(ctx, theta)
     H_held_base, _ = evaluate(held.ctx, theta)
+    chi2_base_fitted = fit.chi2(evaluate(fit.ctx, theta)[0])
     gap_before = held.gap(H_held_base)
     chi2_base = held.chi2(H_held_base)
     where = where_analysis(data, H_base)
@@ -1219,11 +1246,11 @@ def diagnose(data: GapData, model: PelvisModel, options: GapOptions | None = Non
     finish = [(cand, x, opt.max_nfev_joint
                if rank < opt.finish_jobs or cand.place_kind == "global" else 0)
               for rank, (_cost, cand, x, _n) in enumerate(starts_out)]
-    for (th, uu, gfit, chi2), (_cost, cand, _x, n_screened) in zip(
+    for (th, uu, chi2_f, chi2), (_cost, cand, _x, n_screened) in zip(
             parallel_map(lambda job: _joint_finish(job[0], fit, held, job[1], bounds, opt,
                                                    job[2]), finish, opt.jobs),
             starts_out, strict=True):
-        results.append(CandidateResult(cand, uu, th, gfit, excess_gap(chi2, held.n), chi2,
+        results.append(CandidateResult(cand, uu, th, chi2_f, excess_gap(chi2, held.n), chi2,
                                        chi2 + 2 * cand.n_params, n_screened))
     timing["joint_fit_s"] = time.perf_counter() - t2
     # polish: when the best candidate removes much but not all of the gap, its effect is
@@ -1274,14 +1301,14 @@ def diagnose(data: GapData, model: PelvisModel, options: GapOptions | None = Non
     for fitted, (cand, n_screened) in zip(
             parallel_map(polish_place, [c for c, _n in polish], opt.jobs), polish, strict=True):
         if fitted is not None:
-            th, uu, gfit, chi2 = fitted
-            results.append(CandidateResult(cand, uu, th, gfit, excess_gap(chi2, held.n), chi2,
+            th, uu, chi2_f, chi2 = fitted
+            results.append(CandidateResult(cand, uu, th, chi2_f, excess_gap(chi2, held.n), chi2,
                                            chi2 + 2 * cand.n_params, n_screened))
     timing["polish_s"] = time.perf_counter() - t3
     # one entry per effect: its best-scoring variant and place
     best_by_effect = _best_by_effect(results)
     # an effect on a subject whose dashpots differ within a joint: when one damping per
-    # dashpot is significant but not at the noise, the leading effects are refitted with
+    # dashpot is significant but not at the noise, every effect is refitted with
     # it (per-dashpot damping alone took hysteretic damping f_c = 1 from gap 6.3 to 0.73:
     # a false none without the refit)
     t4 = time.perf_counter()
@@ -1289,9 +1316,14 @@ def diagnose(data: GapData, model: PelvisModel, options: GapOptions | None = Non
     if null_ext is not None and null_ext.gap_after > opt.restart_gap and (
             chi2_base - null_ext.chi2_heldout
             > _significance_threshold(null_ext, opt, chi2_base, True)):
+        # every effect (its best place), not only the leaders: fitted without the
+        # extension, the true effect can rank behind others that absorb some of the
+        # dashpots' misfit (judge-like seed 1357: f_k = 1.47 was 5th, a probe tilted
+        # 23 deg 7th; both named once refitted with it)
         effects = sorted((r for r in best_by_effect.values()
                           if r.candidate.effect not in NULL_EXTENSIONS),
-                         key=lambda r: r.score)[:opt.polish_effects]
+                         key=lambda r: r.score)
+
         def with_null(res: CandidateResult) -> tuple[np.ndarray, np.ndarray, float, float]:
             cand = with_extension(res.candidate, null_ext.candidate)
             pairs = [(res.theta, np.concatenate([res.u, null_ext.u])),
@@ -1299,12 +1331,12 @@ def diagnose(data: GapData, model: PelvisModel, options: GapOptions | None = Non
             _c, x = _joint_start(cand, short_lines, [], res.u, bounds, opt, pairs)
             return _joint_finish(cand, fit, held, x, bounds, opt, opt.max_nfev_joint)
 
-        for res, (th, uu, gfit, chi2) in zip(effects, parallel_map(with_null, effects, opt.jobs),
+        for res, (th, uu, chi2_f, chi2) in zip(effects, parallel_map(with_null, effects, opt.jobs),
                                              strict=True):
             # the same extension again: with_extension is deterministic, and the worker's
             # candidate (built in the child) cannot come back (closures do not pickle)
             cand = with_extension(res.candidate, null_ext.candidate)
-            combined = CandidateResult(cand, uu, th, gfit, excess_gap(chi2, held.n), chi2,
+            combined = CandidateResult(cand, uu, th, chi2_f, excess_gap(chi2, held.n), chi2,
                                        chi2 + 2 * cand.n_params, res.screened_places)
             combined.beyond_null = null_ext.chi2_heldout - chi2
             results.append(combined)
@@ -1435,6 +1467,7 @@ def diagnose(data: GapData, model: PelvisModel, options: GapOptions | None = Non
                      "gap_definition": "sqrt(max(mean |H_model - H|^2 / sigma^2 - 1, 0)) over "
                                        "held-out lines: model error beyond noise, noise units"},
         "base_fit": {"gap_fitted_lines": _round(base.gap_fit), "starts": base.starts,
+                     "chi2_fitted_lines": _round(chi2_base_fitted),
                      "parameters": {n: _round(v) for n, v in zip(names, theta, strict=True)},
                      "updating_range": opt.updating_range, "damping_max": opt.damping_max,
                      "dashpot_lever": model.dashpot_lever,

@@ -1,0 +1,83 @@
+"""Gap diagnosis when the subject's damping coefficients are decades apart.
+
+Issue 10's withheld sets have "damping coefficients far from" appendix E, not necessarily
+alike: one joint's dashpots may be two decades from another's (design 4.5 groups), or the
+three dashpots of one joint decades apart (one coefficient per dashpot). The subjects here
+are those of two judge-like sets that the diagnosis got wrong (seed 1357, sets 14 and 0),
+without their effects; the data come from the independent thesis model
+(``tests/independent_pelvis.py``).
+"""
+
+import numpy as np
+
+from pelvislab.model.gap import GapOptions, _context, _Lines, diagnose, fit_base, prepare_data
+from pelvislab.model.pelvis import default_model
+from pelvislab.tests import independent_pelvis as ip
+from pelvislab.tests.benchmarks.bench_gap import FREQUENCY_HZ, INPUTS, MEASURED, OUTPUTS
+
+MASS_KG = {"innominate_right": 0.821, "innominate_left": 0.523, "sacrum": 0.404}
+STIFFNESS_N_PER_M = {"io_R": 7.94e5, "asa_R": 1.170e6, "asd_R": 8.51e5, "pss_R": 1.174e6,
+                     "psl_R": 1.132e6, "io_L": 1.084e6, "asa_L": 9.34e5, "asd_L": 1.014e6,
+                     "pss_L": 1.031e6, "psl_L": 1.062e6, "pubh": 7.38e4, "pubs": 4.05e3}
+
+
+def _frf(damping_n_s_per_m: dict[str, float], f_k: float = 0.0) -> np.ndarray:
+    """Face-up layout FRFs (m/N) of the subject, with frequency-dependent stiffness
+    K (1 + f_k ω / (4 ω_max)) (thesis eq. 7.1, 7.3) when ``f_k`` > 0."""
+    mass_scale = {b: MASS_KG[b] / ip.MASS[b] for b in ip.BONES}
+    m, c, k = ip.matrices(mass_scale, STIFFNESS_N_PER_M, damping_n_s_per_m,
+                          dashpot_lever="points")
+    d_out = np.array([d @ ip.point_map(b, p) for b, p, d in
+                      zip(OUTPUTS.bone, OUTPUTS.position_m, OUTPUTS.direction, strict=True)])
+    d_in = np.array([d @ ip.point_map(b, p) for b, p, d in
+                     zip(INPUTS.bone, INPUTS.position_m, INPUTS.direction, strict=True)])
+    w_max = 2 * np.pi * FREQUENCY_HZ.max()
+    H = np.empty((FREQUENCY_HZ.size, len(d_out), len(d_in)), complex)
+    for i, w in enumerate(2 * np.pi * FREQUENCY_HZ):
+        z = -w * w * m + 1j * w * c + k * (1 + f_k * w / (4 * w_max))
+        H[i] = d_out @ np.linalg.solve(z, d_in.T)
+    return H
+
+
+def _data(H: np.ndarray, seed: int, noise_of_peak: float = 0.01, noise_of_h: float = 0.0):
+    """``H`` with complex noise ``noise_of_peak`` of each FRF's peak (or ``noise_of_h`` of
+    |H| line by line), measured pairs only."""
+    rng = np.random.default_rng(seed)
+    sigma = (noise_of_h * np.abs(H) if noise_of_h else
+             noise_of_peak * np.max(np.abs(H), axis=0, keepdims=True) * np.ones(H.shape))
+    H = H + sigma / np.sqrt(2) * (rng.normal(size=H.shape) + 1j * rng.normal(size=H.shape))
+    measured = MEASURED[None] & np.ones(H.shape, bool)
+    return prepare_data(FREQUENCY_HZ, np.where(measured, H, np.nan + 0j),
+                        np.where(measured, sigma, np.nan), OUTPUTS, INPUTS)
+
+
+def test_base_fit_finds_damping_groups_two_decades_apart():
+    # c_sij_R 672, c_sij_L 2756, c_pub 20 N s/m with f_k = 0.55 and noise 1.45 % of |H|
+    # (the base fit cannot reach the noise, ~1.4 is its floor): the common damping decade
+    # of the grid and restarts of x/÷e left c_pub at ~180x and a fitted-line gap of 53
+    # before the per-group scan (seeds 14-16)
+    groups = {"R": 672.0, "L": 2756.0, "P": 20.0}
+    damping = {d: groups[d[0]] if d.startswith("P") else groups[d[-1]]
+               for d in ip.default_damping()}
+    data = _data(_frf(damping, f_k=0.55), seed=14, noise_of_h=0.0145)
+    ctx = _context(default_model().with_dashpot_lever("points"), data)
+    fit = _Lines.build(ctx, data, np.arange(data.frequency_hz.size) % 4 != 2)
+    base = fit_base(fit, ctx.base.nominal.copy(), ctx.base.names, GapOptions())
+    assert base.gap_fit <= 3.0
+    fitted = dict(zip(ctx.base.names, base.values, strict=True))
+    assert abs(np.log(fitted["c_pub"] / 20.0)) < np.log(2.0)
+
+
+def test_dashpots_of_one_joint_decades_apart_are_parameter_updating():
+    # one coefficient per dashpot, 23-1652 N s/m within a joint, no effect: parameter
+    # updating with the per-dashpot extension explains it (verdict none, extension at the
+    # noise); a per-dashpot scan start was tried against equal starts on 15 judge-like
+    # per-dashpot sets and changed nothing but one ligament set, so there is none
+    damping = {"S1_R": 23.0, "S2_R": 1652.0, "S3_R": 720.0, "S1_L": 116.0, "S2_L": 528.0,
+               "S3_L": 1287.0, "P1": 23.0, "P2": 392.0}
+    data = _data(_frf(damping), seed=0)
+    report = diagnose(data, default_model(), GapOptions(
+        effects=("per_dashpot_damping", "frequency_dependent_stiffness"))).report
+    assert report["verdict"] == "none", report["verdict_reason"]
+    per_dashpot = [c for c in report["candidates"] if c["effect"] == "per_dashpot_damping"]
+    assert per_dashpot and per_dashpot[0]["gap_after"] <= GapOptions().near_noise_gap
