@@ -4,36 +4,47 @@ from __future__ import annotations
 
 import json
 import os
+import subprocess
+import sys
+import textwrap
 import threading
 
-import numpy as np
 import pytest
 
-from pelvislab.acquisition.frfset import Channels
-from pelvislab.model.frf import frf
-from pelvislab.model.gap import GapOptions, diagnose, prepare_data
 from pelvislab.model.parallel import can_fork_workers, parallel_map, resolve_jobs
-from pelvislab.model.pelvis import default_model
-from pelvislab.tests.test_gap_diagnosis import F_HZ, IN, OUT, noisy, true_model
 
 needs_fork = pytest.mark.skipif(not can_fork_workers(), reason="cannot fork workers here")
 
 
+def _in_fresh_process(code: str) -> dict:
+    """Run ``code`` (which prints one JSON line) in a new interpreter: the test process
+    may hold threads left by other tests (the GUI's executors), and then the map runs
+    serially by design (can_fork_workers)."""
+    env = {**os.environ, "OPENBLAS_NUM_THREADS": "1"}
+    out = subprocess.run([sys.executable, "-c", textwrap.dedent(code)], env=env,
+                         capture_output=True, text=True, timeout=600)
+    assert out.returncode == 0, out.stderr[-2000:]
+    return json.loads(out.stdout.strip().splitlines()[-1])
+
+
 @needs_fork
 def test_results_in_task_order_from_other_processes_with_a_closure():
-    offset = np.arange(3.0)  # captured by the closure: nothing here is pickled going in
+    got = _in_fresh_process("""
+        import json, os
+        import numpy as np
+        from pelvislab.model.parallel import can_fork_workers, parallel_map
+        offset = np.arange(3.0)  # captured by the closure: nothing here is pickled going in
+        out = parallel_map(lambda k: (k, (offset * k).tolist(), os.getpid()), list(range(12)), 2)
+        print(json.dumps({"fork": can_fork_workers(), "parent": os.getpid(),
+                          "k": [o[0] for o in out], "arr": [o[1] for o in out],
+                          "pids": sorted({o[2] for o in out})}))
+        """)
+    assert got["fork"]
+    assert got["k"] == list(range(12))
+    assert got["arr"] == [[0.0, float(k), 2.0 * k] for k in range(12)]
+    assert got["parent"] not in got["pids"]
 
-    def task(k: int) -> tuple[int, np.ndarray, int]:
-        return k, offset * k, os.getpid()
 
-    out = parallel_map(task, list(range(12)), jobs=2)
-    assert [k for k, _, _ in out] == list(range(12))
-    for k, arr, _pid in out:
-        np.testing.assert_array_equal(arr, offset * k)
-    assert os.getpid() not in {pid for _, _, pid in out}
-
-
-@needs_fork
 def test_task_error_is_raised_in_the_caller():
     def task(k: int) -> int:
         if k == 3:
@@ -75,19 +86,32 @@ def test_jobs_validation():
 
 @needs_fork
 def test_gap_report_does_not_depend_on_the_number_of_workers():
-    rng = np.random.default_rng(5)
-    d = OUT.direction.copy()
-    t = np.radians(20.0)
-    d[1] = np.array([np.cos(t), 0.0, np.sin(t)])
-    tilted = Channels(OUT.name, OUT.bone, OUT.position_m, d)
-    Hn, sigma = noisy(frf(true_model(), F_HZ, tilted, IN), rng)
-    data = prepare_data(F_HZ, Hn, sigma, OUT, IN)
-    opts = dict(effects=("sensor_misorientation", "added_mass"), base_starts=1,
-                max_nfev_joint=20, max_nfev_short=8, finish_jobs=2)
-    reports = []
-    for jobs in (1, 2):
-        rep = dict(diagnose(data, default_model(), GapOptions(jobs=jobs, **opts)).report)
-        rep.pop("timing_s")
-        reports.append(json.dumps(rep, sort_keys=True))
-    assert reports[0] == reports[1]
-    assert json.loads(reports[0])["verdict"] == "sensor_misorientation"
+    got = _in_fresh_process("""
+        import json
+        import numpy as np
+        from pelvislab.acquisition.frfset import Channels
+        from pelvislab.model.frf import frf
+        from pelvislab.model.gap import GapOptions, diagnose, prepare_data
+        from pelvislab.model.parallel import can_fork_workers
+        from pelvislab.model.pelvis import default_model
+        from pelvislab.tests.test_gap_diagnosis import F_HZ, IN, OUT, noisy, true_model
+        rng = np.random.default_rng(5)
+        d = OUT.direction.copy()
+        t = np.radians(20.0)
+        d[1] = np.array([np.cos(t), 0.0, np.sin(t)])
+        tilted = Channels(OUT.name, OUT.bone, OUT.position_m, d)
+        Hn, sigma = noisy(frf(true_model(), F_HZ, tilted, IN), rng)
+        data = prepare_data(F_HZ, Hn, sigma, OUT, IN)
+        opts = dict(effects=("sensor_misorientation", "added_mass"), base_starts=1,
+                    max_nfev_joint=20, max_nfev_short=8, finish_jobs=2)
+        reports = []
+        for jobs in (1, 2):
+            rep = dict(diagnose(data, default_model(), GapOptions(jobs=jobs, **opts)).report)
+            rep.pop("timing_s")
+            reports.append(json.dumps(rep, sort_keys=True))
+        print(json.dumps({"fork": can_fork_workers(), "same": reports[0] == reports[1],
+                          "verdict": json.loads(reports[0])["verdict"]}))
+        """)
+    assert got["fork"]
+    assert got["same"]
+    assert got["verdict"] == "sensor_misorientation"
