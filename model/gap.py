@@ -996,6 +996,12 @@ def _significance_threshold(res: CandidateResult, opt: GapOptions, chi2_base: fl
     return crit
 
 
+def _tissue_resonance_hz(res: CandidateResult) -> float:
+    """Fitted resonance (Hz) of a soft-tissue candidate, whichever variant."""
+    p = res.candidate.describe(res.u)
+    return float(p.get("frequency_hz", p.get("contact_frequency_hz", 0.0)))
+
+
 def _within_tolerance(res: CandidateResult, opt: GapOptions, f_max_hz: float = np.inf) -> str:
     """Why a fitted candidate cannot be told from the measurement chain's own tolerance
     ("" when it can): a misorientation tilt within the probe's mounting tolerance
@@ -1005,8 +1011,7 @@ def _within_tolerance(res: CandidateResult, opt: GapOptions, f_max_hz: float = n
         # a tissue layer whose resonance lies far above the band is rigid there: a mass
         # rigidly attached at that point (added_mass), not a compliant tissue (a 130 g mass
         # at SIAS_L_x was fitted as tissue at 5000 Hz, its bound, and named soft_tissue)
-        p = res.candidate.describe(res.u)
-        f_t = p.get("frequency_hz", p.get("contact_frequency_hz", 0.0))
+        f_t = _tissue_resonance_hz(res)
         if f_t > opt.rigid_tissue_factor * f_max_hz:
             return (f"tissue resonance {f_t:.4g} Hz > {opt.rigid_tissue_factor:g} x the "
                     f"highest line: rigid in the band, a mass at {res.candidate.place} "
@@ -1364,8 +1369,7 @@ def diagnose(data: GapData, model: PelvisModel, options: GapOptions | None = Non
     for res in ranked:
         if res.candidate.effect != "soft_tissue" or res.tolerance_note or mass is None:
             continue
-        p = res.candidate.describe(res.u)
-        f_t = p.get("frequency_hz", p.get("contact_frequency_hz", 0.0))
+        f_t = _tissue_resonance_hz(res)
         if f_t > data.frequency_hz.max() and mass.chi2_heldout <= res.chi2_heldout:
             res.tolerance_note = (
                 f"tissue resonance {f_t:.4g} Hz above the band and a rigid point mass "
