@@ -11,7 +11,7 @@ import threading
 
 import pytest
 
-from pelvislab.model.parallel import can_fork_workers, parallel_map, resolve_jobs
+from pelvislab.model.parallel import available_cores, can_fork_workers, parallel_map, resolve_jobs
 
 needs_fork = pytest.mark.skipif(not can_fork_workers(), reason="cannot fork workers here")
 
@@ -55,6 +55,47 @@ def test_task_error_is_raised_in_the_caller():
         parallel_map(task, list(range(6)), jobs=2)
 
 
+@needs_fork
+def test_a_dead_worker_stops_the_map_instead_of_hanging():
+    # the subprocess' timeout (600 s) would fail the test if the map waited for the
+    # killed worker's result (what multiprocessing.Pool.map does)
+    got = _in_fresh_process("""
+        import json, os, signal
+        from pelvislab.model.parallel import WorkerDied, parallel_map
+        def task(k):
+            if k == 1:
+                os.kill(os.getpid(), signal.SIGKILL)
+            return k
+        try:
+            parallel_map(task, list(range(4)), 2)
+            print(json.dumps({"raised": None}))
+        except WorkerDied as exc:
+            print(json.dumps({"raised": "WorkerDied", "text": str(exc)}))
+        """)
+    assert got["raised"] == "WorkerDied"
+    assert "--jobs 1" in got["text"]
+
+
+@needs_fork
+def test_first_failure_in_task_order_is_raised_without_waiting_for_running_tasks():
+    got = _in_fresh_process("""
+        import json, time
+        from pelvislab.model.parallel import parallel_map
+        def task(k):
+            if k == 0:
+                time.sleep(0.5)
+                raise ValueError("task 0 failed")
+            if k == 1:
+                time.sleep(3600)  # terminated, not waited for
+            raise KeyError("later task")
+        try:
+            parallel_map(task, list(range(3)), 2)
+        except Exception as exc:
+            print(json.dumps({"type": type(exc).__name__, "text": str(exc)}))
+        """)
+    assert got == {"type": "ValueError", "text": "task 0 failed"}
+
+
 def test_serial_when_jobs_is_one_or_another_thread_runs():
     assert {pid for pid in parallel_map(lambda _k: os.getpid(), [0, 1, 2], jobs=1)} == {
         os.getpid()}
@@ -78,8 +119,10 @@ def test_serial_when_jobs_is_one_or_another_thread_runs():
 
 
 def test_jobs_validation():
-    assert resolve_jobs(0) >= 1
-    assert resolve_jobs(3) == 3
+    cores = available_cores()
+    assert resolve_jobs(0) == cores
+    assert resolve_jobs(1) == 1
+    assert resolve_jobs(cores + 5) == cores  # more workers than cores only add contention
     with pytest.raises(ValueError, match="jobs"):
         resolve_jobs(-1)
 
