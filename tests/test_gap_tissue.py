@@ -184,3 +184,24 @@ def test_tissue_above_the_band_that_a_rigid_mass_matches_is_the_mass(tmp_path):
     assert tissue["within_tolerance"] and "no compliance shown" in tissue["within_tolerance"]
     mass = next(c for c in report["candidates"] if c["effect"] == "added_mass")
     assert mass["place"] == "innominate_left"
+
+
+def test_tissue_is_compared_with_a_mass_fitted_the_same_way():
+    """The tissue-above-the-band rule compares a tissue with the added mass fitted the
+    same way: with one damping per dashpot both or neither (that extension alone lowers
+    the held-out chi2, so a mixed pair compares unlike models)."""
+    from pelvislab.model.gap import CandidateResult, _best_like
+
+    lib = {c.effect: c for c in candidate_library(ctx_for(default_model()))}
+    tissue_c, mass_c = lib["soft_tissue"], lib["added_mass"]
+
+    def res(cand, score, beyond_null=None):
+        return CandidateResult(cand, np.zeros(cand.n_params), np.ones(3), 100.0, 0.5, score,
+                               score, 1, beyond_null=beyond_null)
+
+    mass_plain, mass_ext = res(mass_c, 120.0), res(mass_c, 90.0, beyond_null=5.0)
+    tissue_plain, tissue_ext = res(tissue_c, 110.0), res(tissue_c, 95.0, beyond_null=3.0)
+    results = [mass_plain, mass_ext, tissue_plain, tissue_ext]
+    assert _best_like(results, "added_mass", tissue_plain) is mass_plain
+    assert _best_like(results, "added_mass", tissue_ext) is mass_ext
+    assert _best_like([mass_ext], "added_mass", tissue_plain) is None
