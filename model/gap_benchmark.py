@@ -174,7 +174,11 @@ def _score(cases: list[dict], kinds: Sequence[str], labels: Sequence[str]
     n = len(cases)
     correct = [c for c in cases if c["correct"]]
     local = [c for c in cases if c["place_correct"] is not None]
-    shrinks = [c["shrink"] for c in correct if c["shrink"] is not None and c["kind"] != "none"]
+    # shrink = 1 - gap_after/gap_before is undefined at gap_before 0 (held-out chi2 at or
+    # below its noise expectation: an effect named on the chi2 test alone); the report's
+    # 0.0 there is no measured shrink, so those sets are counted apart
+    named = [c for c in correct if c["shrink"] is not None and c["kind"] != "none"]
+    shrinks = [c["shrink"] for c in named if c["gap_before"] > 0]
     false_none = [c for c in cases if c["kind"] != "none" and c["verdict"] == "none"]
     walls = [c["wall_time_s"] for c in cases]
     cpus = [c["cpu_time_s"] for c in cases]
@@ -189,6 +193,7 @@ def _score(cases: list[dict], kinds: Sequence[str], labels: Sequence[str]
             "p10": round(float(np.percentile(shrinks, 10)), 4) if shrinks else None,
             "min": round(float(np.min(shrinks)), 4) if shrinks else None,
             "values": [round(s, 4) for s in shrinks],
+            "undefined_gap_before_0": len(named) - len(shrinks),
         },
         "false_none": len(false_none),
         # of those, sets whose base gap is already below the none threshold: parameter
@@ -222,7 +227,9 @@ def format_summary(result: dict) -> str:
         f"{result['false_none']} ({result.get('false_none_absorbed_by_updating', 0)} of them "
         "explained to noise level by updating alone)",
         f"  shrink (correct verdicts): median {result['shrink_correct']['median']}  "
-        f"min {result['shrink_correct']['min']}",
+        f"min {result['shrink_correct']['min']}"
+        + (f"  ({n0} more named at base gap 0, where no shrink is defined)"
+           if (n0 := result['shrink_correct'].get('undefined_gap_before_0')) else ""),
         f"  wall time per set: median {result['wall_time_s']['median']} s, max "
         f"{result['wall_time_s']['max']} s (CPU median {result['cpu_time_s']['median']} s, "
         f"max {result['cpu_time_s']['max']} s)",

@@ -300,3 +300,20 @@ def test_false_none_counts_absorbed_sets_apart_but_keeps_them():
     assert res["false_none"] == 2
     assert res["false_none_absorbed_by_updating"] == 1
     assert res["verdict_accuracy"] == 0.5
+
+
+def test_shrink_distribution_leaves_out_sets_named_at_base_gap_0():
+    from pelvislab.model.gap_benchmark import _score, format_summary
+
+    def entry(gap, shrink):
+        return {"kind": "added_mass", "verdict": "added_mass", "correct": True,
+                "place_correct": None, "shrink": shrink, "gap_before": gap, "none_gap": 0.5,
+                "wall_time_s": 1.0, "cpu_time_s": 1.0}
+
+    cases = [entry(2.0, 0.9), entry(0.0, 0.0), entry(1.0, 0.8)]
+    res = _score(cases, ["added_mass"], ["none", "added_mass", "unexplained"])
+    assert res["shrink_correct"]["values"] == [0.9, 0.8]
+    assert res["shrink_correct"]["min"] == 0.8
+    assert res["shrink_correct"]["undefined_gap_before_0"] == 1
+    res.update(wall_time_s={"median": 1, "max": 1}, cpu_time_s={"median": 1, "max": 1})
+    assert "1 more named at base gap 0" in format_summary(res)
