@@ -1250,7 +1250,13 @@ def diagnose(data: GapData, model: PelvisModel, options: GapOptions | None = Non
             thetas.append(clean[(cand.place_kind, cand.place)])
         if not all_starts:
             thetas = []
-        pairs = spring_starts.get(cand, [])
+        pairs = list(spring_starts.get(cand, []))
+        if cand.line_spring is not None and not cand.line_spring.bone_b:
+            # a spring to ground adds a suspension resonance in the band (6e5 N/m on an
+            # innominate: ~100 Hz), far outside the linearised start's reach; its own axis
+            # starts too (iliolumbar sets 1357_009, 2468_024, 8642_027: the linear start
+            # stalled at the base gap, the axis starts reach gap 0 at the true bone)
+            pairs.extend((theta, s) for s in cand.starts)
         return _joint_start(cand, short_lines, thetas, u, bounds, opt, pairs)
 
     starts_out = [(cost + opt.robust_scale**2 * cand.n_params, cand, x, n_screened)
