@@ -1213,11 +1213,21 @@ def diagnose(data: GapData, model: PelvisModel, options: GapOptions | None = Non
                           if point == item[1].place.rsplit(" ", 1)[0]
                           or axis == item[1].place.rsplit(" ", 1)[1]]
             chosen.extend(on_top)  # every place on that channel or bone
-            jobs.extend((cand, u, len(items), True) for _cost, cand, u in chosen)
+            jobs.extend((cand, u, len(items), True, False) for _cost, cand, u in chosen)
             # line springs: also every other place (a handful), from the linearised start
             # only (their screen with the absorbing base frozen misranks places)
-            jobs.extend((cand, u, len(items), False) for _cost, cand, u in items
+            jobs.extend((cand, u, len(items), False, False) for _cost, cand, u in items
                         if cand in spring_starts and not any(cand is c for _, c, _ in chosen))
+    # a spring to ground adds a suspension resonance in the band (6e5 N/m on an innominate:
+    # ~100 Hz), far outside the linearised start's reach: one more job per such place from
+    # its own axis starts (iliolumbar sets 1357_009, 2468_024, 8642_027: the linear start
+    # stalled at the base gap, the axis starts reach gap 0 at the true bone). A job of its
+    # own, and one more finish each, so that every job finished before still is (set
+    # 8642_001: the axis starts' best short fit finished at 2.69, the linear one at 0.95)
+    axis_jobs = [(cand, u, len(items), False, True) for items in by_variant.values()
+                 for _cost, cand, u in items
+                 if cand.line_spring is not None and not cand.line_spring.bone_b]
+    jobs.extend(axis_jobs)
     # a local effect drags the base fit; refit the base without the output (input) that
     # carries most of the residual and use it as a second start for candidates there
     clean_lines: dict[tuple[str, str], _Lines] = {}
@@ -1241,8 +1251,12 @@ def diagnose(data: GapData, model: PelvisModel, options: GapOptions | None = Non
     short_lines = coarse if int(np.sum(fit_mask)) > opt.dense_lines else fit
     # stage 1: short joint fits from every base start; stage 2: the most promising jobs
     # (and every global one) are fitted to convergence
-    def start_job(job: tuple[Candidate, np.ndarray, int, bool]) -> tuple[float, np.ndarray]:
-        cand, u, _n_screened, all_starts = job
+    def start_job(job: tuple[Candidate, np.ndarray, int, bool, bool]
+                  ) -> tuple[float, np.ndarray]:
+        cand, u, _n_screened, all_starts, axis_starts = job
+        if axis_starts:
+            return _joint_start(cand, short_lines, [], u, bounds, opt,
+                                [(theta, s) for s in cand.starts])
         # second start: the best grid point before least squares, not yet contorted by the
         # base fit's attempt to absorb the effect
         thetas = [theta] + ([np.exp(base.grid_start)] if base.grid_start is not None else [])
@@ -1250,21 +1264,16 @@ def diagnose(data: GapData, model: PelvisModel, options: GapOptions | None = Non
             thetas.append(clean[(cand.place_kind, cand.place)])
         if not all_starts:
             thetas = []
-        pairs = list(spring_starts.get(cand, []))
-        if cand.line_spring is not None and not cand.line_spring.bone_b:
-            # a spring to ground adds a suspension resonance in the band (6e5 N/m on an
-            # innominate: ~100 Hz), far outside the linearised start's reach; its own axis
-            # starts too (iliolumbar sets 1357_009, 2468_024, 8642_027: the linear start
-            # stalled at the base gap, the axis starts reach gap 0 at the true bone)
-            pairs.extend((theta, s) for s in cand.starts)
+        pairs = spring_starts.get(cand, [])
         return _joint_start(cand, short_lines, thetas, u, bounds, opt, pairs)
 
     starts_out = [(cost + opt.robust_scale**2 * cand.n_params, cand, x, n_screened)
-                  for (cost, x), (cand, _u, n_screened, _all)
+                  for (cost, x), (cand, _u, n_screened, _all, _axis)
                   in zip(parallel_map(start_job, jobs, opt.jobs), jobs, strict=True)]
     starts_out.sort(key=lambda t: t[0])
     finish = [(cand, x, opt.max_nfev_joint
-               if rank < opt.finish_jobs or cand.place_kind == "global" else 0)
+               if rank < opt.finish_jobs + len(axis_jobs) or cand.place_kind == "global"
+               else 0)
               for rank, (_cost, cand, x, _n) in enumerate(starts_out)]
     for (th, uu, chi2_f, chi2), (_cost, cand, _x, n_screened) in zip(
             parallel_map(lambda job: _joint_finish(job[0], fit, held, job[1], bounds, opt,
