@@ -49,25 +49,30 @@ def test_line_spring_basis_spans_every_line_and_parameters_round_trip():
         assert G.shape == (3, ctx.base.n_dof)
 
 
+def _diagnose_spring_to_ground(seed, bone, bone_point_m, ground_point_m, k_n_per_m):
+    """Diagnosis (ligament candidates only) of a benchmark subject drawn with ``seed`` plus
+    a spring from ``bone`` to ground, on every 4th line of the benchmark grid, 1 % noise
+    (seed + 1)."""
+    from pelvislab.tests.benchmarks import bench_gap as bg
+
+    subject = bg.perturbed_model(np.random.default_rng(seed)).with_spring(Spring(
+        "iliolumbar", bone, np.array(bone_point_m), "ground", np.array(ground_point_m),
+        k_n_per_m))
+    f = bg.FREQUENCY_HZ[::4]
+    H, sigma = noisy(frf(subject, f, bg.OUTPUTS, bg.INPUTS), np.random.default_rng(seed + 1))
+    H = np.where(bg.MEASURED[None], H, np.nan + 0j)
+    sigma = np.where(bg.MEASURED[None], sigma, np.nan)
+    data = prepare_data(f, H, sigma, bg.OUTPUTS, bg.INPUTS)
+    return diagnose(data, default_model(), GapOptions(effects=("missing_ligament",))).report
+
+
 def test_ligament_absorbed_by_the_base_fit_is_found_at_its_bone():
     """An iliolumbar-like spring to ground (3.8e5 N/m) on a subject ±30 % from appendix E:
     the base fit absorbs part of it in the left joint's springs. Started only from the
     frozen-base screen the ligament went to the sacrum (gap 1.09 -> 0.61); with the
     linearised start from the undistorted stiffness it is on the left innominate."""
-    from pelvislab.tests.benchmarks import bench_gap as bg
-
-    rng = np.random.default_rng(5)
-    subject = bg.perturbed_model(rng)
-    subject = subject.with_spring(Spring(
-        "iliolumbar", "innominate_left", np.array([-0.11878395, 0.06111192, 0.05542903]),
-        "ground", np.array([-0.11, 0.015, 0.09]), 379884.15))
-    f = bg.FREQUENCY_HZ[::4]
-    H = frf(subject, f, bg.OUTPUTS, bg.INPUTS)
-    H, sigma = noisy(H, np.random.default_rng(6))
-    H = np.where(bg.MEASURED[None], H, np.nan + 0j)
-    sigma = np.where(bg.MEASURED[None], sigma, np.nan)
-    data = prepare_data(f, H, sigma, bg.OUTPUTS, bg.INPUTS)
-    rep = diagnose(data, default_model(), GapOptions(effects=("missing_ligament",))).report
+    rep = _diagnose_spring_to_ground(5, "innominate_left", [-0.11878395, 0.06111192, 0.05542903],
+                                     [-0.11, 0.015, 0.09], 379884.15)
     best = rep["candidates"][0]
     assert rep["verdict"] == "missing_ligament", rep["verdict_reason"]
     assert best["place"] == "innominate_left to ground"
@@ -79,17 +84,8 @@ def test_spring_to_ground_with_a_resonance_in_the_band_is_found_from_its_axis_st
     1357_009's geometry) puts a suspension resonance near 100 Hz: far beyond the linearised
     start, from which the fit stalled at the base gap (1.50 -> 1.30, `unexplained`); the
     place's own axis starts reach 0.21."""
-    from pelvislab.tests.benchmarks import bench_gap as bg
-
-    subject = bg.perturbed_model(np.random.default_rng(11)).with_spring(Spring(
-        "iliolumbar", "innominate_right", np.array([-0.1177, -0.0550, 0.0496]),
-        "ground", np.array([-0.1091, -0.0333, 0.0755]), 5.97e5))
-    f = bg.FREQUENCY_HZ[::4]
-    H, sigma = noisy(frf(subject, f, bg.OUTPUTS, bg.INPUTS), np.random.default_rng(12))
-    H = np.where(bg.MEASURED[None], H, np.nan + 0j)
-    sigma = np.where(bg.MEASURED[None], sigma, np.nan)
-    data = prepare_data(f, H, sigma, bg.OUTPUTS, bg.INPUTS)
-    rep = diagnose(data, default_model(), GapOptions(effects=("missing_ligament",))).report
+    rep = _diagnose_spring_to_ground(11, "innominate_right", [-0.1177, -0.0550, 0.0496],
+                                     [-0.1091, -0.0333, 0.0755], 5.97e5)
     best = rep["candidates"][0]
     assert rep["verdict"] == "missing_ligament", rep["verdict_reason"]
     assert best["place"] == "innominate_right to ground"
