@@ -973,6 +973,15 @@ def _context(model: PelvisModel, data: GapData) -> Context:
                    data.in_bones, data.in_position_m)
 
 
+def _fitted_result(cand: Candidate, fitted: tuple[np.ndarray, np.ndarray, float, float],
+                   n_held_out: int, screened_places: int) -> CandidateResult:
+    """A :func:`_joint_finish` result (θ, u, fitted χ², held-out χ²) as a ranked result:
+    held-out gap and score χ² + 2k (AIC)."""
+    theta, u, chi2_fitted, chi2_heldout = fitted
+    return CandidateResult(cand, u, theta, chi2_fitted, excess_gap(chi2_heldout, n_held_out),
+                           chi2_heldout, chi2_heldout + 2 * cand.n_params, screened_places)
+
+
 def _best_like(results: Sequence[CandidateResult], effect: str, like: CandidateResult
                ) -> CandidateResult | None:
     """The best-scoring result of ``effect`` fitted as ``like`` was: with the null
@@ -1275,12 +1284,11 @@ def diagnose(data: GapData, model: PelvisModel, options: GapOptions | None = Non
                if rank < opt.finish_jobs + len(axis_jobs) or cand.place_kind == "global"
                else 0)
               for rank, (_cost, cand, x, _n) in enumerate(starts_out)]
-    for (th, uu, chi2_f, chi2), (_cost, cand, _x, n_screened) in zip(
+    for fitted, (_cost, cand, _x, n_screened) in zip(
             parallel_map(lambda job: _joint_finish(job[0], fit, held, job[1], bounds, opt,
                                                    job[2]), finish, opt.jobs),
             starts_out, strict=True):
-        results.append(CandidateResult(cand, uu, th, chi2_f, excess_gap(chi2, held.n), chi2,
-                                       chi2 + 2 * cand.n_params, n_screened))
+        results.append(_fitted_result(cand, fitted, held.n, n_screened))
     timing["joint_fit_s"] = time.perf_counter() - t2
     # polish: when the best candidate removes much but not all of the gap, its effect is
     # refitted at every place on the same bone/channel from all of its starts (resonance
@@ -1330,9 +1338,7 @@ def diagnose(data: GapData, model: PelvisModel, options: GapOptions | None = Non
     for fitted, (cand, n_screened) in zip(
             parallel_map(polish_place, [c for c, _n in polish], opt.jobs), polish, strict=True):
         if fitted is not None:
-            th, uu, chi2_f, chi2 = fitted
-            results.append(CandidateResult(cand, uu, th, chi2_f, excess_gap(chi2, held.n), chi2,
-                                           chi2 + 2 * cand.n_params, n_screened))
+            results.append(_fitted_result(cand, fitted, held.n, n_screened))
     timing["polish_s"] = time.perf_counter() - t3
     # one entry per effect: its best-scoring variant and place
     best_by_effect = _best_by_effect(results)
@@ -1360,14 +1366,13 @@ def diagnose(data: GapData, model: PelvisModel, options: GapOptions | None = Non
             _c, x = _joint_start(cand, short_lines, [], res.u, bounds, opt, pairs)
             return _joint_finish(cand, fit, held, x, bounds, opt, opt.max_nfev_joint)
 
-        for res, (th, uu, chi2_f, chi2) in zip(effects, parallel_map(with_null, effects, opt.jobs),
-                                             strict=True):
+        for res, fitted in zip(effects, parallel_map(with_null, effects, opt.jobs),
+                               strict=True):
             # the same extension again: with_extension is deterministic, and the worker's
             # candidate (built in the child) cannot come back (closures do not pickle)
             cand = with_extension(res.candidate, null_ext.candidate)
-            combined = CandidateResult(cand, uu, th, chi2_f, excess_gap(chi2, held.n), chi2,
-                                       chi2 + 2 * cand.n_params, res.screened_places)
-            combined.beyond_null = null_ext.chi2_heldout - chi2
+            combined = _fitted_result(cand, fitted, held.n, res.screened_places)
+            combined.beyond_null = null_ext.chi2_heldout - combined.chi2_heldout
             results.append(combined)
         best_by_effect = _best_by_effect(results)
     timing["null_extension_s"] = time.perf_counter() - t4

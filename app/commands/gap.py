@@ -23,6 +23,15 @@ from typing import Any
 
 from pelvislab.app.commands._common import check_new_output, write_json
 
+_JOBS_HELP = ("worker processes for the candidate fits (default 0: every core; 1: serial). "
+              "The result does not depend on it")
+
+
+def _check_jobs(jobs: int) -> None:
+    """Refuse a negative worker count before any work starts (0 = every core)."""
+    if jobs < 0:
+        raise ValueError(f"--jobs must be >= 0 (0 = every core), got {jobs}")
+
 
 def register(subparsers: argparse._SubParsersAction) -> None:
     """Add ``gap diagnose`` and ``gap benchmark`` to the CLI."""
@@ -44,8 +53,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                         "(default 3e4: appendix E's 0.8 N s/m -> 24000 N s/m)")
     d.add_argument("--no-plots", action="store_true", help="do not write PNG plots")
     d.add_argument("--jobs", type=int, default=0, metavar="N",
-                   help="worker processes for the candidate fits (default 0: every core; "
-                        "1: serial). The result does not depend on it")
+                   help=_JOBS_HELP)
     d.set_defaults(handler=_diagnose)
     b = sub.add_parser("benchmark", help="diagnose data sets with a withheld effect each")
     b.add_argument("--json", required=True, metavar="OUT", help="write the benchmark JSON here")
@@ -66,8 +74,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     b.add_argument("--progress", dest="verbose_progress", action="store_true",
                    help="print one line per data set on stderr even when not a terminal")
     b.add_argument("--jobs", type=int, default=0, metavar="N",
-                   help="worker processes for the candidate fits (default 0: every core; "
-                        "1: serial). The result does not depend on it")
+                   help=_JOBS_HELP)
     b.set_defaults(handler=_benchmark)
 
 
@@ -129,8 +136,7 @@ def diagnose_file(path: str | Path, model_path: str | Path | None = None,
             raise ValueError(f"unknown effect(s) {unknown}; known: "
                              f"{', '.join((*EFFECT_NAMES, *NULL_EXTENSIONS))}")
     data = prepare_data(frf.frequency_hz, frf.H, H_std, frf.outputs, frf.inputs)
-    if jobs < 0:
-        raise ValueError(f"--jobs must be >= 0 (0 = every core), got {jobs}")
+    _check_jobs(jobs)
     result = diagnose(data, model, GapOptions(effects=effects, jobs=jobs, **ranges),
                       progress=progress)
     document = dict(result.report)
@@ -318,8 +324,7 @@ def _benchmark(args: argparse.Namespace) -> int:
 
     if args.cases < 1:
         raise ValueError("--cases must be >= 1")
-    if args.jobs < 0:
-        raise ValueError(f"--jobs must be >= 0 (0 = every core), got {args.jobs}")
+    _check_jobs(args.jobs)
     if args.chain_cases < 0:
         raise ValueError("--chain-cases must be >= 0")
     if not 0.5 <= args.chain_step_hz <= 50:
