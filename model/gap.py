@@ -839,6 +839,26 @@ def _joint_finish(cand: Candidate, fit: _Lines, held: _Lines, x0: np.ndarray,
 # Where: residual map, shares, FRAC, COMAC, rigidity
 # ---------------------------------------------------------------------------------------
 
+def _short_fit_from_best_starts(cand: Candidate, theta: np.ndarray, fit: _Lines,
+                               short_lines: _Lines, bounds: _Bounds, opt: GapOptions,
+                               n_best: int) -> tuple[float, np.ndarray]:
+    """(robust cost, x) of the best short joint fit of ``cand`` from its ``n_best`` starts
+    ranked by robust cost with the base frozen at ``theta`` (each with the base from
+    ``theta``)."""
+    probe = _Model(fit, cand, theta, len(theta))
+    scored = []
+    for u0 in cand.starts:
+        u0 = np.clip(u0, cand.lower + 1e-9, cand.upper - 1e-9)
+        scored.append((_robust_cost(probe.residual(u0), opt.robust_scale), u0))
+    scored.sort(key=lambda t: t[0])
+    best: tuple[float, np.ndarray] = (float("inf"), np.array([]))
+    for _c, u0 in scored[:n_best]:
+        cost, x = _joint_start(cand, short_lines, [theta], u0, bounds, opt)
+        if cost < best[0] or not best[1].size:
+            best = (cost, x)
+    return best
+
+
 def _shares(weights: dict[str, float], key: str) -> list[dict[str, object]]:
     total = sum(weights.values())
     items = sorted(weights.items(), key=lambda kv: -kv[1])
@@ -1320,20 +1340,11 @@ def diagnose(data: GapData, model: PelvisModel, options: GapOptions | None = Non
             polish.append((cand, lead.screened_places))
 
     def polish_place(cand: Candidate) -> tuple[np.ndarray, np.ndarray, float, float] | None:
-        best_start = (float("inf"), None)
-        probe = _Model(fit, cand, grid_theta, len(grid_theta))
-        scored = []
-        for u0 in cand.starts:
-            u0 = np.clip(u0, cand.lower + 1e-9, cand.upper - 1e-9)
-            scored.append((_robust_cost(probe.residual(u0), opt.robust_scale), u0))
-        scored.sort(key=lambda t: t[0])
-        for _c, u0 in scored[:2]:
-            cost, x = _joint_start(cand, short_lines, [grid_theta], u0, bounds, opt)
-            if cost < best_start[0]:
-                best_start = (cost, x)
-        if best_start[1] is None:
+        if not cand.starts:
             return None
-        return _joint_finish(cand, fit, held, best_start[1], bounds, opt, opt.max_nfev_joint)
+        _cost, x = _short_fit_from_best_starts(cand, grid_theta, fit, short_lines, bounds,
+                                               opt, 2)
+        return _joint_finish(cand, fit, held, x, bounds, opt, opt.max_nfev_joint)
 
     for fitted, (cand, n_screened) in zip(
             parallel_map(polish_place, [c for c, _n in polish], opt.jobs), polish, strict=True):
