@@ -52,6 +52,7 @@ from pelvislab.model.gap_effects import (
     line_spring_basis,
     line_spring_parameters,
     response_vectors,
+    support_on_line,
     with_extension,
 )
 from pelvislab.model.parallel import parallel_map
@@ -859,6 +860,17 @@ def _short_fit_from_best_starts(cand: Candidate, theta: np.ndarray, fit: _Lines,
     return best
 
 
+def _spring_from_support(res: CandidateResult, k0_n_per_m: float) -> np.ndarray:
+    """Line-spring parameters (v, d) of the spring to ground with the static stiffness of
+    a fitted support on a line (:func:`support_on_line`; ``k0_n_per_m`` the line's k₀):
+    the contact k_c in series with the support body's suspension k_s = m (2π f_s)²."""
+    u = res.u
+    k_c = float(u[:3] @ u[:3])  # in units of k₀
+    k_s = np.exp(u[8]) * (2 * np.pi * np.exp(u[6])) ** 2 / k0_n_per_m
+    scale = np.sqrt(k_s / (k_c + k_s)) if k_c + k_s > 0 else 1.0
+    return np.concatenate([u[:3] * scale, u[3:6]])
+
+
 def _shares(weights: dict[str, float], key: str) -> list[dict[str, object]]:
     total = sum(weights.values())
     items = sorted(weights.items(), key=lambda kv: -kv[1])
@@ -1351,6 +1363,72 @@ def diagnose(data: GapData, model: PelvisModel, options: GapOptions | None = Non
         if fitted is not None:
             results.append(_fitted_result(cand, fitted, held.n, n_screened))
     timing["polish_s"] = time.perf_counter() - t3
+    # a spring to ground among the leading effects may be a support touching the bone
+    # there, under a point no probe measures (judge-like set 4242_026: a bed under the
+    # right iliac fossa, named a spring to ground at 0.98 while the bed contacts at the
+    # measured points stayed above 4): its fitted line refitted as a resonant, damped
+    # contact (support_on_line)
+    t5 = time.perf_counter()
+    leaders = sorted(_best_by_effect(results).values(), key=lambda r: r.score)
+    spring = next((r for r in leaders[:opt.polish_effects]
+                   if r.candidate.effect == "missing_ligament"), None)
+    if (spring is not None and spring.candidate.line_spring is not None
+            and not spring.candidate.line_spring.bone_b and spring.gap_after > opt.restart_gap
+            and (opt.effects is None or "support_resonance" in opt.effects)):
+        # every grounded place's best spring, not only the leader's: the spring can settle
+        # on the wrong bone (a bed under the right iliac fossa, all 21 FRFs of the
+        # benchmark layout: the spring went to the sacrum at 3.8, the support on its line
+        # stayed there)
+        springs: dict[str, CandidateResult] = {}
+        for res in sorted(results, key=lambda r: r.score):
+            ls = res.candidate.line_spring
+            if ls is not None and not ls.bone_b:
+                springs.setdefault(res.candidate.place, res)
+        # one short fit per suspension frequency from its best start: with the base frozen
+        # at the spring's fit, the starts that merely copy the spring rank first (set
+        # 4242_026: the two best-ranked short fits ended at 1.56, starts ranked 3rd, 19th,
+        # 23rd and 29th, one per frequency, at gap 0); the base from the spring's fit and
+        # from the grid start (the benchmark-layout bed: 2.19 from the spring's, 0.22 from
+        # the grid's, where the spring had not been finished)
+        tasks = []
+        for res in springs.values():
+            cand = support_on_line(res.candidate, res.u, data.frequency_hz)
+            by_f: dict[float, list[np.ndarray]] = {}
+            for u0 in cand.starts:
+                by_f.setdefault(float(u0[6]), []).append(u0)
+            tasks.extend((res, replace(cand, starts=tuple(u0s)), th)
+                         for u0s in by_f.values() for th in (res.theta, grid_theta))
+        shorts = parallel_map(lambda t: _short_fit_from_best_starts(
+            t[1], t[2], fit, short_lines, bounds, opt, 1), tasks, opt.jobs)
+        # the best short fit of each place and base start is finished (a short fit from
+        # one base start can end lower and finish higher than one from the other)
+        best_short: dict[tuple[str, int], tuple[float, np.ndarray, CandidateResult]] = {}
+        for k, ((res, _c, _th), (cost, x)) in enumerate(zip(tasks, shorts, strict=True)):
+            key = (res.candidate.place, k % 2)
+            if cost < best_short.get(key, (np.inf,))[0]:
+                best_short[key] = (cost, x, res)
+        finish_support = [(support_on_line(res.candidate, res.u, data.frequency_hz), x, res)
+                          for _cost, x, res in best_short.values()]
+        supports: list[tuple[CandidateResult, CandidateResult]] = []  # (support, spring)
+        for (cand, _x, res), fitted in zip(finish_support, parallel_map(
+                lambda t: _joint_finish(t[0], fit, held, t[1], bounds, opt,
+                                        opt.max_nfev_joint), finish_support, opt.jobs),
+                strict=True):
+            supports.append((_fitted_result(cand, fitted, held.n, res.screened_places), res))
+            results.append(supports[-1][0])
+        # and the other way round: the spring refitted on the best support's line with the
+        # support's static stiffness, so that a support does not win only because the
+        # spring's own fit had stalled (set 2468_032: a 9.9e5 N/m iliolumbar spring stopped
+        # at 4.5e5 N/m, gap 1.16; the support on its line, 0.37, was a 1.0e6 N/m spring
+        # with its resonance at 680 Hz, above the band)
+        lead, on = min(supports, key=lambda t: t[0].score) if supports else (None, None)
+        if lead is not None and on is not None and lead.score < spring.score:
+            u_line = _spring_from_support(lead, on.candidate.line_spring.k0_n_per_m)
+            fitted = _joint_finish(on.candidate, fit, held,
+                                   np.concatenate([np.log(lead.theta), u_line]), bounds, opt,
+                                   opt.max_nfev_joint)
+            results.append(_fitted_result(on.candidate, fitted, held.n, on.screened_places))
+    timing["support_on_line_s"] = time.perf_counter() - t5
     # one entry per effect: its best-scoring variant and place
     best_by_effect = _best_by_effect(results)
     # an effect on a subject whose dashpots differ within a joint: when one damping per

@@ -606,6 +606,63 @@ def _ligament_candidates(ctx: Context) -> list[Candidate]:
     return cands
 
 
+def support_on_line(spring: Candidate, u_spring: np.ndarray, frequency_hz: np.ndarray
+                    ) -> Candidate:
+    """A support (bed, foam pad, frame) touching a bone along the line of action of a fitted
+    spring to ground: ``support_resonance``, variant ``bed contact on a fitted line``.
+
+    The contact is a damped spring (k_c + iω c_c, c_c = 2ζ_c √(k_c m): a foam pad is
+    lossy) to a support body of mass m on its own suspension (f_s, ζ_s). Condensing the
+    body gives the contact's dynamic stiffness
+    ``k_eff = k_c* k_s* / (k_c* + k_s*)``, ``k_s* = m(2πf_s)² + 2iζ_s m 2πf_s ω − ω²m``,
+    which adds ``k_eff n nᵀ`` along the line exactly as the spring's ``k n nᵀ`` (eq.
+    4.12-4.13); a frequency-independent spring is its limit k_s → ∞, ζ_c → 0. The bed
+    contacts of :func:`_support_candidates` sit at measured points and have no contact
+    damping; a bed under an unmeasured point (judge-like set 4242_026: 2.2 kg at 113 Hz
+    under the right iliac fossa, ζ 0.1) is taken by a spring to ground there, whose line
+    this candidate reuses. Parameters: the spring's ``v`` (direction, k_c = k₀|v|²) and
+    ``d`` (point), then log f_s, log ζ_s, log m, log ζ_c: ten in all, the line counted.
+    Starts: the fitted line, k_c one and three times the spring's stiffness, f_s over the
+    band, m from 0.3 to 3 kg."""
+    place = spring.line_spring
+    if place is None or place.bone_b:
+        raise ValueError(f"{spring.place}: a support acts along a spring to ground")
+    k0 = place.k0_n_per_m
+
+    def build(u: np.ndarray, c: Context) -> EffectTerms:
+        g = u[:3] @ line_spring_rows(c.base, place, place.centre_m + u[3:6])
+        k_c = max(k0 * float(u[:3] @ u[:3]), 1e-9 * k0)
+        w_s = 2 * np.pi * np.exp(u[6])
+        m = np.exp(u[8])
+        k_s = m * w_s**2 + 2j * np.exp(u[7]) * m * w_s * c.omega - c.omega**2 * m
+        k_cd = k_c + 2j * np.exp(u[9]) * np.sqrt(k_c * m) * c.omega
+        # k_eff n nᵀ = (k_eff / k_c) k₀ g gᵀ (g carries √(k_c/k₀))
+        ratio = k_cd * k_s / ((k_cd + k_s) * k_c)
+        return EffectTerms(dZ=ratio[:, None, None] * (k0 * np.outer(g, g))[None])
+
+    def describe(u: np.ndarray) -> dict[str, float]:
+        line = spring.describe(u[:6])
+        return {"contact_stiffness_n_per_m": line["stiffness_n_per_m"],
+                **{k: v for k, v in line.items() if k != "stiffness_n_per_m"},
+                "frequency_hz": float(np.exp(u[6])), "damping_ratio": float(np.exp(u[7])),
+                "mass_kg": float(np.exp(u[8])),
+                "contact_damping_ratio": float(np.exp(u[9]))}
+
+    u_spring = np.asarray(u_spring, float)
+    f_lo, f_hi = max(float(np.min(frequency_hz)), 1.0), float(np.max(frequency_hz))
+    starts = tuple(np.concatenate([u_spring[:3] * np.sqrt(a), u_spring[3:6],
+                                   np.log([f, 0.15, m, 0.1])])
+                   for a in (1.0, 3.0)
+                   for f in np.geomspace(f_lo * 1.2, f_hi * 1.1, 6)
+                   for m in (0.3, 1.0, 3.0))
+    lower = np.concatenate([spring.lower[:6], np.log([0.5, 0.005, 1e-3, 0.005])])
+    upper = np.concatenate([spring.upper[:6], np.log([3000.0, 3.0, 50.0, 3.0])])
+    return Candidate("support_resonance", "bed contact on a fitted line", spring.place,
+                     "bone", ("vx", "vy", "vz", "dx", "dy", "dz", "log_f", "log_zeta",
+                              "log_m", "log_zeta_contact"),
+                     lower, upper, starts, build, describe, spring.bone)
+
+
 def line_spring_rows(base: BaseStructure, place: LineSpringPlace, point_m: np.ndarray
                      ) -> np.ndarray:
     """(3, n_dof) rows of the relative x, y, z displacement of ``bone_a`` with respect to
