@@ -1391,8 +1391,10 @@ def diagnose(data: GapData, model: PelvisModel, options: GapOptions | None = Non
         # from the grid start (the benchmark-layout bed: 2.19 from the spring's, 0.22 from
         # the grid's, where the spring had not been finished)
         tasks = []
-        for res in springs.values():
-            cand = support_on_line(res.candidate, res.u, data.frequency_hz)
+        support_cands = {place: support_on_line(res.candidate, res.u, data.frequency_hz)
+                         for place, res in springs.items()}
+        for place, res in springs.items():
+            cand = support_cands[place]
             by_f: dict[float, list[np.ndarray]] = {}
             for u0 in cand.starts:
                 by_f.setdefault(float(u0[6]), []).append(u0)
@@ -1407,7 +1409,7 @@ def diagnose(data: GapData, model: PelvisModel, options: GapOptions | None = Non
             key = (res.candidate.place, k % 2)
             if cost < best_short.get(key, (np.inf,))[0]:
                 best_short[key] = (cost, x, res)
-        finish_support = [(support_on_line(res.candidate, res.u, data.frequency_hz), x, res)
+        finish_support = [(support_cands[res.candidate.place], x, res)
                           for _cost, x, res in best_short.values()]
         supports: list[tuple[CandidateResult, CandidateResult]] = []  # (support, spring)
         for (cand, _x, res), fitted in zip(finish_support, parallel_map(

@@ -362,7 +362,12 @@ def _perp_basis(d: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 def _f_starts(ctx: Context, n: int = 6) -> np.ndarray:
     """Log-spaced start frequencies (Hz) covering the measured band and a bit beyond."""
-    f = ctx.frequency_hz
+    return _band_starts_hz(ctx.frequency_hz, n)
+
+
+def _band_starts_hz(frequency_hz: np.ndarray, n: int) -> np.ndarray:
+    """:func:`_f_starts` for a frequency grid (Hz)."""
+    f = np.asarray(frequency_hz, float)
     return np.geomspace(max(f.min(), 1.0) * 1.2, f.max() * 1.1, n)
 
 
@@ -649,11 +654,10 @@ def support_on_line(spring: Candidate, u_spring: np.ndarray, frequency_hz: np.nd
                 "contact_damping_ratio": float(np.exp(u[9]))}
 
     u_spring = np.asarray(u_spring, float)
-    f_lo, f_hi = max(float(np.min(frequency_hz)), 1.0), float(np.max(frequency_hz))
     starts = tuple(np.concatenate([u_spring[:3] * np.sqrt(a), u_spring[3:6],
                                    np.log([f, 0.15, m, 0.1])])
                    for a in (1.0, 3.0)
-                   for f in np.geomspace(f_lo * 1.2, f_hi * 1.1, 6)
+                   for f in _band_starts_hz(frequency_hz, 6)
                    for m in (0.3, 1.0, 3.0))
     lower = np.concatenate([spring.lower[:6], np.log([0.5, 0.005, 1e-3, 0.005])])
     upper = np.concatenate([spring.upper[:6], np.log([3000.0, 3.0, 50.0, 3.0])])
