@@ -329,6 +329,10 @@ class Candidate:
     # for a line spring (missing ligament): where it acts, so that the diagnosis can
     # compute a linearised start (:func:`line_spring_basis`, :func:`line_spring_parameters`)
     line_spring: LineSpringPlace | None = None
+    # the effect parameters at which the extension vanishes (the base model), when that
+    # point lies within the bounds: a joint fit that ends worse than the base is finished
+    # again from there
+    null: np.ndarray | None = None
 
     @property
     def n_params(self) -> int:
@@ -381,7 +385,7 @@ def _global_candidates() -> list[Candidate]:
     cands.append(Candidate(
         "frequency_dependent_stiffness", "eq7.3", "all springs", "global", ("f_k",),
         np.array([-2.0]), np.array([10.0]), (np.array([0.5]),), fdk_build,
-        lambda u: {"f_k": float(u[0])}))
+        lambda u: {"f_k": float(u[0])}, null=np.array([0.0])))
 
     def hyst_c_build(u: np.ndarray, ctx: Context) -> EffectTerms:
         # eq. 7.1-7.2: i(ωC + D), D = f_c C ω_max / 4
@@ -390,7 +394,7 @@ def _global_candidates() -> list[Candidate]:
     cands.append(Candidate(
         "hysteretic_damping", "eq7.2 (D = f_c C w_max/4)", "all joints", "global", ("f_c",),
         np.array([0.0]), np.array([200.0]), (np.array([0.5]), np.array([5.0])), hyst_c_build,
-        lambda u: {"f_c": float(u[0])}))
+        lambda u: {"f_c": float(u[0])}, null=np.array([0.0])))
 
     def hyst_k_build(u: np.ndarray, ctx: Context) -> EffectTerms:
         # structural damping: K (1 + i η), loss factor η
@@ -399,7 +403,7 @@ def _global_candidates() -> list[Candidate]:
     cands.append(Candidate(
         "hysteretic_damping", "loss factor (K(1+i eta))", "all springs", "global", ("eta",),
         np.array([0.0]), np.array([2.0]), (np.array([0.02]), np.array([0.2])), hyst_k_build,
-        lambda u: {"loss_factor": float(u[0])}))
+        lambda u: {"loss_factor": float(u[0])}, null=np.array([0.0])))
     return cands
 
 
@@ -514,7 +518,7 @@ def _orientation_candidates(ctx: Context) -> list[Candidate]:
         cands.append(Candidate("sensor_misorientation", "tilted axis", name, "output",
                                ("tilt_a", "tilt_b"), np.array([-1.5, -1.5]),
                                np.array([1.5, 1.5]), starts, build, describe,
-                               ctx.out_bones[j]))
+                               ctx.out_bones[j], null=np.zeros(2)))
 
         def gbuild(u: np.ndarray, c: Context, j: int = j) -> EffectTerms:
             gain = np.ones((c.omega.size, len(c.out_names)), complex)
@@ -526,7 +530,8 @@ def _orientation_candidates(ctx: Context) -> list[Candidate]:
         cands.append(Candidate("sensor_misorientation", "1/cos gain", name, "output",
                                ("log_gain",), np.array([0.0]), np.array([np.log(3.0)]),
                                (np.array([0.1]),), gbuild,
-                               lambda u: {"gain": float(np.exp(u[0]))}, ctx.out_bones[j]))
+                               lambda u: {"gain": float(np.exp(u[0]))}, ctx.out_bones[j],
+                               null=np.zeros(1)))
     return cands
 
 
@@ -938,7 +943,7 @@ def with_extension(cand: Candidate, extension: Candidate) -> Candidate:
                    lower=np.concatenate([cand.lower, extension.lower]),
                    upper=np.concatenate([cand.upper, extension.upper]),
                    starts=tuple(np.concatenate([s, extension.starts[0]]) for s in cand.starts),
-                   build=build, describe=describe)
+                   build=build, describe=describe, null=None)
 
 
 EFFECT_NAMES = (
