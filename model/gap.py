@@ -1079,6 +1079,36 @@ def _within_tolerance(res: CandidateResult, opt: GapOptions, f_max_hz: float = n
     return ""
 
 
+def _gain_not_beyond_tolerance(res: CandidateResult, fit: _Lines, held: _Lines,
+                               bounds: _Bounds, opt: GapOptions) -> str:
+    """Why a 1/cos gain fitted beyond the calibration tolerance is not significantly
+    beyond it ("" when it is): refitted with the base parameters and the gain capped at
+    ``1 + calibration_tol``, the χ² of fitted and held-out lines together rises by no
+    more than the one-parameter critical value at ``p_value`` (likelihood-ratio test of
+    "gain <= 1 + tol"). Only a gain candidate beyond the tolerance costs a fit."""
+    cand = res.candidate
+    if cand.effect != "sensor_misorientation" or "log_gain" not in cand.labels:
+        return ""
+    i = cand.labels.index("log_gain")
+    gain = float(np.exp(res.u[i]))
+    cap = float(np.log1p(opt.calibration_tol))
+    if res.u[i] <= cap:
+        return ""
+    upper = cand.upper.copy()
+    upper[i] = cap
+    capped = replace(cand, upper=upper)
+    x0 = np.concatenate([np.log(res.theta), np.minimum(res.u, upper)])
+    _th, _u, chi2_fitted, chi2_heldout = _joint_finish(capped, fit, held, x0, bounds, opt,
+                                                       opt.max_nfev_joint)
+    rise = chi2_fitted + chi2_heldout - res.chi2_fitted - res.chi2_heldout
+    crit = float(chi2_dist.isf(opt.p_value, 1))
+    if rise > crit:
+        return ""
+    return (f"gain {gain:.4g} at {cand.place} not significantly beyond 1 + "
+            f"{opt.calibration_tol:g} (calibration tolerance: capped there, the chi2 of "
+            f"fitted and held-out lines rises by {rise:.3g} <= {crit:.3g})")
+
+
 def _top_place(where: dict[str, object], place_kind: str) -> str:
     """The output, input or bone carrying the largest residual share."""
     key = {"output": "outputs", "input": "inputs", "bone": "bones", "joint": "bones"}.get(
@@ -1497,7 +1527,8 @@ def diagnose(data: GapData, model: PelvisModel, options: GapOptions | None = Non
         H_res, _ = evaluate(ctx, res.theta, res.candidate.build(res.u, ctx))
         res.chi2_calibrated = calibrated_chi2(data.H, data.sigma, H_res, fit_mask, held_mask,
                                               opt.calibration_tol)[0]
-        res.tolerance_note = _within_tolerance(res, opt, float(data.frequency_hz.max()))
+        res.tolerance_note = (_within_tolerance(res, opt, float(data.frequency_hz.max()))
+                              or _gain_not_beyond_tolerance(res, fit, held, bounds, opt))
     # a tissue whose resonance lies above the band shows no compliance there when a rigid
     # point mass fits the held-out lines at least as well: it is that mass (judge-like set
     # 1357_7: 339 g at SIPS_L_x, tissue 0.34 kg at 321 Hz / zeta 0.02 on a 5-300 Hz band,
