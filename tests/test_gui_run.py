@@ -133,7 +133,10 @@ def test_replay_gap_diagnosis_shows_verdict_map_and_candidates(operator_window, 
     replay = window.replay
     qtbot.mouseClick(replay.gap_button, QtCore.Qt.MouseButton.LeftButton)
     qtbot.waitUntil(lambda: replay.candidate_table.rowCount() > 0, timeout=180_000)
-    assert "verdict:" in replay.gap_summary.text()
+    # the demo session has no unmodelled effect: its channel gains (the simulated
+    # speckle, up to ~0.6 %) are within the calibration tolerance (was
+    # sensor_misorientation, a 1/cos gain of 1.0057 at sacrum_x)
+    assert "verdict: none" in replay.gap_summary.text()
     image = replay.residual_image.image
     assert image is not None and image.shape[1] >= 2  # frequency x measured pairs
     assert replay.tabs.currentIndex() == 3
