@@ -1215,9 +1215,12 @@ def diagnose(data: GapData, model: PelvisModel, options: GapOptions | None = Non
     # fitted damping (damping may be orders of magnitude from nominal, stiffness is not),
     # started linearised (_line_spring_start);
     # an added mass and frequency-dependent stiffness likewise (screened there: a base
-    # fit absorbs f_k by stiffening every spring). When the base fit also drove the damping
-    # far off (a strong spring: x8500 on a chain set), the damping is refitted with the
-    # stiffness and mass at nominal as a second undistorted start for the springs.
+    # fit absorbs f_k by stiffening every spring), and a tilted probe axis at every output
+    # (judge-like set 8642_007: a 9.3 deg tilt at SIPS_L_x absorbed by a base fit with 9
+    # parameters at the updating bounds, its residual moved to SIPS_R_x). When the base
+    # fit also drove the damping far off (a strong spring: x8500 on a chain set), the
+    # damping is refitted with the stiffness and mass at nominal as a second undistorted
+    # start for the springs.
     is_c = np.array([nm.startswith("c_") for nm in names])
     theta_undistorted = np.where(is_c, theta, start)
     bounds = _base_bounds(names, start, opt.updating_range, opt.damping_max)
@@ -1236,7 +1239,7 @@ def diagnose(data: GapData, model: PelvisModel, options: GapOptions | None = Non
                     extra.append((k, lin[1]))
         elif cand.effect == "added_mass":
             extra.append((0, _screen(cand, coarse, theta_undistorted, opt)[1]))
-        elif cand.effect == "frequency_dependent_stiffness":
+        elif cand.effect == "frequency_dependent_stiffness" or cand.variant == "tilted axis":
             extra.extend((k, _screen(cand, coarse, th_u, opt)[1])
                          for k, th_u in enumerate(undistorted))
         return cost, u, extra
