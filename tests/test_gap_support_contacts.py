@@ -221,31 +221,40 @@ def test_tissue_rigid_in_the_band_is_a_mass_not_a_tissue():
     assert note(250.0) == ""
 
 
+def _bed_on_benchmark_layout(point: np.ndarray, axis_index: int, zeta_c: float) -> dict:
+    """Diagnosis report (support and ligament candidates only) of a 2.2 kg bed body on a
+    32 Hz suspension (ζ 0.03) touching the right innominate at ``point`` along the axis
+    ``axis_index`` through 1.1e6 N/m with contact damping ``zeta_c``; a perturbed subject
+    (seed 21) on the benchmark layout, every 4th line, 1 % noise."""
+    from pelvislab.model.pelvis import default_model
+    from pelvislab.tests.benchmarks import bench_gap as bg
+
+    seed = 21
+    kc, mass, f_s, zeta_s = 1.1e6, 2.2, 32.0, 0.03
+    ws = 2 * np.pi * f_s
+    axes = np.eye(3)
+    subject = _on_axis_body(bg.perturbed_model(np.random.default_rng(seed)), "bed", mass,
+                            point, axes[axis_index],
+                            [("innominate_right", kc, 2 * zeta_c * np.sqrt(kc * mass)),
+                             (GROUND, mass * ws**2, 2 * zeta_s * mass * ws)])
+    for j, across in enumerate(np.delete(axes, axis_index, axis=0)):
+        subject = subject.with_spring(Spring(f"bed_lat{j}", "bed", point, GROUND, point, 1e3,
+                                             axis=across))
+    f = bg.FREQUENCY_HZ[::4]
+    H, sigma = noisy(frf(subject, f, bg.OUTPUTS, bg.INPUTS), np.random.default_rng(seed + 1))
+    data = prepare_data(f, H, sigma, bg.OUTPUTS, bg.INPUTS)
+    return diagnose(data, default_model(),
+                    GapOptions(effects=("support_resonance", "missing_ligament"))).report
+
+
 def test_bed_under_an_unmeasured_point_is_found_on_the_line_of_a_spring_to_ground():
     """Judge-like set 4242_026's support: a bed body of 2.2 kg on a 32 Hz suspension under
     the right iliac fossa (no probe there), in contact through 1.1e6 N/m with ζ 0.1. Before,
     a spring from the sacrum to ground was named (13.1 -> 3.8; the bed contacts at the
     measured points 5.3); refitted along each grounded spring's line as a damped contact,
     the support on the right innominate reaches 0.22."""
-    from pelvislab.model.pelvis import default_model
-    from pelvislab.tests.benchmarks import bench_gap as bg
 
-    seed = 21
-    point, axis = np.array([-0.055, -0.125, 0.005]), np.array([0.0, -1.0, 0.0])
-    kc, zeta_c, mass, f_s, zeta_s = 1.1e6, 0.1, 2.2, 32.0, 0.03
-    ws = 2 * np.pi * f_s
-    subject = _on_axis_body(bg.perturbed_model(np.random.default_rng(seed)), "bed", mass,
-                            point, axis,
-                            [("innominate_right", kc, 2 * zeta_c * np.sqrt(kc * mass)),
-                             (GROUND, mass * ws**2, 2 * zeta_s * mass * ws)])
-    for j, across in enumerate(np.eye(3)[[0, 2]]):
-        subject = subject.with_spring(Spring(f"bed_lat{j}", "bed", point, GROUND, point, 1e3,
-                                             axis=across))
-    f = bg.FREQUENCY_HZ[::4]
-    H, sigma = noisy(frf(subject, f, bg.OUTPUTS, bg.INPUTS), np.random.default_rng(seed + 1))
-    data = prepare_data(f, H, sigma, bg.OUTPUTS, bg.INPUTS)
-    rep = diagnose(data, default_model(),
-                   GapOptions(effects=("support_resonance", "missing_ligament"))).report
+    rep = _bed_on_benchmark_layout(np.array([-0.055, -0.125, 0.005]), 1, zeta_c=0.1)
     best = rep["candidates"][0]
     assert rep["verdict"] == "support_resonance", rep["verdict_reason"]
     assert best["variant"] == "bed contact on a fitted line"
@@ -260,24 +269,8 @@ def test_support_on_a_line_is_not_tried_when_a_support_already_beats_the_spring(
     springs to ground as supports on their lines (4-10 s) cannot change that verdict and is
     skipped (judge-like support sets 4242_011/023 and the own generator's support sets
     paid 7-10 s for it)."""
-    from pelvislab.model.pelvis import default_model
-    from pelvislab.tests.benchmarks import bench_gap as bg
 
-    seed = 21
-    point, axis = np.array([-0.135, -0.035, -0.005]), np.array([1.0, 0.0, 0.0])
-    kc, mass, f_s, zeta_s = 1.1e6, 2.2, 32.0, 0.03
-    ws = 2 * np.pi * f_s
-    subject = _on_axis_body(bg.perturbed_model(np.random.default_rng(seed)), "bed", mass,
-                            point, axis, [("innominate_right", kc, 0.0),
-                                          (GROUND, mass * ws**2, 2 * zeta_s * mass * ws)])
-    for j, across in enumerate(np.eye(3)[[1, 2]]):
-        subject = subject.with_spring(Spring(f"bed_lat{j}", "bed", point, GROUND, point, 1e3,
-                                             axis=across))
-    f = bg.FREQUENCY_HZ[::4]
-    H, sigma = noisy(frf(subject, f, bg.OUTPUTS, bg.INPUTS), np.random.default_rng(seed + 1))
-    data = prepare_data(f, H, sigma, bg.OUTPUTS, bg.INPUTS)
-    rep = diagnose(data, default_model(),
-                   GapOptions(effects=("support_resonance", "missing_ligament"))).report
+    rep = _bed_on_benchmark_layout(np.array([-0.135, -0.035, -0.005]), 0, zeta_c=0.0)
     best, second = rep["candidates"][:2]
     assert rep["verdict"] == "support_resonance", rep["verdict_reason"]
     assert best["place"] == "innominate_right at SIPS_R_x x" and best["gap_after"] < 1.0
