@@ -278,23 +278,29 @@ def test_support_on_a_line_is_not_tried_when_a_support_already_beats_the_spring(
     assert rep["timing_s"]["support_on_line_s"] < 0.01  # the stage did not run
 
 
+def judge_like_data(seed: int, index: int, tmp_path):
+    """Set ``index`` of the judge-like generator's seed ``seed``, written to a file and read
+    back as ``gap diagnose`` reads it."""
+    from pelvislab.acquisition.frfset import read_frf
+    from pelvislab.app.commands.gap import usable_std
+    from pelvislab.tests import judge_like_generator as g
+
+    g.write_set(g.make_set(np.random.default_rng([seed, index])), tmp_path / "set.h5")
+    frf_set = read_frf(tmp_path / "set.h5")
+    H_std, _ = usable_std(frf_set)
+    return prepare_data(frf_set.frequency_hz, frf_set.H, H_std, frf_set.outputs,
+                        frf_set.inputs)
+
+
 def test_a_stalled_spring_to_ground_is_refitted_on_the_line_of_its_support(tmp_path):
     """Judge-like set 2468_032: an iliolumbar spring of 9.9e5 N/m from the left innominate
     to ground. The spring's own fit stalled at 4.5e5 N/m (gap 8.8 -> 1.16) and the support
     on its line, a 1.0e6 N/m spring in effect (resonance ~680 Hz, above the band), won at
     0.37; refitted on the support's line with its static stiffness, the spring reaches the
     same gap with 4 parameters fewer and keeps the verdict."""
-    from pelvislab.acquisition.frfset import read_frf
-    from pelvislab.app.commands.gap import usable_std
     from pelvislab.model.pelvis import default_model
-    from pelvislab.tests import judge_like_generator as g
 
-    g.write_set(g.make_set(np.random.default_rng([2468, 32])), tmp_path / "set.h5")
-    frf_set = read_frf(tmp_path / "set.h5")
-    H_std, _ = usable_std(frf_set)
-    data = prepare_data(frf_set.frequency_hz, frf_set.H, H_std, frf_set.outputs,
-                        frf_set.inputs)
-    rep = diagnose(data, default_model()).report
+    rep = diagnose(judge_like_data(2468, 32, tmp_path), default_model()).report
     best = rep["candidates"][0]
     assert rep["verdict"] == "missing_ligament", rep["verdict_reason"]
     assert best["place"] == "innominate_left to ground"

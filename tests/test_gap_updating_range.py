@@ -123,16 +123,9 @@ def test_tilt_absorbed_by_a_distorted_base_fit_is_found_from_the_undistorted_sta
     # residual to SIPS_R_x (56 %); fitted from that base, the tilt at SIPS_L_x was never
     # reached (verdict added_mass on the right innominate, 0.88 -> 0.47). From the
     # undistorted start (stiffness and mass at nominal, damping refitted) it reaches gap 0
-    from pelvislab.acquisition.frfset import read_frf
-    from pelvislab.app.commands.gap import usable_std
-    from pelvislab.tests import judge_like_generator as g
+    from pelvislab.tests.test_gap_support_contacts import judge_like_data
 
-    g.write_set(g.make_set(np.random.default_rng([8642, 7])), tmp_path / "set.h5")
-    frf_set = read_frf(tmp_path / "set.h5")
-    H_std, _ = usable_std(frf_set)
-    data = prepare_data(frf_set.frequency_hz, frf_set.H, H_std, frf_set.outputs,
-                        frf_set.inputs)
-    rep = diagnose(data, default_model(), GapOptions(
+    rep = diagnose(judge_like_data(8642, 7, tmp_path), default_model(), GapOptions(
         effects=("sensor_misorientation", "added_mass", "missing_ligament"))).report
     best = rep["candidates"][0]
     assert rep["verdict"] == "sensor_misorientation", rep["verdict_reason"]
