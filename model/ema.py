@@ -687,6 +687,23 @@ def mode_significance(
     return out
 
 
+def _spacing_hint(frequency_hz: np.ndarray) -> str:
+    """Why lightly damped modes may go unseen on this grid (text for the notes).
+
+    A mode shows in stepped-sine lines only when its half-power bandwidth 2ζf_n spans
+    about one line spacing Δf or more, i.e. ζ ≳ Δf / (2 f_n); thesis appendix E's damping
+    ratios are 0.02-0.5 %, so a 10 Hz grid resolves none of them."""
+    f = np.sort(np.asarray(frequency_hz, float))
+    df = float(np.median(np.diff(f))) if f.size > 1 else 0.0
+    if not df > 0:
+        return ""
+    lo, hi = float(f[0]), float(f[-1])
+    return (f"; lines are {df:.3g} Hz apart: a mode is resolved when its half-power "
+            f"bandwidth 2 zeta f spans about one spacing (zeta >= {df / (2 * hi):.2%} at "
+            f"{hi:.4g} Hz, {df / (2 * lo):.2%} at {lo:.4g} Hz); lighter modes fall between "
+            "the lines: measure on a finer grid around the peaks")
+
+
 def ema(
     frequency_hz: np.ndarray,
     H: np.ndarray,
@@ -731,7 +748,7 @@ def ema(
         poles = select_poles(diagram, band, crit)
         selection = "auto"
         if poles.size == 0:
-            notes.append("no stable pole found in the band")
+            notes.append("no stable pole found in the band" + _spacing_hint(f))
     if refine and poles.size:
         poles = refine_poles(f, Hc, poles, std, lower_residual, upper_residual)
         poles = poles[np.argsort(np.abs(poles))]

@@ -220,3 +220,15 @@ def test_setups_with_unmeasured_frfs_fall_back_to_common_denominator(system):
     result = ema(f, H)
     check_identified(result, lam, V, (5, 300))
     assert np.all(np.isfinite(result.shapes))
+
+
+def test_no_mode_on_a_grid_coarser_than_the_bandwidths_says_why(system):
+    # damping ~100x lighter than the fixture's (zeta ~ 0.02 %, as appendix E's lightest):
+    # half-power bandwidths of a few hundredths of a Hz on a 10 Hz grid (make demo's)
+    M, K, C, _, _ = system
+    f = np.arange(30.0, 300.01, 10.0)
+    H = add_noise(receptance(M, K, 0.01 * C, f, list(range(6)), [0]), 0.01, seed=8)
+    result = ema(f, H)
+    assert result.frequency_hz.size == 0
+    note = next(n for n in result.notes if n.startswith("no stable pole"))
+    assert "10 Hz apart" in note and "1.67% at 300 Hz" in note and "finer grid" in note
