@@ -957,6 +957,31 @@ NULL_EXTENSIONS = (PER_DASHPOT_DAMPING,)
 fitted and ranked like the effects, but a verdict for one of them is ``none``."""
 
 
+def calibration_gains(ctx: Context, tol: float) -> Candidate:
+    """The measurement chain's calibration as an extension of the model: one real gain per
+    output channel within ``1 ± tol`` (displacement calibration: speed of sound in the
+    overlying tissue, d = c Δt / 2 of ch. 8; tracking bias of the bone echo by static
+    speckle). Not an effect: the verdict's null hypothesis, fitted jointly with the base
+    parameters (a gain common to all outputs is a scale the base parameters absorb).
+    ``tol`` > 0 (relative)."""
+    if not tol > 0:
+        raise ValueError(f"calibration tolerance must be > 0, got {tol}")
+    names = ctx.out_names
+
+    def build(u: np.ndarray, c: Context) -> EffectTerms:
+        return EffectTerms(out_gain=np.broadcast_to(np.exp(u).astype(complex),
+                                                    (c.omega.size, len(u))))
+
+    def describe(u: np.ndarray) -> dict[str, float]:
+        return {f"gain_{name}": float(np.exp(v)) for name, v in zip(names, u, strict=True)}
+
+    n = len(names)
+    return Candidate("calibration", "gain per output", "all outputs", "global",
+                     tuple(f"log_gain_{name}" for name in names),
+                     np.full(n, np.log1p(-tol)), np.full(n, np.log1p(tol)), (np.zeros(n),),
+                     build, describe, null=np.zeros(n))
+
+
 def candidate_library(ctx: Context, effects: Sequence[str] | None = None) -> list[Candidate]:
     """All candidate extensions at all places for the channels of ``ctx``."""
     cands = (_global_candidates() + _support_candidates(ctx) + _tissue_candidates(ctx)

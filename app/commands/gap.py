@@ -219,6 +219,10 @@ def format_report(report: dict) -> str:
              f"  gap before (held-out model error beyond noise, in sigma; 0 = noise level): "
              f"{report['gap_before']:.3g}"
              f"   noise: {report.get('noise', {}).get('source', '?')}"]
+    joint = (report.get("calibration") or {}).get("joint_null") or {}
+    if joint.get("gains"):
+        lines.append("  output gains of the null fitted with the base parameters: " + ", ".join(
+            f"{n.removeprefix('gain_')} {g:.4f}" for n, g in joint["gains"].items()))
     at_bound = report.get("base_fit", {}).get("at_bound", {})
     if at_bound:
         lines.append("  updating ended at the bounds of its range (x model value): " + ", ".join(
