@@ -7,6 +7,7 @@ packages' functions, run in a worker thread so the window stays responsive.
 
 from __future__ import annotations
 
+import html
 from collections.abc import Callable
 from concurrent.futures import Future, ThreadPoolExecutor
 from pathlib import Path
@@ -340,9 +341,13 @@ class ReplayView(QtWidgets.QWidget):
                           for b in where.get("bands", [])[:3])
         outputs = ", ".join(f"{o['name']} ({100 * o['share']:.0f} %)"
                             for o in where.get("outputs", [])[:3])
+        # the reason says why (a verdict 'none' after a large base gap needs it: the
+        # calibration null fitted as a whole can explain it)
+        reason = html.escape(str(report.get("verdict_reason", "")))
         self.gap_summary.setText(
             f"<b>verdict: {verdict}</b> — gap before {report.get('gap_before', float('nan')):.3g}."
-            f" Largest residual in {bands or '—'}; outputs {outputs or '—'}.")
+            f" Largest residual in {bands or '—'}; outputs {outputs or '—'}."
+            + (f"<br><small>{reason}</small>" if reason else ""))
         residual = getattr(result, "residual_map", None)
         if residual is not None:
             image = np.nan_to_num(np.asarray(residual, dtype=float))

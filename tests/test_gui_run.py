@@ -137,6 +137,7 @@ def test_replay_gap_diagnosis_shows_verdict_map_and_candidates(operator_window, 
     # speckle, up to ~0.6 %) are within the calibration tolerance (was
     # sensor_misorientation, a 1/cos gain of 1.0057 at sacrum_x)
     assert "verdict: none" in replay.gap_summary.text()
+    assert "not significant" in replay.gap_summary.text()  # the verdict's reason follows
     image = replay.residual_image.image
     assert image is not None and image.shape[1] >= 2  # frequency x measured pairs
     assert replay.tabs.currentIndex() == 3
