@@ -1163,7 +1163,7 @@ def _chain_null_explains(theta: np.ndarray, fit: _Lines, held: _Lines, bounds: _
     gap_pred = excess_gap(chi2_pred, held.n)
     best_chi2 = best.chi2_heldout if best is not None else np.inf
     entry: dict[str, object] = {
-        "gains": {k: _round(v, 6) for k, v in cal.describe(u).items()},
+        "gains": {name: _round(g, 6) for name, g in cal.describe(u).items()},
         "chi2_held_out": _round(chi2_plain), "gap_predictive": _round(gap_pred),
         "largest_prediction_variance_in_noise_units": _round(v_max),
         "note": "checked before a verdict 'unexplained': base parameters refitted with one "

@@ -960,9 +960,10 @@ fitted and ranked like the effects, but a verdict for one of them is ``none``.""
 def calibration_gains(ctx: Context, tol: float) -> Candidate:
     """The measurement chain's calibration as an extension of the model: one real gain per
     output channel within ``1 ± tol`` (displacement calibration: speed of sound in the
-    overlying tissue, d = c Δt / 2 of ch. 8; tracking bias of the bone echo by static
-    speckle). Not an effect: the verdict's null hypothesis, fitted jointly with the base
-    parameters (a gain common to all outputs is a scale the base parameters absorb).
+    overlying tissue, d = c Δt / 2 of ch. 8; tracking bias from the tissue's speckle mixed
+    into the bone echo, docs/simulated-bench.md). Not an effect: the verdict's null
+    hypothesis, fitted jointly with the base parameters (a gain common to all outputs is a
+    scale the base parameters absorb).
     ``tol`` > 0 (relative)."""
     if not tol > 0:
         raise ValueError(f"calibration tolerance must be > 0, got {tol}")
