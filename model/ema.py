@@ -652,6 +652,12 @@ def shapes_from_residues(residues: np.ndarray, measured: np.ndarray | None = Non
     return shapes, part
 
 
+def _line_spacing_hz(frequency_hz: np.ndarray) -> float:
+    """Typical line spacing (Hz): the median difference of consecutive lines (0 for one)."""
+    f = np.asarray(frequency_hz, dtype=float)
+    return float(np.median(np.diff(f))) if f.size > 1 else 0.0
+
+
 def mode_significance(
     frequency_hz: np.ndarray,
     H: np.ndarray,
@@ -673,7 +679,7 @@ def mode_significance(
     f = np.asarray(frequency_hz, dtype=float)
     ok = np.isfinite(H)
     out = np.ones(poles.size)
-    step = float(np.median(np.diff(f))) if f.size > 1 else 0.0
+    step = _line_spacing_hz(f)
     for r in range(poles.size):
         fr = abs(poles[r]) / (2 * np.pi)
         near = np.abs(f - fr) <= max(window * fr, 2.5 * step)
@@ -694,7 +700,7 @@ def _spacing_hint(frequency_hz: np.ndarray) -> str:
     about one line spacing Δf or more, i.e. ζ ≳ Δf / (2 f_n); thesis appendix E's damping
     ratios are 0.02-0.5 %, so a 10 Hz grid resolves none of them."""
     f = np.sort(np.asarray(frequency_hz, float))
-    df = float(np.median(np.diff(f))) if f.size > 1 else 0.0
+    df = _line_spacing_hz(f)
     if not df > 0:
         return ""
     lo, hi = float(f[0]), float(f[-1])
