@@ -184,6 +184,8 @@ class Context:
     in_names: tuple[str, ...]
     in_bones: tuple[str, ...] = ()
     in_position_m: np.ndarray | None = None
+    # the band's highest measured frequency (Hz); None: that of ``frequency_hz``
+    band_max_hz: float | None = None
 
     @property
     def omega(self) -> np.ndarray:
@@ -192,14 +194,19 @@ class Context:
 
     @property
     def omega_max(self) -> float:
-        """ω_max of eq. 7.2-7.3: the highest measured frequency (rad/s)."""
-        return float(2 * np.pi * np.max(self.frequency_hz))
+        """ω_max of eq. 7.2-7.3: the highest measured frequency of the whole band (rad/s),
+        also on a subset of its lines."""
+        f_max = self.band_max_hz if self.band_max_hz is not None else np.max(self.frequency_hz)
+        return float(2 * np.pi * f_max)
 
     def subset(self, lines: np.ndarray) -> Context:
-        """The same context on a subset of frequency lines."""
+        """The same context on a subset of frequency lines. ω_max stays the band's: an
+        effect scaled by it (eq. 7.2-7.3) must be the same on fitted and held-out lines
+        (the held-out lines' own maximum is up to 3 lines lower)."""
         return Context(self.base, self.frequency_hz[lines], self.out_rows, self.in_rows,
                        self.out_bones, self.out_position_m, self.out_direction,
-                       self.out_names, self.in_names, self.in_bones, self.in_position_m)
+                       self.out_names, self.in_names, self.in_bones, self.in_position_m,
+                       self.omega_max / (2 * np.pi))
 
 
 @dataclass

@@ -115,6 +115,24 @@ def test_frequency_dependent_stiffness_matches_eq_7_3():
     np.testing.assert_allclose(H, H2, rtol=1e-5, atol=1e-9 * np.abs(H2).max())
 
 
+@pytest.mark.parametrize("effect, u", [("frequency_dependent_stiffness", 0.7),
+                                       ("hysteretic_damping", 5.0)])
+def test_band_scaled_effects_are_the_same_on_a_subset_of_lines(effect, u):
+    # eq. 7.2-7.3 scale with the band's omega_max; the held-out lines (every 4th) end below
+    # the band's top, and evaluated with their own maximum f_k was 0.6 % larger there
+    # (judge-like set 5315_026: the true f_k left a held-out gap of 1.9, all of it on the
+    # line beside a mode of zeta ~0.01 %; named unexplained)
+    ctx = ctx_for(true_model())
+    cand = pick(ctx, effect, "all springs" if effect.startswith("freq") else "all joints")
+    held = np.flatnonzero(np.arange(F_HZ.size) % 4 == 2)
+    assert F_HZ[held].max() < F_HZ.max()
+    sub = ctx.subset(held)
+    assert sub.omega_max == ctx.omega_max
+    H, _ = evaluate(ctx, ctx.base.nominal, cand.build(np.array([u]), ctx))
+    H_sub, _ = evaluate(sub, ctx.base.nominal, cand.build(np.array([u]), sub))
+    np.testing.assert_allclose(H_sub, H[held], rtol=1e-12, atol=0)
+
+
 def test_support_bed_limit_is_a_grounding_spring():
     m = default_model()
     ctx = ctx_for(m)
