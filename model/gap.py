@@ -55,6 +55,7 @@ from pelvislab.model.gap_effects import (
     evaluate,
     line_spring_basis,
     line_spring_parameters,
+    line_spring_rows,
     response_vectors,
     support_on_line,
     with_extension,
@@ -774,6 +775,103 @@ def _line_spring_start(cand: Candidate, fit: _Lines, theta: np.ndarray, options:
     return best[0], np.clip(u, cand.lower + 1e-9, cand.upper - 1e-9)
 
 
+def _line_spring_search(cand: Candidate, fit: _Lines, theta: np.ndarray, options: GapOptions,
+                        n_lines: int = 3000, stiffness_n_per_m: np.ndarray | None = None,
+                        n_refine: int = 20, n_best: int = 2) -> list[np.ndarray]:
+    """Global search of a line spring's line and stiffness with the base frozen at
+    ``theta``: the ``n_best`` effect parameters u found, best first.
+
+    A strong spring with light joint damping (8e4 N/m to ground on joints damped ~20 N s/m:
+    a sharp suspension resonance in the band) has a narrow basin that neither the
+    linearised start nor the axis starts reach (gap 17 left on judge-like set 2468_012,
+    57 on its subject in the benchmark layout; base gaps 48 and 132). With the base
+    frozen, the spring ``ΔK = Qᵀ w wᵀ Q`` changes the FRF exactly by the rank-one
+    (Sherman-Morrison) update ``H − (Q Z⁻¹Oᵀ)ᵀw · wᵀ(Q Z⁻¹Iᵀ) / (1 + wᵀ Q Z⁻¹ Qᵀ w)``:
+    no solve per trial. ``n_lines`` random lines through the place's reach (seeded with
+    ``options.seed``: reproducible) at each stiffness of a log grid (3e3-3e6 N/m) are
+    ranked by the robust cost (soft L1, as every fit here) on ``fit``'s lines, and the
+    ``n_refine`` best are refined (robust least squares in the candidate's own
+    parameters, still rank-one, analytic Jacobian, 15 evaluations)."""
+    place = cand.line_spring
+    if place is None:
+        return []
+    ctx = fit.ctx
+    base = ctx.base
+    k_grid = (np.geomspace(3e3, 3e6, 13) if stiffness_n_per_m is None
+              else np.asarray(stiffness_n_per_m, float))
+    Q = line_spring_basis(base, place)
+    H0, _ = evaluate(ctx, theta)
+    A, B = response_vectors(ctx, theta)
+    omega = ctx.omega
+    M, K, C = base.matrices(theta)
+    Z = (-(omega**2)[:, None, None] * M + K[None]
+         + 1j * omega[:, None, None] * C).astype(complex)
+    ZQ = np.linalg.solve(Z, np.broadcast_to(Q.T.astype(complex), (omega.size, *Q.T.shape)))
+    G = Q @ ZQ  # (n_f, r, r): Q Z⁻¹ Qᵀ
+    f_idx, o_idx, i_idx = np.nonzero(fit.mask)  # the order of fit.H and fit.w
+    QA = np.einsum("rn,fno->for", Q, A)[f_idx, o_idx]  # (n_e, r)
+    QB = np.einsum("rn,fni->fir", Q, B)[f_idx, i_idx]
+    r0 = (H0[fit.mask] - fit.H) * fit.w  # (n_e,) normalised residual of the base
+    rng = np.random.default_rng(options.seed)
+    axis = rng.normal(size=(n_lines, 3))
+    axis /= np.linalg.norm(axis, axis=1, keepdims=True)
+    offset_m = rng.uniform(-place.reach_m, place.reach_m, (n_lines, 3))
+    # the rows are affine in the point (rigid bones): no call per line
+    rows0 = line_spring_rows(base, place, place.centre_m)
+    rows_d = np.stack([line_spring_rows(base, place, place.centre_m + e) - rows0
+                       for e in np.eye(3)])
+    g = np.einsum("Nj,Njn->Nn", axis, rows0[None] + np.einsum("Ni,ijn->Njn", offset_m, rows_d))
+    w_unit = g @ Q.T  # (n_lines, r): unit stiffness
+    scale = options.robust_scale
+    cost = np.empty((n_lines, k_grid.size))  # robust cost (soft l1) up to a constant
+    for s in range(0, n_lines, 250):
+        w = w_unit[s:s + 250]
+        num = (w @ QA.T) * (w @ QB.T) * fit.w  # (N, n_e)
+        gam = np.einsum("Nr,frs,Ns->Nf", w, G, w)[:, f_idx]
+        for j, k in enumerate(k_grid):
+            r = r0 - k * num / (1 + k * gam)
+            cost[s:s + 250, j] = (np.sum(np.sqrt(1 + (r.real / scale) ** 2), axis=1)
+                                  + np.sum(np.sqrt(1 + (r.imag / scale) ** 2), axis=1))
+
+    sqrt_k0 = np.sqrt(place.k0_n_per_m)
+
+    def w_of(u: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        # w = √k₀ Q G(centre + d)ᵀ v and ∂w/∂u (r, 6)
+        rows = rows0 + np.einsum("i,ijn->jn", u[3:], rows_d)
+        dw_dv = sqrt_k0 * Q @ rows.T
+        dw_dd = sqrt_k0 * Q @ np.einsum("j,ijn->ni", u[:3], rows_d)
+        return dw_dv @ u[:3], np.concatenate([dw_dv, dw_dd], axis=1)
+
+    def residual(u: np.ndarray) -> np.ndarray:
+        x = w_of(u)[0]
+        d = 1 + np.einsum("r,frs,s->f", x, G, x)[f_idx]
+        r = r0 - (QA @ x) * (QB @ x) * fit.w / d
+        return np.concatenate([r.real, r.imag])
+
+    def jacobian(u: np.ndarray) -> np.ndarray:
+        x, dx_du = w_of(u)
+        a, b = QA @ x, QB @ x
+        d = 1 + np.einsum("r,frs,s->f", x, G, x)[f_idx]
+        dd = 2 * (G @ x)[f_idx]  # (n_e, r)
+        dr = -fit.w[:, None] * ((QA * b[:, None] + a[:, None] * QB) / d[:, None]
+                                - (a * b / d**2)[:, None] * dd)
+        dr = dr @ dx_du
+        return np.concatenate([dr.real, dr.imag])
+
+    lo, hi = cand.lower + 1e-9, cand.upper - 1e-9
+    refined = []
+    for flat in np.argsort(cost, axis=None)[:n_refine]:
+        j_line, j_k = np.unravel_index(flat, cost.shape)
+        u0 = np.concatenate([np.sqrt(k_grid[j_k] / place.k0_n_per_m) * axis[j_line],
+                             offset_m[j_line]])
+        sol = least_squares(residual, np.clip(u0, lo, hi), jac=jacobian, bounds=(lo, hi),
+                            method="trf", loss="soft_l1", f_scale=scale, max_nfev=15,
+                            x_scale="jac")
+        refined.append((float(sol.cost), sol.x))
+    refined.sort(key=lambda t: t[0])
+    return [u for _cost, u in refined[:n_best]]
+
+
 def _refit_damping(fit: _Lines, theta: np.ndarray, is_c: np.ndarray, options: GapOptions,
                    bounds: _Bounds) -> np.ndarray:
     """``theta`` with only its damping parameters (``is_c``) refitted (robust least
@@ -1443,6 +1541,52 @@ def diagnose(data: GapData, model: PelvisModel, options: GapOptions | None = Non
         if again.chi2_fitted < results[k].chi2_fitted:
             results[k] = again
     timing["joint_fit_s"] = time.perf_counter() - t2
+    # a strong spring to ground with light joint damping (judge-like set 2468_012: 8.1e4
+    # N/m on the left ilium, joints damped 14-24 N s/m, 78 sigma) puts a sharp suspension
+    # resonance in the band that no start above reaches (the spring stopped at 17.5, a
+    # tilted probe was named at 12.7). When no candidate has come near the noise, the
+    # line of every grounded place is searched globally with the base frozen at the base
+    # fit's, the undistorted and the damping-refitted parameters; each place's best short
+    # joint fit from the lines found is finished. A place still not near the noise is
+    # searched once more with the base frozen at that fit's parameters, which are closer
+    # to the subject's (2468_012 on four search seeds: 0.0-11 after the first round, 0.0
+    # on all four after the second)
+    t_search = time.perf_counter()
+    grounded = [cand for cand in cands
+                if cand.line_spring is not None and not cand.line_spring.bone_b]
+    if grounded and min(r.gap_after for r in results) > opt.near_noise_gap:
+
+        def search_job(task: tuple[Candidate, np.ndarray, np.ndarray | None]
+                       ) -> tuple[float, np.ndarray]:
+            cand, th, u_also = task
+            pairs = [(th, u) for u in _line_spring_search(cand, coarse, th, opt)]
+            if u_also is not None:
+                pairs.append((th, u_also))
+            if not pairs:
+                return float("inf"), np.array([])
+            return _joint_start(cand, short_lines, [], pairs[0][1], bounds, opt, pairs)
+
+        def search_round(tasks: list[tuple[Candidate, np.ndarray, np.ndarray | None]]
+                         ) -> list[CandidateResult]:
+            found: dict[Candidate, tuple[float, np.ndarray]] = {}
+            for (cand, _th, _u), (cost, x) in zip(
+                    tasks, parallel_map(search_job, tasks, opt.jobs), strict=True):
+                if x.size and cost < found.get(cand, (np.inf,))[0]:
+                    found[cand] = (cost, x)
+            items = list(found.items())
+            return [_fitted_result(cand, fitted, held.n,
+                                   len(by_variant[(cand.effect, cand.variant)]))
+                    for (cand, _cx), fitted in zip(items, parallel_map(
+                        lambda item: _joint_finish(item[0], fit, held, item[1][1], bounds,
+                                                   opt, opt.max_nfev_joint), items, opt.jobs),
+                        strict=True)]
+
+        first = search_round([(cand, th, None) for cand in grounded
+                              for th in (theta, *undistorted)])
+        second = search_round([(res.candidate, res.theta, res.u) for res in first
+                               if res.gap_after > opt.near_noise_gap])
+        results.extend(first + second)
+    timing["line_search_s"] = time.perf_counter() - t_search
     # polish: when the best candidate removes much but not all of the gap, its effect is
     # refitted at every place on the same bone/channel from all of its starts (resonance
     # frequencies over the band), from the grid start: local minima in the effect

@@ -10,7 +10,16 @@ without their effects; the data come from the independent thesis model
 
 import numpy as np
 
-from pelvislab.model.gap import GapOptions, _context, _Lines, diagnose, fit_base, prepare_data
+from pelvislab.model.gap import (
+    GapOptions,
+    _context,
+    _line_spring_search,
+    _Lines,
+    diagnose,
+    fit_base,
+    prepare_data,
+)
+from pelvislab.model.gap_effects import candidate_library
 from pelvislab.model.pelvis import default_model
 from pelvislab.tests import independent_pelvis as ip
 from pelvislab.tests.benchmarks.bench_gap import FREQUENCY_HZ, INPUTS, MEASURED, OUTPUTS
@@ -115,4 +124,63 @@ def test_strong_spring_on_a_per_dashpot_subject_is_refitted_with_the_extension()
     assert report["verdict"] == "missing_ligament", report["verdict_reason"]
     best = report["candidates"][0]
     assert best["place"] == "innominate_right to ground"
+    assert best["gap_after"] <= GapOptions().near_noise_gap
+
+
+# judge-like set 2468_012's subject: joints damped 14-24 N s/m, pubis 285, one damping
+# per joint, with its 8.1e4 N/m iliolumbar spring from the left ilium to a fixed L5
+LIGHT_MASS_KG = {"innominate_right": 0.508, "innominate_left": 0.570, "sacrum": 0.326}
+LIGHT_STIFFNESS_N_PER_M = {
+    "io_R": 1.152e6, "asa_R": 9.26e5, "asd_R": 1.010e6, "pss_R": 8.13e5, "psl_R": 1.075e6,
+    "io_L": 9.51e5, "asa_L": 1.155e6, "asd_L": 1.245e6, "pss_L": 1.000e6, "psl_L": 1.058e6,
+    "pubh": 1.266e5, "pubs": 5.85e3}
+LIGHT_DAMPING_N_S_PER_M = {"R": 24.1, "L": 14.3, "P": 285.0}
+L5_M = np.array([-0.1016, 0.0407, 0.0849])
+CREST_L_M = np.array([-0.1143, 0.0616, 0.0456])
+SPRING_N_PER_M = 8.07e4
+
+
+def _light_subject_with_spring(seed: int):
+    """Data (0.82 % of |H| noise) of the lightly damped subject with its spring."""
+    damping = {d: LIGHT_DAMPING_N_S_PER_M[d[0] if d.startswith("P") else d[-1]]
+               for d in ip.default_damping()}
+    m, c, k = ip.matrices({b: LIGHT_MASS_KG[b] / ip.MASS[b] for b in ip.BONES},
+                          LIGHT_STIFFNESS_N_PER_M, damping, dashpot_lever="points")
+    axis = (CREST_L_M - L5_M) / np.linalg.norm(CREST_L_M - L5_M)
+    row = axis @ ip.point_map("innominate_left", CREST_L_M)
+    k = k + SPRING_N_PER_M * np.outer(row, row)
+    return _data(_layout_frf(m, c, k), seed=seed, noise_of_h=0.0082), axis
+
+
+def test_line_search_lands_near_a_strong_spring_to_ground():
+    # the base frozen at the subject's own values: the global search alone must land near
+    # the spring's line and stiffness (its basin is narrow: the suspension resonance is
+    # sharp with joints damped ~20 N s/m); the joint fits take it from there. A random
+    # line is within 15 deg of the true one with probability 1.7 %.
+    data, axis = _light_subject_with_spring(seed=3)
+    ctx = _context(default_model().with_dashpot_lever("points"), data)
+    theta = np.array([
+        LIGHT_MASS_KG[n[2:]] if n.startswith("m_") else
+        LIGHT_STIFFNESS_N_PER_M[n[2:]] if n.startswith("k_") else
+        LIGHT_DAMPING_N_S_PER_M["P" if n == "c_pub" else n[-1]] for n in ctx.base.names])
+    cand = next(c for c in candidate_library(ctx, ("missing_ligament",))
+                if c.place == "innominate_left to ground")
+    fit = _Lines.build(ctx, data, np.arange(data.frequency_hz.size) % 2 == 0)
+    found = cand.describe(_line_spring_search(cand, fit, theta, GapOptions())[0])
+    assert abs(np.log(found["stiffness_n_per_m"] / SPRING_N_PER_M)) < np.log(1.4)
+    n = np.array([found["axis_x"], found["axis_y"], found["axis_z"]])
+    assert abs(n @ axis) > np.cos(np.radians(15))
+    p = np.array([found["x_m"], found["y_m"], found["z_m"]])
+    assert np.linalg.norm(np.cross(p - CREST_L_M, axis)) < 0.025  # m from the true line
+
+
+def test_strong_spring_to_ground_with_light_joint_damping_is_named_at_its_bone():
+    # from the axis starts and the linearised start the spring stalled at gap 57 (at the
+    # sacrum) after a base gap of 132: unexplained. The global line search (run when no
+    # candidate comes near the noise) finds it.
+    data, _axis = _light_subject_with_spring(seed=12)
+    report = diagnose(data, default_model(), GapOptions(effects=("missing_ligament",))).report
+    assert report["verdict"] == "missing_ligament", report["verdict_reason"]
+    best = report["candidates"][0]
+    assert best["place"] == "innominate_left to ground"
     assert best["gap_after"] <= GapOptions().near_noise_gap
