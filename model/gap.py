@@ -49,6 +49,7 @@ from pelvislab.model.gap_effects import (
     Candidate,
     Context,
     EffectTerms,
+    base_dynamic_stiffness,
     base_structure,
     calibration_gains,
     candidate_library,
@@ -802,11 +803,8 @@ def _line_spring_search(cand: Candidate, fit: _Lines, theta: np.ndarray, options
     Q = line_spring_basis(base, place)
     H0, _ = evaluate(ctx, theta)
     A, B = response_vectors(ctx, theta)
-    omega = ctx.omega
-    M, K, C = base.matrices(theta)
-    Z = (-(omega**2)[:, None, None] * M + K[None]
-         + 1j * omega[:, None, None] * C).astype(complex)
-    ZQ = np.linalg.solve(Z, np.broadcast_to(Q.T.astype(complex), (omega.size, *Q.T.shape)))
+    Z = base_dynamic_stiffness(ctx, theta)
+    ZQ = np.linalg.solve(Z, np.broadcast_to(Q.T.astype(complex), (Z.shape[0], *Q.T.shape)))
     G = Q @ ZQ  # (n_f, r, r): Q Z⁻¹ Qᵀ
     f_idx, o_idx, i_idx = np.nonzero(fit.mask)  # the order of fit.H and fit.w
     QA = np.einsum("rn,fno->for", Q, A)[f_idx, o_idx]  # (n_e, r)
@@ -2174,9 +2172,9 @@ def diagnose(data: GapData, model: PelvisModel, options: GapOptions | None = Non
     if progress:
         progress(f"screened {len(cands)} candidate places in {timing['screen_s']:.1f} s")
     results = _joint_fit_stage(s, by_variant, spring_starts)
+    n_screened = {key: len(items) for key, items in by_variant.items()}
     t_search = time.perf_counter()
-    results += _line_search_stage(s, cands, results,
-                                  {key: len(items) for key, items in by_variant.items()})
+    results += _line_search_stage(s, cands, results, n_screened)
     timing["line_search_s"] = time.perf_counter() - t_search
     t3 = time.perf_counter()
     results += _polish_stage(s, cands, results)
@@ -2200,9 +2198,7 @@ def diagnose(data: GapData, model: PelvisModel, options: GapOptions | None = Non
         # Only here: run with the springs to ground on every set where no candidate comes
         # near the noise it cost ~30 s more and landed at the pubic joint on that set
         t7 = time.perf_counter()
-        new = _line_search_stage(s, cands, results,
-                                 {key: len(items) for key, items in by_variant.items()},
-                                 between_bones=True)
+        new = _line_search_stage(s, cands, results, n_screened, between_bones=True)
         timing["pair_search_s"] = time.perf_counter() - t7
         if new:
             results += new

@@ -734,13 +734,20 @@ def line_spring_parameters(base: BaseStructure, place: LineSpringPlace, g: np.nd
     return np.concatenate([v, d]), float(np.sqrt(2 * cost))
 
 
+def base_dynamic_stiffness(ctx: Context, theta: np.ndarray) -> np.ndarray:
+    """Z(ω) = −ω²M + K + iωC of the base model at ``theta`` on the context's lines,
+    (n_f, n_dof, n_dof) complex (eq. 4.52)."""
+    w = ctx.omega
+    M, K, C = ctx.base.matrices(theta)
+    return (-(w**2)[:, None, None] * M + K[None] + 1j * w[:, None, None] * C).astype(complex)
+
+
 def response_vectors(ctx: Context, theta: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """``(Z⁻¹Oᵀ, Z⁻¹Iᵀ)`` of the base model at ``theta``: (n_f, n_dof, n_out) and
     (n_f, n_dof, n_in); the first-order change of H for a stiffness change ΔK is
     ``δH = −(Z⁻¹Oᵀ)ᵀ ΔK (Z⁻¹Iᵀ)`` (Z complex symmetric)."""
     w = ctx.omega
-    M, K, C = ctx.base.matrices(theta)
-    Z = (-(w**2)[:, None, None] * M + K[None] + 1j * w[:, None, None] * C).astype(complex)
+    Z = base_dynamic_stiffness(ctx, theta)
     n_out = ctx.out_rows.shape[0]
     rhs = np.concatenate([ctx.out_rows, ctx.in_rows]).T.astype(complex)
     X = np.linalg.solve(Z, np.broadcast_to(rhs, (w.size, *rhs.shape)))
