@@ -1332,20 +1332,32 @@ class _Stages:
     timing: dict[str, float]
 
 
+@dataclass(frozen=True)
+class _Reading:
+    """The base model under one reading of its dashpots, fitted: what the stages start
+    from."""
+
+    model: PelvisModel
+    ctx: Context
+    fit: _Lines
+    held: _Lines
+    base: BaseFit
+
+
 def _choose_dashpot_reading(model: PelvisModel, data: GapData, ctx: Context, fit: _Lines,
                             held: _Lines, base: BaseFit, held_lines: np.ndarray,
                             start: np.ndarray, names: Sequence[str], opt: GapOptions,
                             progress: Progress | None
-                            ) -> tuple[PelvisModel, Context, _Lines, _Lines, BaseFit, str]:
+                            ) -> tuple[_Reading, _Reading | None, str]:
     """The model's reading of appendix E's dashpot S1, or the other one when it removes
     at least ``reading_min_gain`` of the base misfit beyond noise (docs/model.md).
 
-    Returns the model, its context, fitted and held-out lines and base fit of the reading
-    chosen, and a note for the report."""
+    Returns the reading chosen, the other one when it was fitted (else None), and a note
+    for the report."""
     lever_note = ("the model's (its dashpot readings agree)" if not model.dashpot_lever_matters
                   else "the model's (the other reading not tried: base fit at noise level)")
     if not (model.dashpot_lever_matters and base.gap_fit > opt.restart_gap):
-        return model, ctx, fit, held, base, lever_note
+        return _Reading(model, ctx, fit, held, base), None, lever_note
     # the model's dashpots read two ways (appendix E's printed S1 pair is 0.71 mm off
     # its joint normal: both bodies at the midpoint, or each at its own point, eq. 4.16
     # literally; up to 0.6 % of an FRF's peak at 5 Hz with 1000 N s/m, i.e. hundreds of
@@ -1361,21 +1373,55 @@ def _choose_dashpot_reading(model: PelvisModel, data: GapData, ctx: Context, fit
     chi2_o = fit_o.chi2(evaluate(fit_o.ctx, base_o.values)[0])
     lever_note = (f"{model.dashpot_lever} (fitted-line chi2 {chi2_m:.4g}) against "
                   f"{other.dashpot_lever} ({chi2_o:.4g})")
+    wall_time_s = base.wall_time_s + base_o.wall_time_s
+    mine = _Reading(model, ctx, fit, held, replace(base, wall_time_s=wall_time_s))
+    theirs = _Reading(other, ctx_o, fit_o, _Lines.build(ctx_o, data, held_lines),
+                      replace(base_o, grid_start=base.grid_start, wall_time_s=wall_time_s))
     # the other reading must remove a good part of the misfit beyond the noise: on
     # an effect set (seed-9001 ligament #1) it absorbed 0.8 % of it and moved the
     # ligament fit from 0.14 to 1.29 (a readings difference is not an effect's)
     if chi2_m - chi2_o > opt.reading_min_gain * max(chi2_m - fit.n, 0.0):
-        model, ctx, fit = other, ctx_o, fit_o
-        held = _Lines.build(ctx, data, held_lines)
-        base = replace(base_o, grid_start=base.grid_start,
-                       starts=base.starts + base_o.starts,
-                       wall_time_s=base.wall_time_s + base_o.wall_time_s)
-    else:
-        base = replace(base, starts=base.starts + base_o.starts,
-                       wall_time_s=base.wall_time_s + base_o.wall_time_s)
+        mine, theirs = theirs, mine
+    starts = base.starts + base_o.starts
     if progress:
-        progress(f"dashpot reading {model.dashpot_lever}: {lever_note}")
-    return model, ctx, fit, held, base, lever_note
+        progress(f"dashpot reading {mine.model.dashpot_lever}: {lever_note}")
+    return (replace(mine, base=replace(mine.base, starts=starts)), theirs, lever_note)
+
+
+def _stages(data: GapData, reading: _Reading, opt: GapOptions, held_lines: np.ndarray,
+            timing: dict[str, float]) -> _Stages:
+    """What the stages after the base fit share, for the base fit of ``reading``: its
+    residual ("where"), the screening lines and the undistorted starts."""
+    ctx, fit, held, base = reading.ctx, reading.fit, reading.held, reading.base
+    names = ctx.base.names
+    start = ctx.base.nominal.copy()
+    theta = base.values
+    H_base, _ = evaluate(ctx, theta)
+    H_held_base, _ = evaluate(held.ctx, theta)
+    where = where_analysis(data, H_base)
+    where["rigidity"] = rigidity_of_residual(data, H_base)
+    # screening on every other fitted line: ranking places needs less than fitting
+    fit_mask = ~held_lines
+    coarse_mask = fit_mask & (np.cumsum(fit_mask) % 2 == 1)
+    coarse = _Lines.build(ctx, data, coarse_mask) if coarse_mask.sum() >= 20 else fit
+    is_c = np.array([nm.startswith("c_") for nm in names])
+    theta_undistorted = np.where(is_c, theta, start)
+    bounds = _base_bounds(names, start, opt.updating_range, opt.damping_max)
+    theta_damping_refit = _refit_damping(coarse, theta_undistorted, is_c, opt, bounds)
+    return _Stages(
+        data=data, ctx=ctx, opt=opt, names=tuple(names), start=start, base=base, theta=theta,
+        H_base=H_base,
+        held_lines=held_lines, fit=fit, held=held, coarse=coarse,
+        # dense grids (more than dense_lines fitted lines): the short fits that only rank
+        # the starts use every other fitted line (781 lines: 69 s of CPU before); the
+        # finish all
+        short_lines=coarse if int(np.sum(fit_mask)) > opt.dense_lines else fit,
+        bounds=bounds, theta_undistorted=theta_undistorted,
+        undistorted=(theta_undistorted, theta_damping_refit),
+        grid_theta=np.exp(base.grid_start) if base.grid_start is not None else theta,
+        chi2_base=held.chi2(H_held_base),
+        chi2_base_fitted=fit.chi2(evaluate(fit.ctx, theta)[0]),
+        gap_before=held.gap(H_held_base), where=where, timing=timing)
 
 
 def _screen_stage(s: _Stages, cands: Sequence[Candidate]
@@ -2131,42 +2177,15 @@ def diagnose(data: GapData, model: PelvisModel, options: GapOptions | None = Non
         raise ValueError("too few measured lines to hold some out (need >= 5 held out)")
     timing: dict[str, float] = {}
     base = fit_base(fit, start, names, opt, progress)
-    model, ctx, fit, held, base, lever_note = _choose_dashpot_reading(
+    reading, other_reading, lever_note = _choose_dashpot_reading(
         model, data, ctx, fit, held, base, held_lines, start, names, opt, progress)
-    timing["base_fit_s"] = base.wall_time_s
-    theta = base.values
-    H_base, _ = evaluate(ctx, theta)
-    H_held_base, _ = evaluate(held.ctx, theta)
-    chi2_base_fitted = fit.chi2(evaluate(fit.ctx, theta)[0])
-    gap_before = held.gap(H_held_base)
-    chi2_base = held.chi2(H_held_base)
-    where = where_analysis(data, H_base)
-    where["rigidity"] = rigidity_of_residual(data, H_base)
+    model, ctx = reading.model, reading.ctx
+    timing["base_fit_s"] = reading.base.wall_time_s
 
     # Which: screen every place, then joint fits of the best places per variant
     t1 = time.perf_counter()
+    s = _stages(data, reading, opt, held_lines, timing)
     cands = candidate_library(ctx, opt.effects)
-    # screening on every other fitted line: ranking places needs less than fitting
-    fit_mask = ~held_lines
-    coarse_mask = fit_mask & (np.cumsum(fit_mask) % 2 == 1)
-    coarse = _Lines.build(ctx, data, coarse_mask) if coarse_mask.sum() >= 20 else fit
-    is_c = np.array([nm.startswith("c_") for nm in names])
-    theta_undistorted = np.where(is_c, theta, start)
-    bounds = _base_bounds(names, start, opt.updating_range, opt.damping_max)
-    theta_damping_refit = _refit_damping(coarse, theta_undistorted, is_c, opt, bounds)
-    s = _Stages(
-        data=data, ctx=ctx, opt=opt, names=tuple(names), start=start, base=base, theta=theta,
-        H_base=H_base,
-        held_lines=held_lines, fit=fit, held=held, coarse=coarse,
-        # dense grids (more than dense_lines fitted lines): the short fits that only rank
-        # the starts use every other fitted line (781 lines: 69 s of CPU before); the
-        # finish all
-        short_lines=coarse if int(np.sum(fit_mask)) > opt.dense_lines else fit,
-        bounds=bounds, theta_undistorted=theta_undistorted,
-        undistorted=(theta_undistorted, theta_damping_refit),
-        grid_theta=np.exp(base.grid_start) if base.grid_start is not None else theta,
-        chi2_base=chi2_base, chi2_base_fitted=chi2_base_fitted, gap_before=gap_before,
-        where=where, timing=timing)
     by_variant, spring_starts = _screen_stage(s, cands)
     timing["screen_s"] = time.perf_counter() - t1
     if progress:
@@ -2210,7 +2229,7 @@ def diagnose(data: GapData, model: PelvisModel, options: GapOptions | None = Non
     shown = v.best if v.best is not None else (ranked[0] if ranked else None)
     if shown is not None:
         H_best, _ = evaluate(ctx, shown.theta, shown.candidate.build(shown.u, ctx))
-    residual_map = normalised_residual(data, H_base, fill=np.nan)
+    residual_map = normalised_residual(data, s.H_base, fill=np.nan)
     timing["total_s"] = time.perf_counter() - t0
     report = _report(s, model, lever_note, ranked, cal, v)
-    return Diagnosis(report, H_base, H_best, residual_map, data, timing)
+    return Diagnosis(report, s.H_base, H_best, residual_map, data, timing)
