@@ -243,6 +243,15 @@ def format_report(report: dict) -> str:
     for c in report["candidates"]:
         lines.append(f"  {c['effect']:<30} gap {c['gap_after']:<8.3g} shrink "
                      f"{c['shrink']:>6.0%}  [{c.get('variant', '')} @ {c.get('place', '')}]")
+    ranges = report.get("not_excluded") or []
+    if ranges:
+        lines.append("not excluded by the data (global effects; chi2 of all lines within the "
+                     "test's critical value of its best, base refitted):")
+        for r in ranges:
+            lines.append(f"  {r['effect']:<30} {r['parameter']} {r['low']:.3g} .. {r['high']:.3g}"
+                         f" (fitted {r['fitted']:.3g}"
+                         + ("; 0 inside: updating may absorb it" if r["null_inside"] else "")
+                         + ")")
     return "\n".join(lines)
 
 
