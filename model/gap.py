@@ -2124,6 +2124,58 @@ def _other_reading_stage(s_o: _Stages, results: Sequence[CandidateResult]
     return out
 
 
+def _other_reading_null_stage(s: _Stages, reading: _Reading, v: _Verdict,
+                              results: Sequence[CandidateResult]) -> _Verdict:
+    """The named effect tested also against the null under the dashpot reading not
+    chosen: parameter updating under that reading (and one damping coefficient per
+    dashpot, where the effect was fitted with it), by the verdict's own tests (held-out
+    χ² drop, or pooled with the fitted lines when the held-out drop is positive). The
+    reading is a modelling choice within the null, not an effect: when that null comes
+    near the noise (gap ≤ ``near_noise_gap``) and the effect is not significant beyond
+    it, the verdict is ``none``. Returns the verdict, changed or not."""
+    best, opt = v.best, s.opt
+    if best is None or v.verdict != best.candidate.effect:
+        return v
+    exact = s.data.noise_source == "H_std"
+    fit_o, held_o = reading.fit, reading.held
+    if best.beyond_null is None:
+        theta_o = reading.base.values
+        chi2_h = held_o.chi2(evaluate(held_o.ctx, theta_o)[0])
+        chi2_f = fit_o.chi2(evaluate(fit_o.ctx, theta_o)[0])
+        what = "parameter updating"
+        crit_h = _significance_threshold(best, opt, chi2_h, exact)
+        crit_p = _significance_threshold(best, opt, chi2_h + chi2_f, exact)
+    else:
+        # one damping per dashpot under the other reading, from the chosen reading's fit
+        # of it and from the other reading's base fit
+        (null_cand,) = candidate_library(reading.ctx, (PER_DASHPOT_DAMPING,))
+        null_here = min((r for r in results if r.candidate.effect == PER_DASHPOT_DAMPING),
+                        key=lambda r: r.score, default=None)
+        starts = [np.r_[np.log(reading.base.values), null_cand.starts[0]]]
+        if null_here is not None:
+            starts.append(np.r_[np.log(null_here.theta), null_here.u])
+        bounds = _base_bounds(s.names, s.start, opt.updating_range, opt.damping_max)
+        fits = parallel_map(lambda x0: _joint_finish(null_cand, fit_o, held_o, x0, bounds,
+                                                     opt, opt.max_nfev_joint),
+                            starts, opt.jobs)
+        _th, _u, chi2_f, chi2_h = min(fits, key=lambda f: f[2])
+        what = "parameter updating with one damping coefficient per dashpot"
+        n_own = best.candidate.n_params - null_cand.n_params
+        crit_h = crit_p = float(chi2_dist.isf(opt.p_value / max(1, best.screened_places),
+                                              n_own))
+    gap_o = excess_gap(chi2_h, held_o.n)
+    drop = chi2_h - best.chi2_heldout
+    drop_pooled = drop + chi2_f - best.chi2_fitted
+    if drop > crit_h or (drop > 0 and drop_pooled > crit_p) or gap_o > opt.near_noise_gap:
+        return v
+    reason = (f"under the other dashpot reading ({reading.model.dashpot_lever}) {what} "
+              f"brings the held-out gap to {gap_o:.3g}, and {v.verdict} is not significant "
+              f"beyond it (held-out chi2 drop {drop:.3g} <= {crit_h:.3g}"
+              + (f", with the fitted lines {drop_pooled:.3g} <= {crit_p:.3g}" if drop > 0
+                 else "") + f"); before it: {v.reason}")
+    return replace(v, verdict="none", reason=reason)
+
+
 def _not_excluded(s: _Stages, results: Sequence[CandidateResult]) -> list[dict[str, object]]:
     """Sizes of the global one-parameter effects (f_k, f_c, loss factor) that the data
     cannot exclude: the range of the effect's parameter over which the χ² of fitted and
@@ -2357,6 +2409,16 @@ def diagnose(data: GapData, model: PelvisModel, options: GapOptions | None = Non
     if shown is not None:
         H_best, _ = evaluate(ctx, shown.theta, shown.candidate.build(shown.u, ctx))
     residual_map = normalised_residual(data, s.H_base, fill=np.nan)
+    if other_reading is not None and s.ctx is not other_reading.ctx and (
+            v.verdict in EFFECT_NAMES):
+        # the effect must also beat the null under the reading not chosen (fresh judge-
+        # like set 9753_019, no effect, "points" subject with one damping per dashpot:
+        # midpoint kept, 4072 against 4068; 2.2 g at the sacrum + one damping per dashpot
+        # named at held-out chi2 743.9, which one damping per dashpot alone reaches under
+        # "points": 743.9)
+        t10 = time.perf_counter()
+        v = _other_reading_null_stage(s, other_reading, v, results)
+        timing["other_reading_null_s"] = time.perf_counter() - t10
     t9 = time.perf_counter()
     not_excluded = _not_excluded(s, results)
     timing["not_excluded_s"] = time.perf_counter() - t9
