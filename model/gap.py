@@ -2154,8 +2154,8 @@ def _other_reading_null_stage(s: _Stages, reading: _Reading, v: _Verdict,
         starts = [np.r_[np.log(reading.base.values), null_cand.starts[0]]]
         if null_here is not None:
             starts.append(np.r_[np.log(null_here.theta), null_here.u])
-        bounds = _base_bounds(s.names, s.start, opt.updating_range, opt.damping_max)
-        fits = parallel_map(lambda x0: _joint_finish(null_cand, fit_o, held_o, x0, bounds,
+        # the bounds are the chosen reading's: a reading moves no parameter's nominal value
+        fits = parallel_map(lambda x0: _joint_finish(null_cand, fit_o, held_o, x0, s.bounds,
                                                      opt, opt.max_nfev_joint),
                             starts, opt.jobs)
         _th, _u, chi2_f, chi2_h = min(fits, key=lambda f: f[2])
@@ -2192,12 +2192,12 @@ def _not_excluded(s: _Stages, results: Sequence[CandidateResult]) -> list[dict[s
     range (−0.60, 1.43) is 12.2 and 8.4 against 10.8."""
     opt = s.opt
     exact = s.data.noise_source == "H_std"
-    null_n = {r.candidate.n_params for r in results if r.candidate.effect == PER_DASHPOT_DAMPING}
+    n_null = next((r.candidate.n_params for r in results
+                   if r.candidate.effect == PER_DASHPOT_DAMPING), 0)
     best: dict[tuple[str, str], CandidateResult] = {}
     for res in results:
         c = res.candidate
-        n_own = c.n_params - (next(iter(null_n)) if res.beyond_null is not None and null_n
-                              else 0)
+        n_own = c.n_params - (n_null if res.beyond_null is not None else 0)
         if (c.place_kind != "global" or c.effect not in EFFECT_NAMES or n_own != 1
                 or res.gap_after > opt.near_noise_gap):
             continue
