@@ -50,6 +50,7 @@ from pelvislab.model.gap_effects import (
     Candidate,
     Context,
     EffectTerms,
+    Solved,
     base_dynamic_stiffness,
     base_structure,
     calibration_gains,
@@ -58,7 +59,9 @@ from pelvislab.model.gap_effects import (
     line_spring_basis,
     line_spring_parameters,
     line_spring_rows,
+    model_jacobian,
     response_vectors,
+    solve,
     support_on_line,
     with_extension,
 )
@@ -440,6 +443,7 @@ class _Model:
         self.fixed_theta = fixed_theta  # when given, only effect parameters are free
         self.n_theta = n_theta
         self.nfev = 0
+        self._last: tuple[np.ndarray, Solved] | None = None
 
     def split(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         if self.fixed_theta is not None:
@@ -449,58 +453,74 @@ class _Model:
     def terms(self, u: np.ndarray) -> EffectTerms | None:
         return None if self.cand is None else self.cand.build(u, self.lines.ctx)
 
-    def H(self, x: np.ndarray, jac: bool = False) -> tuple[np.ndarray, np.ndarray | None]:
+    def solved(self, x: np.ndarray) -> Solved:
+        """The model solved at ``x``. The last solve is kept: the least-squares solver asks
+        for the Jacobian at the point whose residual it has just computed."""
+        if self._last is not None and np.array_equal(self._last[0], x):
+            return self._last[1]
         theta, u = self.split(x)
         self.nfev += 1
-        return evaluate(self.lines.ctx, theta, self.terms(u), jacobian=jac)
+        s = solve(self.lines.ctx, theta, self.terms(u))
+        self._last = (np.array(x, float, copy=True), s)
+        return s
+
+    def H(self, x: np.ndarray, jac: bool = False) -> tuple[np.ndarray, np.ndarray | None]:
+        s = self.solved(x)
+        return s.H, (model_jacobian(self.lines.ctx, s) if jac else None)
 
     def residual(self, x: np.ndarray) -> np.ndarray:
-        return self.lines.residual(self.H(x)[0])
+        return self.lines.residual(self.solved(x).H)
 
     def jacobian(self, x: np.ndarray) -> np.ndarray:
+        """∂residual/∂x: exact in log θ (the atoms); in the effect parameters, forward
+        differences (step 1e-6) - of ΔZ alone, contracted with the residual's solve, for
+        parameters that enter only through ΔZ (all of a ΔZ-only effect's, a null
+        extension's), of the whole model (one solve each) for the others."""
         theta, u = self.split(x)
-        if self.cand is not None and u.size:
-            terms = self.terms(u)
-            if _only_dZ(terms):
-                return self._jacobian_dZ(theta, u, terms)
-        blocks = []
-        if self.fixed_theta is None:
-            H, dH = self.H(x, jac=True)
-            blocks.append(self.lines.jac(dH))
+        s = self.solved(x)
+        ctx = self.lines.ctx
+        if self.cand is None or not u.size:
+            via_dZ: list[int] = []
+        elif _only_dZ(s.terms):
+            via_dZ = list(range(u.size))
         else:
-            H, _ = self.H(x)
-        r0 = self.lines.residual(H)
-        if self.cand is not None:
-            # forward differences for the few effect parameters
-            cols = []
-            for k in range(u.size):
-                h = 1e-6 * max(1.0, abs(u[k]))
-                uk = u.copy()
-                uk[k] += h
-                Hk, _ = evaluate(self.lines.ctx, theta, self.cand.build(uk, self.lines.ctx))
-                self.nfev += 1
-                cols.append((self.lines.residual(Hk) - r0) / h)
-            if cols:
-                blocks.append(np.stack(cols, axis=1))
-        return np.concatenate(blocks, axis=1)
-
-
-    def _jacobian_dZ(self, theta: np.ndarray, u: np.ndarray, terms: EffectTerms
-                     ) -> np.ndarray:
-        """Jacobian when the effect enters only through ΔZ: differences of ΔZ (cheap,
-        no solve) contracted with the one solve's ``Z⁻¹Oᵀ``, ``Z⁻¹Iᵀ``; exact for the base
-        parameters, forward differences (step 1e-6) in the effect parameters."""
-        dirs = np.empty((u.size, *terms.dZ.shape), complex)
+            via_dZ = [k for k in self.cand.dZ_params if k < u.size]
+        dirs = self._dZ_directions(s, u, via_dZ) if via_dZ else None
+        J = (self.lines.jac(model_jacobian(ctx, s, dirs))
+             if self.fixed_theta is None or dirs is not None else None)
+        n_th = s.theta.size
+        blocks = [] if self.fixed_theta is not None else [J[:, :n_th]]
+        if len(via_dZ) == u.size:
+            if u.size:
+                blocks.append(J[:, n_th:])
+            return np.concatenate(blocks, axis=1)
+        r0 = self.lines.residual(s.H)
+        cols = []
         for k in range(u.size):
+            if k in via_dZ:
+                cols.append(J[:, n_th + via_dZ.index(k)])
+                continue
             h = 1e-6 * max(1.0, abs(u[k]))
             uk = u.copy()
             uk[k] += h
-            dZk = self.cand.build(uk, self.lines.ctx).dZ
-            dirs[k] = (dZk - terms.dZ) / h
-        _, dH = evaluate(self.lines.ctx, theta, terms, jacobian=True, dZ_directions=dirs)
-        self.nfev += 1
-        J = self.lines.jac(dH)
-        return J[:, theta.size:] if self.fixed_theta is not None else J
+            Hk, _ = evaluate(ctx, theta, self.cand.build(uk, ctx))
+            self.nfev += 1
+            cols.append((self.lines.residual(Hk) - r0) / h)
+        blocks.append(np.stack(cols, axis=1))
+        return np.concatenate(blocks, axis=1)
+
+    def _dZ_directions(self, s: Solved, u: np.ndarray, params: Sequence[int]) -> np.ndarray:
+        """Forward differences (step 1e-6) of ΔZ in the effect parameters ``params``:
+        (n_f, k, n, n), no solve."""
+        dZ = s.terms.dZ
+        dirs = np.empty((dZ.shape[0], len(params), *dZ.shape[1:]), complex)
+        for j, k in enumerate(params):
+            h = 1e-6 * max(1.0, abs(u[k]))
+            uk = u.copy()
+            uk[k] += h
+            np.subtract(self.cand.build(uk, self.lines.ctx).dZ, dZ, out=dirs[:, j])
+            dirs[:, j] /= h
+        return dirs
 
 
 def _only_dZ(terms: EffectTerms | None) -> bool:

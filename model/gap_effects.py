@@ -64,10 +64,26 @@ class BaseStructure:
     params: np.ndarray  # (n_a,)
     constant_M: np.ndarray  # (n_dof, n_dof) unparametrised mass (point masses of the file)
     outers: np.ndarray = field(init=False)  # (n_a, n_dof, n_dof) w v vᵀ
+    # the atoms sorted by parameter, and where each parameter's atoms start
+    grouped_vectors: np.ndarray = field(init=False)
+    grouped_weights: np.ndarray = field(init=False)
+    grouped_kinds: np.ndarray = field(init=False)
+    grouped_params: np.ndarray = field(init=False)
+    param_starts: np.ndarray = field(init=False)
 
     def __post_init__(self) -> None:
         outers = self.weights[:, None, None] * self.vectors[:, :, None] * self.vectors[:, None, :]
         object.__setattr__(self, "outers", outers)
+        # the atoms grouped by parameter (stable order), for the Jacobian's sum per parameter
+        order = np.argsort(self.params, kind="stable")
+        object.__setattr__(self, "grouped_vectors", np.ascontiguousarray(self.vectors[order]))
+        object.__setattr__(self, "grouped_weights", self.weights[order])
+        object.__setattr__(self, "grouped_kinds", self.kinds[order])
+        object.__setattr__(self, "grouped_params", self.params[order])
+        starts = np.flatnonzero(np.r_[True, np.diff(self.params[order]) != 0])
+        if starts.size != len(self.names):
+            raise ValueError("every named parameter needs at least one atom")
+        object.__setattr__(self, "param_starts", starts)
 
     @property
     def n_dof(self) -> int:
@@ -225,75 +241,156 @@ class EffectTerms:
     out_rows: np.ndarray | None = None  # (n_out, n)
 
 
-def evaluate(ctx: Context, theta: np.ndarray, terms: EffectTerms | None = None,
-             jacobian: bool = False, dZ_directions: np.ndarray | None = None
-             ) -> tuple[np.ndarray, np.ndarray | None]:
-    """H (n_f, n_out, n_in) and, optionally, ∂H/∂log θ (n_f, n_out, n_in, n_p).
+def _split_factor(a: np.ndarray | None, default_real: np.ndarray | None,
+                  default_imag: np.ndarray | None) -> tuple[np.ndarray | None, np.ndarray | None]:
+    """(real, imaginary) parts of a frequency factor; None for a part that is zero."""
+    if a is None:
+        return default_real, default_imag
+    if np.iscomplexobj(a):
+        return a.real, a.imag
+    return a, None
+
+
+def _dynamic_stiffness(factors: Sequence[tuple[np.ndarray | None, np.ndarray | None]],
+                       matrices: Sequence[np.ndarray], n_f: int) -> np.ndarray:
+    """Z (n_f, n, n) = Σ a_j(ω) X_j for real matrices X_j and complex factors a_j, built
+    on the real and imaginary parts separately: the same sums as the complex products
+    (a zero part adds nothing), without complex temporaries (several times faster)."""
+    n = matrices[0].shape[0]
+    Z = np.empty((n_f, n, n), complex)
+    for part, out in ((0, Z.real), (1, Z.imag)):
+        acc = None
+        for pair, X in zip(factors, matrices, strict=True):
+            a = pair[part]
+            if a is None:
+                continue
+            term = a[:, None, None] * X
+            acc = term if acc is None else acc + term
+        out[...] = 0.0 if acc is None else acc
+    return Z
+
+
+@dataclass(frozen=True, eq=False)
+class Solved:
+    """The solves of one model evaluation: H and what its Jacobian needs (see
+    :func:`solve`). ``groups`` holds, per set of input columns solved together, the
+    columns and ``X = Z_g⁻¹ [Oᵀ I_gᵀ]`` (n_f, n, n_out + n_cols)."""
+
+    theta: np.ndarray
+    terms: EffectTerms
+    factors: tuple[tuple[np.ndarray | None, np.ndarray | None], ...]
+    groups: tuple[tuple[list[int], np.ndarray], ...]
+    H: np.ndarray  # (n_f, n_out, n_in), measurement-chain gains applied
+    gain: np.ndarray | None  # (n_f, n_out, n_in) gains, None = none
+
+
+def solve(ctx: Context, theta: np.ndarray, terms: EffectTerms | None = None) -> Solved:
+    """H (n_f, n_out, n_in) of the base model with parameters ``theta`` (SI) plus ``terms``.
 
     One batched solve ``Z⁻¹ [Oᵀ Iᵀ]`` per call (one more per input that carries its own
-    ``dZ_input``: column j is then ``O (Z + ΔZ_j)⁻¹ i_j``); the Jacobian uses the atoms:
-    ``∂H/∂θ_p = −(Z⁻¹Oᵀ)ᵀ ∂Z/∂θ_p (Z⁻¹Iᵀ)`` (Z complex symmetric). With ``jacobian`` and
-    ``dZ_directions`` (k, n_f, n, n), k more columns ``−(Z⁻¹Oᵀ)ᵀ D_k (Z⁻¹Iᵀ)`` follow:
-    the derivative of H along changes D_k of the common ΔZ (effect parameters that enter
-    only through ``dZ``), without a solve per direction.
+    ``dZ_input``: column j is then ``O (Z + ΔZ_j)⁻¹ i_j``), kept for :func:`jacobian`.
     """
     base = ctx.base
     terms = terms or EffectTerms()
     w = ctx.omega
-    a_m = -(w**2) if terms.a_m is None else terms.a_m
-    a_k = np.ones_like(w) if terms.a_k is None else terms.a_k
-    a_c = 1j * w if terms.a_c is None else terms.a_c
+    n_f = w.size
     M, K, C = base.matrices(theta)
-    Z = (a_m[:, None, None] * M + a_k[:, None, None] * K + a_c[:, None, None] * C).astype(complex)
+    # the plain viscous factors (eq. 4.54): a_m = −ω², a_k = 1, a_c = iω
+    factors = (_split_factor(terms.a_m, -(w**2), None),
+               _split_factor(terms.a_k, np.ones_like(w), None),
+               _split_factor(terms.a_c, None, w))
+    Z = _dynamic_stiffness(factors, (M, K, C), n_f)
     if terms.dZ is not None:
         Z = Z + terms.dZ
     o = ctx.out_rows if terms.out_rows is None else terms.out_rows
     i = ctx.in_rows
     n_out, n_in = o.shape[0], i.shape[0]
     # (dynamic stiffness, input columns) solved together
-    groups: list[tuple[np.ndarray, list[int]]] = []
+    to_solve: list[tuple[np.ndarray, list[int]]] = []
     if terms.dZ_input is None:
-        groups.append((Z, list(range(n_in))))
+        to_solve.append((Z, list(range(n_in))))
     else:
         plain = [j for j in range(n_in) if terms.dZ_input[j] is None]
         if plain:
-            groups.append((Z, plain))
-        groups.extend((Z + d, [j]) for j, d in enumerate(terms.dZ_input) if d is not None)
-    H = np.empty((w.size, n_out, n_in), complex)
-    n_extra = 0 if dZ_directions is None else dZ_directions.shape[0]
-    dH = (np.empty((w.size, n_out, n_in, base.n_params + n_extra), complex) if jacobian
-          else None)
-    if jacobian:
-        coef_kind = np.stack([a_m, a_k, a_c], axis=1)  # (n_f, 3)
-        theta = np.asarray(theta, float)
-        c = base.weights * coef_kind[:, base.kinds] * theta[base.params]  # d/dlog θ
-        P = np.zeros((c.shape[1], base.n_params))
-        P[np.arange(c.shape[1]), base.params] = 1.0
-    for Zg, cols in groups:
+            to_solve.append((Z, plain))
+        to_solve.extend((Z + d, [j]) for j, d in enumerate(terms.dZ_input) if d is not None)
+    H = np.empty((n_f, n_out, n_in), complex)
+    groups = []
+    for Zg, cols in to_solve:
         rhs = np.concatenate([o, i[cols]]).T.astype(complex)
-        X = np.linalg.solve(Zg, np.broadcast_to(rhs, (w.size, *rhs.shape)))
-        A, B = X[..., :n_out], X[..., n_out:]
-        H[:, :, cols] = o @ B
-        if dH is None:
-            continue
-        a = base.vectors @ A  # (n_f, n_a, n_out)
-        b = base.vectors @ B  # (n_f, n_a, n_cols)
-        n_f, n_a = c.shape
-        outer = (a * c[:, :, None])[:, :, :, None] * b[:, :, None, :]  # (n_f, n_a, n_out, n_c)
-        d = -(outer.reshape(n_f, n_a, n_out * len(cols)).transpose(0, 2, 1) @ P)
-        dH[:, :, cols, :base.n_params] = d.reshape(n_f, n_out, len(cols), base.n_params)
+        X = np.linalg.solve(Zg, np.broadcast_to(rhs, (n_f, *rhs.shape)))
+        H[:, :, cols] = o @ X[..., n_out:]
+        groups.append((cols, X))
+    gain = None
+    if terms.out_gain is not None or terms.in_gain is not None:
+        gain = np.ones(H.shape, complex)
+        if terms.out_gain is not None:
+            gain = gain * terms.out_gain[:, :, None]
+        if terms.in_gain is not None:
+            gain = gain * terms.in_gain[:, None, :]
+        H = H * gain
+    return Solved(np.asarray(theta, float), terms, factors, tuple(groups), H, gain)
+
+
+def model_jacobian(ctx: Context, solved: Solved, dZ_directions: np.ndarray | None = None
+                   ) -> np.ndarray:
+    """∂H/∂log θ (n_f, n_out, n_in, n_p) at a :func:`solve` of ``ctx``, from its solves.
+
+    The atoms give ``∂H/∂θ_p = −(Z⁻¹Oᵀ)ᵀ ∂Z/∂θ_p (Z⁻¹Iᵀ)`` (Z complex symmetric). With
+    ``dZ_directions``, k more columns ``−(Z⁻¹Oᵀ)ᵀ D_k (Z⁻¹Iᵀ)`` follow: the
+    derivative of H along changes D_k of the common ΔZ (effect parameters that enter only
+    through ``dZ``), without a solve per direction. ``dZ_directions`` is (n_f, k, n, n):
+    each line's k directions together.
+    """
+    base = ctx.base
+    n_f = ctx.frequency_hz.size
+    n_out, n_in = solved.H.shape[1:]
+    n_extra = 0 if dZ_directions is None else dZ_directions.shape[1]
+    dH = np.empty((n_f, n_out, n_in, base.n_params + n_extra), complex)
+    a_kind = np.stack([_factor(p, n_f) for p in solved.factors], axis=1)  # (n_f, 3)
+    # d/dlog θ of each atom's factor, atoms grouped by parameter: (n_a, n_f)
+    c_atoms = (base.grouped_weights[:, None] * a_kind[:, base.grouped_kinds].T
+               * solved.theta[base.grouped_params][:, None])
+    for cols, X in solved.groups:
+        n_c, n = len(cols), X.shape[1]
+        # atom projections g_aᵀ X for all lines in one real product: (n_a, n_f, n_out + n_c)
+        ab = np.tensordot(base.grouped_vectors, X.view(float), axes=([1], [1])).view(complex)
+        outer = ((c_atoms[:, :, None] * ab[:, :, :n_out])[:, :, :, None]
+                 * ab[:, :, None, n_out:])  # (n_a, n_f, n_out, n_c)
+        per_param = np.add.reduceat(outer, base.param_starts, axis=0)  # (n_p, ...)
+        dH[:, :, cols, :base.n_params] = -np.moveaxis(per_param, 0, -1)
         if n_extra:
-            ext = -(A.transpose(0, 2, 1)[None] @ dZ_directions @ B[None])  # (k, n_f, o, c)
-            dH[:, :, cols, base.n_params:] = ext.transpose(1, 2, 3, 0)
-    gain = np.ones(H.shape, complex)
-    if terms.out_gain is not None:
-        gain = gain * terms.out_gain[:, :, None]
-    if terms.in_gain is not None:
-        gain = gain * terms.in_gain[:, None, :]
-    H = H * gain
-    if dH is None:
-        return H, None
-    return H, dH * gain[..., None]
+            # −Aᵀ (D_k B), the k directions stacked per line (two products per line)
+            A, B = X[..., :n_out], X[..., n_out:]
+            DB = dZ_directions.reshape(n_f, n_extra * n, n) @ B  # (n_f, k n, n_c)
+            DB = DB.reshape(n_f, n_extra, n, n_c).transpose(0, 2, 1, 3)
+            ext = A.transpose(0, 2, 1) @ DB.reshape(n_f, n, n_extra * n_c)
+            dH[:, :, cols, base.n_params:] = -ext.reshape(n_f, n_out, n_extra, n_c
+                                                          ).transpose(0, 1, 3, 2)
+    return dH if solved.gain is None else dH * solved.gain[..., None]
+
+
+def evaluate(ctx: Context, theta: np.ndarray, terms: EffectTerms | None = None,
+             jacobian: bool = False, dZ_directions: np.ndarray | None = None
+             ) -> tuple[np.ndarray, np.ndarray | None]:
+    """H (n_f, n_out, n_in) and, optionally, ∂H/∂log θ (n_f, n_out, n_in, n_p [+ k]):
+    :func:`solve` then, with ``jacobian``, :func:`model_jacobian` (``dZ_directions``: see
+    there)."""
+    solved = solve(ctx, theta, terms)
+    if not jacobian:
+        return solved.H, None
+    return solved.H, model_jacobian(ctx, solved, dZ_directions)
+
+
+def _factor(pair: tuple[np.ndarray | None, np.ndarray | None], n_f: int) -> np.ndarray:
+    """A frequency factor (n_f,) complex from its (real, imaginary) parts."""
+    re, im = pair
+    out = np.zeros(n_f, complex)
+    if re is not None:
+        out.real = re
+    if im is not None:
+        out.imag = im
+    return out
 
 
 # ---------------------------------------------------------------------------------------
@@ -340,6 +437,9 @@ class Candidate:
     # point lies within the bounds: a joint fit that ends worse than the base is finished
     # again from there
     null: np.ndarray | None = None
+    # effect parameters that change the model only through the common ΔZ (``dZ``) even
+    # when others do not: their Jacobian columns need no solve (see ``with_extension``)
+    dZ_params: tuple[int, ...] = ()
 
     @property
     def n_params(self) -> int:
@@ -957,7 +1057,8 @@ def with_extension(cand: Candidate, extension: Candidate) -> Candidate:
                    lower=np.concatenate([cand.lower, extension.lower]),
                    upper=np.concatenate([cand.upper, extension.upper]),
                    starts=tuple(np.concatenate([s, extension.starts[0]]) for s in cand.starts),
-                   build=build, describe=describe, null=None)
+                   build=build, describe=describe, null=None,
+                   dZ_params=cand.dZ_params + tuple(range(n1, n1 + extension.n_params)))
 
 
 EFFECT_NAMES = (

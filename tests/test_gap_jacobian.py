@@ -1,0 +1,112 @@
+"""The gap diagnosis's least-squares Jacobian (issue 10): the solve shared with the
+residual, ΔZ-direction columns for ΔZ-only effects and for a null extension's parameters
+on any effect, each against plain forward differences of the residual."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from pelvislab.acquisition.frfset import Channels
+from pelvislab.model.gap import _context, _Lines, _Model, prepare_data
+from pelvislab.model.gap_effects import (
+    PER_DASHPOT_DAMPING,
+    candidate_library,
+    evaluate,
+    model_jacobian,
+    solve,
+    with_extension,
+)
+from pelvislab.model.pelvis import default_model
+
+F_HZ = np.arange(5.0, 250.1, 7.5)
+OUT = Channels(
+    ["sacrum_x", "sias_R_x", "sias_L_y"], ["sacrum", "innominate_right", "innominate_left"],
+    np.array([[-0.16, 0.0, -0.06], [0.0, -0.11, 0.0], [-0.01, 0.12, -0.01]]),
+    np.array([[-1.0, 0, 0], [1, 0, 0], [0, 1, 0]]),
+)
+IN = Channels(["sips_R_x", "sips_L_x"], ["innominate_right", "innominate_left"],
+              np.array([[-0.14, -0.045, 0.02], [-0.14, 0.045, 0.02]]),
+              np.array([[1.0, 0, 0], [1, 0, 0]]))
+
+
+@pytest.fixture(scope="module")
+def lines():
+    """All lines of a small set whose 'measurement' is the nominal model x 1.1 (any
+    values do: only derivatives are checked)."""
+    ctx0 = _context(default_model(), prepare_data(
+        F_HZ, np.ones((F_HZ.size, 3, 2), complex), np.ones((F_HZ.size, 3, 2)), OUT, IN))
+    H = 1.1 * evaluate(ctx0, ctx0.base.nominal)[0]
+    sigma = 0.01 * np.abs(H).max(axis=0, keepdims=True) * np.ones(H.shape)
+    data = prepare_data(F_HZ, H, sigma, OUT, IN)
+    return _Lines.build(_context(default_model(), data), data, np.ones(F_HZ.size, bool))
+
+
+def candidate(ctx, effect, variant=None):
+    for c in candidate_library(ctx):
+        if c.effect == effect and (variant is None or c.variant == variant):
+            return c
+    raise AssertionError(f"no candidate {effect}")
+
+
+def residual_differences(model, x, step=1e-4):
+    """∂residual/∂x by central differences of the whole model (two solves per column;
+    a step of 1e-4 keeps the rounding of the small damping columns below 1e-6)."""
+    cols = []
+    for k in range(x.size):
+        h = step * max(1.0, abs(x[k]))
+        xp, xm = x.copy(), x.copy()
+        xp[k] += h
+        xm[k] -= h
+        cols.append((model.residual(xp) - model.residual(xm)) / (2 * h))
+    return np.stack(cols, axis=1)
+
+
+def assert_columns_close(J, J_fd, rtol=2e-3):
+    for k in range(J.shape[1]):
+        scale = np.max(np.abs(J_fd[:, k])) + 1e-300
+        assert np.max(np.abs(J[:, k] - J_fd[:, k])) <= rtol * scale, k
+
+
+@pytest.mark.parametrize("effect, variant", [
+    ("added_mass", None),                                # ΔZ only: every column via ΔZ
+    ("hysteretic_damping", "loss factor (K(1+i eta))"),  # a_k: its column by a solve
+    ("soft_tissue", "tissue at output"),                 # ΔZ and an output gain
+])
+def test_jacobian_with_null_extension_matches_differences(lines, effect, variant):
+    ctx = lines.ctx
+    extension = candidate(ctx, PER_DASHPOT_DAMPING)
+    cand = with_extension(candidate(ctx, effect, variant), extension)
+    n1 = cand.n_params - extension.n_params
+    assert cand.dZ_params[-extension.n_params:] == tuple(range(n1, cand.n_params))
+    rng = np.random.default_rng(3)
+    u = np.clip(cand.starts[0] + rng.normal(0, 0.1, cand.n_params),
+                cand.lower + 0.05, cand.upper - 0.05)
+    x = np.concatenate([np.log(ctx.base.nominal) + rng.normal(0, 0.1, ctx.base.n_params),
+                        u])
+    model = _Model(lines, cand, None, ctx.base.n_params)
+    J = model.jacobian(x)
+    assert J.shape == (2 * lines.n, ctx.base.n_params + cand.n_params)
+    assert_columns_close(J, residual_differences(model, x))
+    # with the base frozen, only the effect's columns
+    fixed = _Model(lines, cand, np.exp(x[:ctx.base.n_params]), ctx.base.n_params)
+    np.testing.assert_allclose(fixed.jacobian(u), J[:, ctx.base.n_params:], rtol=1e-12,
+                               atol=1e-12 * np.abs(J).max())
+
+
+def test_residual_solve_is_reused_by_the_jacobian(lines):
+    ctx = lines.ctx
+    model = _Model(lines, None, None, ctx.base.n_params)
+    x = np.log(ctx.base.nominal)
+    r = model.residual(x)
+    n_solves = model.nfev
+    J = model.jacobian(x.copy())
+    assert model.nfev == n_solves  # the same point: no second solve
+    np.testing.assert_array_equal(r, model.residual(x))
+    x2 = x.copy()
+    x2[0] += 1e-3
+    model.residual(x2)
+    assert model.nfev == n_solves + 1
+    # the reused solve gives the Jacobian of a fresh evaluation
+    s = solve(ctx, np.exp(x))
+    np.testing.assert_array_equal(J, lines.jac(model_jacobian(ctx, s)))
