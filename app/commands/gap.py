@@ -21,7 +21,11 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from pelvislab.app.commands._common import check_new_output, write_json
+from pelvislab.app.commands._common import (
+    check_new_output,
+    keep_freed_memory_for_reuse,
+    write_json,
+)
 
 _JOBS_HELP = ("worker processes for the candidate fits (default 0: every core; 1: serial). "
               "The result does not depend on it")
@@ -189,6 +193,7 @@ def usable_std(frf: Any) -> tuple[Any, list[str]]:
 
 def _diagnose(args: argparse.Namespace) -> int:
     out = check_new_output(args.json)
+    keep_freed_memory_for_reuse()
     effects = None
     if args.effects:
         effects = tuple(e.strip() for e in args.effects.split(",") if e.strip())
@@ -342,6 +347,7 @@ def _benchmark(args: argparse.Namespace) -> int:
         raise ValueError("--chain-cases must be >= 0")
     if not 0.5 <= args.chain_step_hz <= 50:
         raise ValueError("--chain-step-hz must be within 0.5-50 Hz")
+    keep_freed_memory_for_reuse()
     # test-side generators (may use the simulator); see the module docstring for why
     from pelvislab.tests.benchmarks.bench_gap import make_chain_generator, make_generator
 
