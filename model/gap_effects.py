@@ -255,7 +255,7 @@ def _dynamic_stiffness(factors: Sequence[tuple[np.ndarray | None, np.ndarray | N
                        matrices: Sequence[np.ndarray], n_f: int) -> np.ndarray:
     """Z (n_f, n, n) = Σ a_j(ω) X_j for real matrices X_j and complex factors a_j, built
     on the real and imaginary parts separately: the same sums as the complex products
-    (a zero part adds nothing), without complex temporaries (several times faster)."""
+    (a zero part adds nothing; H is bit-identical), without complex temporaries."""
     n = matrices[0].shape[0]
     Z = np.empty((n_f, n, n), complex)
     for part, out in ((0, Z.real), (1, Z.imag)):
@@ -288,7 +288,7 @@ def solve(ctx: Context, theta: np.ndarray, terms: EffectTerms | None = None) -> 
     """H (n_f, n_out, n_in) of the base model with parameters ``theta`` (SI) plus ``terms``.
 
     One batched solve ``Z⁻¹ [Oᵀ Iᵀ]`` per call (one more per input that carries its own
-    ``dZ_input``: column j is then ``O (Z + ΔZ_j)⁻¹ i_j``), kept for :func:`jacobian`.
+    ``dZ_input``: column j is then ``O (Z + ΔZ_j)⁻¹ i_j``), kept for :func:`model_jacobian`.
     """
     base = ctx.base
     terms = terms or EffectTerms()

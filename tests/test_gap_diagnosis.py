@@ -335,3 +335,13 @@ def test_shrink_distribution_leaves_out_sets_named_at_base_gap_0():
     assert res["shrink_correct"]["undefined_gap_before_0"] == 1
     res.update(wall_time_s={"median": 1, "max": 1}, cpu_time_s={"median": 1, "max": 1})
     assert "1 more named at base gap 0" in format_summary(res)
+
+
+def test_gap_commands_keep_freed_memory_on_glibc():
+    """The allocator setting of the gap commands takes effect where glibc is the C
+    library and is a no-op elsewhere (see ``keep_freed_memory_for_reuse``)."""
+    import platform
+
+    from pelvislab.app.commands._common import keep_freed_memory_for_reuse
+
+    assert keep_freed_memory_for_reuse() is (platform.libc_ver()[0] == "glibc")
