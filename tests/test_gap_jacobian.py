@@ -7,7 +7,6 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from pelvislab.acquisition.frfset import Channels
 from pelvislab.model.gap import _context, _Lines, _Model, prepare_data
 from pelvislab.model.gap_effects import (
     PER_DASHPOT_DAMPING,
@@ -18,16 +17,9 @@ from pelvislab.model.gap_effects import (
     with_extension,
 )
 from pelvislab.model.pelvis import default_model
+from pelvislab.tests.test_gap_diagnosis import IN, OUT  # three outputs, two inputs
 
 F_HZ = np.arange(5.0, 250.1, 7.5)
-OUT = Channels(
-    ["sacrum_x", "sias_R_x", "sias_L_y"], ["sacrum", "innominate_right", "innominate_left"],
-    np.array([[-0.16, 0.0, -0.06], [0.0, -0.11, 0.0], [-0.01, 0.12, -0.01]]),
-    np.array([[-1.0, 0, 0], [1, 0, 0], [0, 1, 0]]),
-)
-IN = Channels(["sips_R_x", "sips_L_x"], ["innominate_right", "innominate_left"],
-              np.array([[-0.14, -0.045, 0.02], [-0.14, 0.045, 0.02]]),
-              np.array([[1.0, 0, 0], [1, 0, 0]]))
 
 
 @pytest.fixture(scope="module")
