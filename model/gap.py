@@ -464,9 +464,9 @@ class _Model:
         self._last = (np.array(x, float, copy=True), s)
         return s
 
-    def H(self, x: np.ndarray, jac: bool = False) -> tuple[np.ndarray, np.ndarray | None]:
-        s = self.solved(x)
-        return s.H, (model_jacobian(self.lines.ctx, s) if jac else None)
+    def H(self, x: np.ndarray) -> np.ndarray:
+        """The model FRF at ``x`` on this model's lines."""
+        return self.solved(x).H
 
     def residual(self, x: np.ndarray) -> np.ndarray:
         return self.lines.residual(self.solved(x).H)
@@ -646,14 +646,14 @@ def fit_base(fit: _Lines, start: np.ndarray, names: Sequence[str], options: GapO
         n_starts += 1
         if cost < best_cost:
             best_x, best_cost = x, cost
-        g = fit.gap(model.H(best_x)[0])
+        g = fit.gap(model.H(best_x))
         if progress:
             progress(f"base fit start {n_starts}: fitted-line gap {g:.3g}")
         k += 1
         if k >= len(starts) and g <= options.restart_gap:
             break  # at noise level: no need for more starts
     values = np.exp(best_x)
-    return BaseFit(names, values, start, fit.gap(model.H(best_x)[0]), n_starts,
+    return BaseFit(names, values, start, fit.gap(model.H(best_x)), n_starts,
                    time.perf_counter() - t0, starts[0])
 
 
