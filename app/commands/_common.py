@@ -36,15 +36,14 @@ def keep_freed_memory_for_reuse() -> bool:
     """
     import ctypes
     import ctypes.util
+    import platform
 
-    name = ctypes.util.find_library("c")
-    try:
-        libc = ctypes.CDLL(name)
-        mallopt = libc.mallopt
-        gnu_libc_version = libc.gnu_get_libc_version  # absent from musl and others
-    except (OSError, AttributeError, TypeError):
+    if platform.libc_ver()[0] != "glibc":
         return False
-    del gnu_libc_version
+    try:
+        mallopt = ctypes.CDLL(ctypes.util.find_library("c")).mallopt
+    except (OSError, AttributeError):
+        return False
     m_trim_threshold, m_top_pad, m_mmap_threshold = -1, -2, -3  # <malloc.h>
     mb = 1 << 20
     return all(mallopt(option, value) == 1 for option, value in (
