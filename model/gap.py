@@ -1542,7 +1542,10 @@ def _joint_fit_stage(s: _Stages,
             chosen.extend(on_top)  # every place on that channel or bone
             jobs.extend((cand, u, len(items), True, False) for _cost, cand, u in chosen)
             # line springs: also every other place (a handful), from the linearised start
-            # only (their screen with the absorbing base frozen misranks places)
+            # and the screened start with the base fit only (their screen with the
+            # absorbing base frozen misranks places; chain seed-3 ligament #0, sij_left
+            # behind the pubic joint: the linearised starts' short fits ended at 5.5e4 and
+            # 1.2e5, the screened start's at 5.7e3, finished to held-out chi2 246)
             jobs.extend((cand, u, len(items), False, False) for _cost, cand, u in items
                         if cand in spring_starts and not any(cand is c for _, c, _ in chosen))
     # a spring to ground adds a suspension resonance in the band (6e5 N/m on an innominate:
@@ -1589,7 +1592,7 @@ def _joint_fit_stage(s: _Stages,
         if (cand.place_kind, cand.place) in clean:
             thetas.append(clean[(cand.place_kind, cand.place)])
         if not all_starts:
-            thetas = []
+            thetas = [theta]
         pairs = spring_starts.get(cand, [])
         return _joint_start(cand, s.short_lines, thetas, u, bounds, opt, pairs)
 
