@@ -262,3 +262,24 @@ def test_dense_grid_ranks_starts_on_every_other_line_with_the_same_result():
         assert rep["verdict"] == "added_mass", rep["verdict_reason"]
         assert rep["candidates"][0]["place"] == "innominate_left"
     assert abs(reps[0]["candidates"][0]["gap_after"] - reps[1]["candidates"][0]["gap_after"]) < 0.2
+
+
+def test_ligament_at_a_joint_screened_behind_another_gets_the_base_fit_start():
+    """Full-chain seed 3, ligament #0 (8.2e4 N/m, sacrum to left innominate; /frf in
+    tests/data): the base fit ends with five springs at the updating bounds and the pubic
+    joint screens ahead of sij_left. With only its linearised starts the sij_left spring's
+    short fit ended at robust cost 5.5e4 and its finish at held-out chi2 2.4e6 (the base
+    has 2.2e5), and a support under the sacrum was named (gap 31 -> 7.6); started also from
+    the screened spring with the base fit it ends at chi2 246 (gap -> 0.3)."""
+    from pathlib import Path
+
+    from pelvislab.acquisition.frfset import read_frf
+
+    s = read_frf(Path(__file__).parent / "data" / "chain_ligament_seed3.h5")
+    data = prepare_data(s.frequency_hz, s.H, s.H_std, s.outputs, s.inputs)
+    rep = diagnose(data, default_model(),
+                   GapOptions(effects=("missing_ligament", "support_resonance"))).report
+    assert rep["verdict"] == "missing_ligament", rep["verdict_reason"]
+    best = rep["candidates"][0]
+    assert best["place"] == "sij_left"
+    assert best["gap_after"] < 1.0
