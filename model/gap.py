@@ -1510,7 +1510,8 @@ def _joint_fit_stage(s: _Stages,
     the base. Sets ``clean_refit_s`` and ``joint_fit_s`` in ``s.timing``."""
     opt, where, data, bounds, theta = s.opt, s.where, s.data, s.bounds, s.theta
     t2 = time.perf_counter()
-    jobs = []
+    jobs: list[tuple[Candidate, np.ndarray, int, str]] = []
+    base_jobs: list[tuple[Candidate, np.ndarray, int, str]] = []
     # joint fits: for every effect its best-screened variants (global ones all), each at
     # its best-screened place and at the place where the residual is largest ("where"
     # guides "which": screening with a base fit that absorbed part of the effect can
@@ -1540,24 +1541,30 @@ def _joint_fit_stage(s: _Stages,
                           if point == item[1].place.rsplit(" ", 1)[0]
                           or axis == item[1].place.rsplit(" ", 1)[1]]
             chosen.extend(on_top)  # every place on that channel or bone
-            jobs.extend((cand, u, len(items), True, False) for _cost, cand, u in chosen)
+            jobs.extend((cand, u, len(items), "all") for _cost, cand, u in chosen)
             # line springs: also every other place (a handful), from the linearised start
-            # and the screened start with the base fit only (their screen with the
-            # absorbing base frozen misranks places; chain seed-3 ligament #0, sij_left
-            # behind the pubic joint: the linearised starts' short fits ended at 5.5e4 and
-            # 1.2e5, the screened start's at 5.7e3, finished to held-out chi2 246)
-            jobs.extend((cand, u, len(items), False, False) for _cost, cand, u in items
-                        if cand in spring_starts and not any(cand is c for _, c, _ in chosen))
+            # only (their screen with the absorbing base frozen misranks places)
+            others = [(cand, u) for _cost, cand, u in items
+                      if cand in spring_starts and not any(cand is c for _, c, _ in chosen)]
+            jobs.extend((cand, u, len(items), "linearised") for cand, u in others)
+            # ... and from the screened spring with the base fit: chain seed-3 ligament #0,
+            # sij_left screened behind the pubic joint, its linearised starts' short fits
+            # ended at 5.5e4 and 1.2e5 (finished: held-out chi2 2.4e6, above the base's
+            # 2.2e5), the screened start's at 5.7e3 (finished: 246). A job of its own with
+            # a finish of its own, as the axis jobs below, so that every job finished
+            # before still is
+            base_jobs.extend((cand, u, len(items), "base") for cand, u in others)
     # a spring to ground adds a suspension resonance in the band (6e5 N/m on an innominate:
     # ~100 Hz), far outside the linearised start's reach: one more job per such place from
     # its own axis starts (iliolumbar sets 1357_009, 2468_024, 8642_027: the linear start
     # stalled at the base gap, the axis starts reach gap 0 at the true bone). A job of its
     # own, and one more finish each, so that every job finished before still is (set
     # 8642_001: the axis starts' best short fit finished at 2.69, the linear one at 0.95)
-    axis_jobs = [(cand, u, len(items), False, True) for items in by_variant.values()
+    axis_jobs = [(cand, u, len(items), "axis") for items in by_variant.values()
                  for _cost, cand, u in items
                  if cand.line_spring is not None and not cand.line_spring.bone_b]
     jobs.extend(axis_jobs)
+    jobs.extend(base_jobs)
     # a local effect drags the base fit; refit the base without the output (input) that
     # carries most of the residual and use it as a second start for candidates there
     clean_lines: dict[tuple[str, str], _Lines] = {}
@@ -1580,28 +1587,30 @@ def _joint_fit_stage(s: _Stages,
 
     # stage 1: short joint fits from every base start; stage 2: the most promising jobs
     # (and every global one) are fitted to convergence
-    def start_job(job: tuple[Candidate, np.ndarray, int, bool, bool]
-                  ) -> tuple[float, np.ndarray]:
-        cand, u, _n_screened, all_starts, axis_starts = job
-        if axis_starts:
+    def start_job(job: tuple[Candidate, np.ndarray, int, str]) -> tuple[float, np.ndarray]:
+        cand, u, _n_screened, starts = job
+        if starts == "axis":
             return _joint_start(cand, s.short_lines, [], u, bounds, opt,
                                 [(theta, st) for st in cand.starts])
+        if starts == "base":
+            return _joint_start(cand, s.short_lines, [theta], u, bounds, opt)
         # second start: the best grid point before least squares, not yet contorted by the
         # base fit's attempt to absorb the effect
         thetas = [theta] + ([np.exp(base.grid_start)] if base.grid_start is not None else [])
         if (cand.place_kind, cand.place) in clean:
             thetas.append(clean[(cand.place_kind, cand.place)])
-        if not all_starts:
-            thetas = [theta]
+        if starts == "linearised":
+            thetas = []
         pairs = spring_starts.get(cand, [])
         return _joint_start(cand, s.short_lines, thetas, u, bounds, opt, pairs)
 
     starts_out = [(cost + opt.robust_scale**2 * cand.n_params, cand, x, n_screened)
-                  for (cost, x), (cand, _u, n_screened, _all, _axis)
+                  for (cost, x), (cand, _u, n_screened, _starts)
                   in zip(parallel_map(start_job, jobs, opt.jobs), jobs, strict=True)]
     starts_out.sort(key=lambda t: t[0])
     finish = [(cand, x, opt.max_nfev_joint
-               if rank < opt.finish_jobs + len(axis_jobs) or cand.place_kind == "global"
+               if rank < opt.finish_jobs + len(axis_jobs) + len(base_jobs)
+               or cand.place_kind == "global"
                else 0)
               for rank, (_cost, cand, x, _n) in enumerate(starts_out)]
     results: list[CandidateResult] = []
