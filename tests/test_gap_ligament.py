@@ -167,11 +167,13 @@ def test_added_mass_absorbed_by_the_base_fit_is_found_on_its_bone():
 
 
 
-def test_spring_between_bones_is_searched_before_unexplained():
+def test_spring_between_bones_screened_behind_another_joint_is_found():
     """Benchmark set seed 31337, ligament #1 (1.34e5 N/m across the left sacroiliac joint,
     all 197 lines): no local start reached it (best 1.14 after a base gap of 2.27,
     verdict unexplained); the global line search of the springs between bones, run only
-    before that verdict, finds it at its joint near the noise."""
+    before that verdict, found it at its joint near the noise. Since a026161 the screened
+    start at sij_left (not the best-screened joint) reaches it first and the search does
+    not run (no end-to-end case of it is left)."""
     from pelvislab.tests.benchmarks.bench_gap import make_generator
 
     case = make_generator("sim", 31337)[0]("missing_ligament", 1)
@@ -181,7 +183,6 @@ def test_spring_between_bones_is_searched_before_unexplained():
     assert rep["verdict"] == "missing_ligament", rep["verdict_reason"]
     assert rep["candidates"][0]["place"] == "sij_left"
     assert rep["candidates"][0]["gap_after"] < 0.5
-    assert rep["timing_s"]["pair_search_s"] > 0
 
 def test_noise_estimate_is_not_switched_by_one_outlier_nor_by_unmeasured_lines():
     """One line 50σ off, a block of unmeasured lines or an all-zero FRF must not turn
@@ -269,8 +270,9 @@ def test_ligament_at_a_joint_screened_behind_another_gets_the_base_fit_start():
     tests/data): the base fit ends with five springs at the updating bounds and the pubic
     joint screens ahead of sij_left. With only its linearised starts the sij_left spring's
     short fit ended at robust cost 5.5e4 and its finish at held-out chi2 2.4e6 (the base
-    has 2.2e5), and a support under the sacrum was named (gap 31 -> 7.6); started also from
-    the screened spring with the base fit it ends at chi2 246 (gap -> 0.3)."""
+    has 2.2e5); the full diagnosis named a support under the sacrum (gap 31 -> 7.6), this
+    one (ligaments and supports only) failed too. Started also from the screened spring
+    with the base fit, it ends at chi2 246 (gap -> 0.3)."""
     from pathlib import Path
 
     from pelvislab.acquisition.frfset import read_frf
