@@ -1594,14 +1594,14 @@ def _joint_fit_stage(s: _Stages,
                                 [(theta, st) for st in cand.starts])
         if starts == "base":
             return _joint_start(cand, s.short_lines, [theta], u, bounds, opt)
+        pairs = spring_starts.get(cand, [])
+        if starts == "linearised":
+            return _joint_start(cand, s.short_lines, [], u, bounds, opt, pairs)
         # second start: the best grid point before least squares, not yet contorted by the
         # base fit's attempt to absorb the effect
         thetas = [theta] + ([np.exp(base.grid_start)] if base.grid_start is not None else [])
         if (cand.place_kind, cand.place) in clean:
             thetas.append(clean[(cand.place_kind, cand.place)])
-        if starts == "linearised":
-            thetas = []
-        pairs = spring_starts.get(cand, [])
         return _joint_start(cand, s.short_lines, thetas, u, bounds, opt, pairs)
 
     starts_out = [(cost + opt.robust_scale**2 * cand.n_params, cand, x, n_screened)
