@@ -96,6 +96,11 @@ class GapOptions:
       (subjects whose joints' damping lies decades apart);
     * ``dense_lines``: above this many fitted lines, the short joint fits that rank the
       starts use every other fitted line (the fits to convergence use all);
+    * ``finish_jobs``: joint fits (effect and base) finished to convergence after the
+      short fits that rank them (global effects always, plus the extra starts of line
+      springs); a finished fit also finishes up to ``finish_ties`` more of its starts whose
+      short fits' robust cost is within ``finish_tie_rel`` of its best, and keeps the one
+      that fits the fitted lines best;
     * ``variants_per_effect``: best-screened variants of each effect that get a joint fit
       with the base parameters (global ones always), at ``places_per_variant`` best places
       plus the place carrying the largest residual share;
@@ -151,6 +156,8 @@ class GapOptions:
     polish_min_shrink: float = 0.3
     polish_effects: int = 2
     finish_jobs: int = 6
+    finish_ties: int = 1
+    finish_tie_rel: float = 0.02
     robust_scale: float = 3.0
     effects: tuple[str, ...] | None = None
     seed: int = 0
@@ -925,24 +932,32 @@ def _refit_damping(fit: _Lines, theta: np.ndarray, is_c: np.ndarray, options: Ga
     return out
 
 
-def _joint_start(cand: Candidate, fit: _Lines, thetas: Sequence[np.ndarray], u0: np.ndarray,
-                 bounds: _Bounds, options: GapOptions,
-                 pairs: Sequence[tuple[np.ndarray, np.ndarray]] = ()
-                 ) -> tuple[float, np.ndarray]:
-    """Short joint fit (base + effect) from each base start with ``u0`` and from each
-    (θ, u) of ``pairs``; the best (robust cost, x)."""
+def _joint_starts(cand: Candidate, fit: _Lines, thetas: Sequence[np.ndarray], u0: np.ndarray,
+                  bounds: _Bounds, options: GapOptions,
+                  pairs: Sequence[tuple[np.ndarray, np.ndarray]] = ()
+                  ) -> list[tuple[float, np.ndarray]]:
+    """Short joint fits (base + effect) from each base start with ``u0`` and from each
+    (θ, u) of ``pairs``: every start's (robust cost, x), best first (a start whose fit
+    failed last, at cost ∞ and x = the start)."""
     n = bounds.lo.size
     model = _Model(fit, cand, None, n)
     lo = np.concatenate([bounds.lo, cand.lower])
     hi = np.concatenate([bounds.hi, cand.upper])
-    first = (thetas[0], u0) if thetas else pairs[0]
-    best = (float("inf"), np.concatenate([np.log(first[0]), first[1]]))
+    out = []
     for theta, u in [*((t, u0) for t in thetas), *pairs]:
         x0 = np.concatenate([np.log(theta), u])
         x, cost, _ = _lsq(model, x0, lo, hi, options.max_nfev_short, options.robust_scale)
-        if cost < best[0]:
-            best = (cost, x)
-    return best
+        out.append((cost, x))
+    # stable: of equal costs the earlier start first, as before
+    return sorted(out, key=lambda t: t[0])
+
+
+def _joint_start(cand: Candidate, fit: _Lines, thetas: Sequence[np.ndarray], u0: np.ndarray,
+                 bounds: _Bounds, options: GapOptions,
+                 pairs: Sequence[tuple[np.ndarray, np.ndarray]] = ()
+                 ) -> tuple[float, np.ndarray]:
+    """The best (robust cost, x) of :func:`_joint_starts`."""
+    return _joint_starts(cand, fit, thetas, u0, bounds, options, pairs)[0]
 
 
 def _joint_finish(cand: Candidate, fit: _Lines, held: _Lines, x0: np.ndarray,
@@ -1587,38 +1602,49 @@ def _joint_fit_stage(s: _Stages,
 
     # stage 1: short joint fits from every base start; stage 2: the most promising jobs
     # (and every global one) are fitted to convergence
-    def start_job(job: tuple[Candidate, np.ndarray, int, str]) -> tuple[float, np.ndarray]:
+    def start_job(job: tuple[Candidate, np.ndarray, int, str]
+                  ) -> list[tuple[float, np.ndarray]]:
         cand, u, _n_screened, starts = job
         if starts == "axis":
-            return _joint_start(cand, s.short_lines, [], u, bounds, opt,
-                                [(theta, st) for st in cand.starts])
+            return _joint_starts(cand, s.short_lines, [], u, bounds, opt,
+                                 [(theta, st) for st in cand.starts])
         if starts == "base":
-            return _joint_start(cand, s.short_lines, [theta], u, bounds, opt)
+            return _joint_starts(cand, s.short_lines, [theta], u, bounds, opt)
         pairs = spring_starts.get(cand, [])
         if starts == "linearised":
-            return _joint_start(cand, s.short_lines, [], u, bounds, opt, pairs)
+            return _joint_starts(cand, s.short_lines, [], u, bounds, opt, pairs)
         # second start: the best grid point before least squares, not yet contorted by the
         # base fit's attempt to absorb the effect
         thetas = [theta] + ([np.exp(base.grid_start)] if base.grid_start is not None else [])
         if (cand.place_kind, cand.place) in clean:
             thetas.append(clean[(cand.place_kind, cand.place)])
-        return _joint_start(cand, s.short_lines, thetas, u, bounds, opt, pairs)
+        return _joint_starts(cand, s.short_lines, thetas, u, bounds, opt, pairs)
 
-    starts_out = [(cost + opt.robust_scale**2 * cand.n_params, cand, x, n_screened)
-                  for (cost, x), (cand, _u, n_screened, _starts)
+    starts_out = [(fits[0][0] + opt.robust_scale**2 * cand.n_params, cand, fits, n_screened)
+                  for fits, (cand, _u, n_screened, _starts)
                   in zip(parallel_map(start_job, jobs, opt.jobs), jobs, strict=True)]
     starts_out.sort(key=lambda t: t[0])
-    finish = [(cand, x, opt.max_nfev_joint
-               if rank < opt.finish_jobs + len(axis_jobs) + len(base_jobs)
-               or cand.place_kind == "global"
-               else 0)
-              for rank, (_cost, cand, x, _n) in enumerate(starts_out)]
-    results: list[CandidateResult] = []
-    for fitted, (_cost, cand, _x, n_screened) in zip(
-            parallel_map(lambda job: _joint_finish(job[0], s.fit, s.held, job[1], bounds, opt,
-                                                   job[2]), finish, opt.jobs),
-            starts_out, strict=True):
-        results.append(_fitted_result(cand, fitted, s.held.n, n_screened))
+    # a finished job also finishes the starts whose short fits tie with its best: 20
+    # evaluations cannot rank them (judge-like set 5050_026, 298 g on an innominate: the
+    # best start, 66157, finished in a local minimum at held-out chi2 1.9e5; the second,
+    # 66722 (+0.9 %), at 524 - the mass, found from the updated base, lost to a support)
+    finish: list[tuple[int, Candidate, np.ndarray, int]] = []
+    for rank, (_cost, cand, fits, _n) in enumerate(starts_out):
+        nfev = (opt.max_nfev_joint if rank < opt.finish_jobs + len(axis_jobs) + len(base_jobs)
+                or cand.place_kind == "global" else 0)
+        ties = [x for cost, x in fits[1:1 + opt.finish_ties]
+                if np.isfinite(cost) and cost <= fits[0][0] * (1 + opt.finish_tie_rel)]
+        finish.extend((rank, cand, x, nfev) for x in [fits[0][1], *(ties if nfev else [])])
+    finished = parallel_map(lambda job: _joint_finish(job[1], s.fit, s.held, job[2], bounds,
+                                                      opt, job[3]), finish, opt.jobs)
+    best_of_job: dict[int, tuple[np.ndarray, np.ndarray, float, float]] = {}
+    for (rank, *_job), fitted in zip(finish, finished, strict=True):
+        # kept on the fitted lines' chi2: the held-out lines judge, they do not choose
+        if rank not in best_of_job or fitted[2] < best_of_job[rank][2]:
+            best_of_job[rank] = fitted
+    results: list[CandidateResult] = [
+        _fitted_result(cand, best_of_job[rank], s.held.n, n_screened)
+        for rank, (_cost, cand, _fits, n_screened) in enumerate(starts_out)]
     # every extension contains the base model (its parameters at ``null``): a joint fit
     # that ends worse than the base fit on the very lines it was fitted to is stuck and is
     # finished again from the base fit with the effect at its null (make demo's session,
