@@ -184,6 +184,42 @@ def test_spring_between_bones_screened_behind_another_joint_is_found():
     assert rep["candidates"][0]["place"] == "sij_left"
     assert rep["candidates"][0]["gap_after"] < 0.5
 
+
+def test_global_search_finds_a_spring_between_bones_that_the_joint_fits_missed(monkeypatch):
+    """The search of the springs between bones along their lines, run only before a
+    verdict ``unexplained`` (``_line_search_stage(between_bones=True)``), on the set above
+    with the joint fits' springs between bones taken away (as they were before a026161:
+    no local start reached the spring). The springs to ground and their search stay; the
+    pair search must find the spring at its joint."""
+    from pelvislab.model import gap
+    from pelvislab.tests.benchmarks.bench_gap import make_generator
+
+    case = make_generator("sim", 31337)[0]("missing_ligament", 1)
+    data = prepare_data(case.frequency_hz, case.H, case.H_std, case.outputs, case.inputs)
+    joint_fit_stage, searches = gap._joint_fit_stage, []
+
+    def without_springs_between_bones(*args, **kwargs):
+        return [res for res in joint_fit_stage(*args, **kwargs)
+                if not (res.candidate.line_spring and res.candidate.line_spring.bone_b)]
+
+    def recorded(search):
+        def run(*args, between_bones=False, **kwargs):
+            new = search(*args, between_bones=between_bones, **kwargs)
+            searches.append((between_bones, len(new)))
+            return new
+        return run
+
+    monkeypatch.setattr(gap, "_joint_fit_stage", without_springs_between_bones)
+    monkeypatch.setattr(gap, "_line_search_stage", recorded(gap._line_search_stage))
+    rep = diagnose(data, default_model(), GapOptions(effects=("missing_ligament",))).report
+    assert searches[-1][0] and searches[-1][1] > 0  # the pair search ran and fitted
+    assert "pair_search_s" in rep["timing_s"]
+    assert rep["verdict"] == "missing_ligament", rep["verdict_reason"]
+    best = rep["candidates"][0]
+    assert best["place"] == "sij_left" and best["variant"] == "extra spring"
+    assert best["gap_after"] < 0.5
+
+
 def test_noise_estimate_is_not_switched_by_one_outlier_nor_by_unmeasured_lines():
     """One line 50σ off, a block of unmeasured lines or an all-zero FRF must not turn
     constant noise into a varying σ (found in review: before the cap, one spike switched
