@@ -1880,8 +1880,15 @@ def _null_extension_stage(s: _Stages, results: Sequence[CandidateResult]
 
     def with_null(res: CandidateResult) -> tuple[np.ndarray, np.ndarray, float, float]:
         cand = with_extension(res.candidate, null_ext.candidate)
+        # third start: the effect's own fit with the extension at its least (the combined
+        # model then is that fit), so the refit starts no worse than the effect alone
+        # (judge-like set 5050_022, a 4.8e5 N/m iliolumbar spring on a subject damped per
+        # dashpot: from the first two starts the spring with the extension ended at
+        # held-out chi2 1.6e4, above the spring alone's 9333, and a support was named; from
+        # this one the gap is 0.13)
         pairs = [(res.theta, np.concatenate([res.u, null_ext.u])),
-                 (null_ext.theta, np.concatenate([res.u, null_ext.u]))]
+                 (null_ext.theta, np.concatenate([res.u, null_ext.u])),
+                 (res.theta, np.concatenate([res.u, null_ext.candidate.lower]))]
         _c, x = _joint_start(cand, s.short_lines, [], res.u, bounds, opt, pairs)
         return _joint_finish(cand, s.fit, s.held, x, bounds, opt, opt.max_nfev_joint)
 
