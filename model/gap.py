@@ -1626,8 +1626,9 @@ def _joint_fit_stage(s: _Stages,
     starts_out.sort(key=lambda t: t[0])
     # a finished job also finishes the starts whose short fits tie with its best: 20
     # evaluations cannot rank them (judge-like set 5050_026, 298 g on an innominate: the
-    # best start, 66157, finished in a local minimum at held-out chi2 1.9e5; the second,
-    # 66722 (+0.9 %), at 524 - the mass, found from the updated base, lost to a support)
+    # best start, from the undistorted base at 66157, finished in a local minimum at
+    # held-out chi2 1.9e5; the second, from the best grid point at 66722 (+0.9 %), at 524;
+    # a support was named at the true bone)
     finish: list[tuple[int, Candidate, np.ndarray, int]] = []
     for rank, (_cost, cand, fits, _n) in enumerate(starts_out):
         nfev = (opt.max_nfev_joint if rank < opt.finish_jobs + len(axis_jobs) + len(base_jobs)

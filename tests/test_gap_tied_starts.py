@@ -2,11 +2,12 @@
 
 Fresh judge-like set 5050_026 (``tests/judge_like_generator.py``, written without reading
 the diagnosis): a 298 g point mass on the left innominate (a 589 g bone), 163σ. The
-added-mass joint fit had three starts whose 20-evaluation short fits ended at robust costs
-66157, 66722 (+0.9 %) and 74450. Only the best was finished, and it ended in a local
-minimum (held-out χ² 1.9e5); the second, finished, reaches 524 and with more evaluations
-the noise (222 on 240 held-out values). A support resonance was named at the true bone
-instead. Both tied starts are finished now and the better fit on the fitted lines is kept.
+added-mass joint fit had three starts (undistorted base, best grid point, base fit) whose
+20-evaluation short fits ended at robust costs 66157, 66722 (+0.9 %) and 74450. Only the
+best was finished, and it ended in a local minimum (held-out χ² 1.9e5); the second,
+finished, reaches 524 and with more evaluations the noise (222 on 240 held-out values).
+A support resonance was named at the true bone instead. Both tied starts are finished now
+and the better fit on the fitted lines is kept.
 """
 
 import numpy as np
