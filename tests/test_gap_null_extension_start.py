@@ -29,3 +29,4 @@ def test_spring_refitted_with_per_dashpot_damping_from_its_own_fit(tmp_path):
     assert jl.place_hit(truth, spring)
     assert spring["variant"].startswith("spring to ground")
     assert spring["gap_after"] < 0.5
+    assert abs(spring["params"]["stiffness_n_per_m"] / truth["parameters"]["k_n_m"] - 1) < 0.1
