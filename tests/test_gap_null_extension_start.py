@@ -13,7 +13,7 @@ at its least, the spring is named with gap 0.13.
 import numpy as np
 
 from pelvislab.tests import judge_like_generator as jl
-from pelvislab.tests.gap_fresh_process import diagnose_in_fresh_process
+from pelvislab.tests.fresh_process import diagnose_in_fresh_process
 
 
 def test_spring_refitted_with_per_dashpot_damping_from_its_own_fit(tmp_path):

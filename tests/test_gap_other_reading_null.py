@@ -15,7 +15,7 @@ noise under midpoint itself; the stage is checked with one start finished, as it
 import numpy as np
 
 from pelvislab.tests import judge_like_generator as jl
-from pelvislab.tests.gap_fresh_process import diagnose_in_fresh_process
+from pelvislab.tests.fresh_process import diagnose_in_fresh_process
 
 # the effect that was named and the null extension that absorbs the readings' difference:
 # the same verdicts as with the whole library (CLI: 40 s), in a fraction of the time

@@ -13,7 +13,7 @@ and the better fit on the fitted lines is kept.
 import numpy as np
 
 from pelvislab.tests import judge_like_generator as jl
-from pelvislab.tests.gap_fresh_process import diagnose_in_fresh_process
+from pelvislab.tests.fresh_process import diagnose_in_fresh_process
 
 
 def test_tied_start_of_an_added_mass_is_finished(tmp_path):

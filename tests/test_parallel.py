@@ -2,16 +2,14 @@
 
 from __future__ import annotations
 
-import json
 import os
-import subprocess
-import sys
 import textwrap
 import threading
 
 import pytest
 
 from pelvislab.model.parallel import available_cores, can_fork_workers, parallel_map, resolve_jobs
+from pelvislab.tests.fresh_process import json_from_fresh_process
 
 needs_fork = pytest.mark.skipif(not can_fork_workers(), reason="cannot fork workers here")
 
@@ -20,11 +18,7 @@ def _in_fresh_process(code: str) -> dict:
     """Run ``code`` (which prints one JSON line) in a new interpreter: the test process
     may hold threads left by other tests (the GUI's executors), and then the map runs
     serially by design (can_fork_workers)."""
-    env = {**os.environ, "OPENBLAS_NUM_THREADS": "1"}
-    out = subprocess.run([sys.executable, "-c", textwrap.dedent(code)], env=env,
-                         capture_output=True, text=True, timeout=600)
-    assert out.returncode == 0, out.stderr[-2000:]
-    return json.loads(out.stdout.strip().splitlines()[-1])
+    return json_from_fresh_process(textwrap.dedent(code))
 
 
 @needs_fork
