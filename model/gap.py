@@ -44,9 +44,11 @@ from scipy.stats import chi2 as chi2_dist
 
 from pelvislab.model.correlation import comac, frac
 from pelvislab.model.gap_effects import (
+    ARMATURE_VARIANT,
     EFFECT_NAMES,
     NULL_EXTENSIONS,
     PER_DASHPOT_DAMPING,
+    TISSUE_ALONG_AXIS_VARIANT,
     Candidate,
     Context,
     EffectTerms,
@@ -1663,8 +1665,44 @@ def _joint_fit_stage(s: _Stages,
                                results[k].screened_places)
         if again.chi2_fitted < results[k].chi2_fitted:
             results[k] = again
+    _armature_tissue_cross_refit(s, results)
     s.timing["joint_fit_s"] = time.perf_counter() - t2
     return results
+
+
+def _armature_tissue_cross_refit(s: _Stages, results: list[CandidateResult]) -> None:
+    """At an input where both were fitted, the shaker armature (``support_resonance``)
+    and the tissue under the shaker along its axis (``soft_tissue``) are one model but for
+    the armature's suspension: the worse of the two on the fitted lines is finished again
+    from the better one's fit (the armature with its suspension at the lower bound, the
+    tissue with the armature's first three parameters). Replaces it in ``results`` when
+    that lowers its fitted-line χ²."""
+    best: dict[tuple[str, str], int] = {}
+    for k, res in enumerate(results):
+        key = (res.candidate.variant, res.candidate.place)
+        if key[0] in (ARMATURE_VARIANT, TISSUE_ALONG_AXIS_VARIANT) and (
+                key not in best or res.chi2_fitted < results[best[key]].chi2_fitted):
+            best[key] = k
+    jobs: list[tuple[int, np.ndarray]] = []
+    for (variant, place), k_arm in best.items():
+        k_tis = best.get((TISSUE_ALONG_AXIS_VARIANT, place))
+        if variant != ARMATURE_VARIANT or k_tis is None:
+            continue
+        arm, tis = results[k_arm], results[k_tis]
+        n_t = tis.candidate.n_params
+        if arm.chi2_fitted < tis.chi2_fitted:
+            jobs.append((k_tis, np.concatenate([np.log(arm.theta), arm.u[:n_t]])))
+        elif tis.chi2_fitted < arm.chi2_fitted:
+            jobs.append((k_arm, np.concatenate(
+                [np.log(tis.theta), tis.u, arm.candidate.lower[n_t:]])))
+    refits = parallel_map(lambda job: _joint_finish(
+        results[job[0]].candidate, s.fit, s.held, job[1], s.bounds, s.opt,
+        s.opt.max_nfev_joint), jobs, s.opt.jobs)
+    for (k, _x0), fitted in zip(jobs, refits, strict=True):
+        again = _fitted_result(results[k].candidate, fitted, s.held.n,
+                               results[k].screened_places)
+        if again.chi2_fitted < results[k].chi2_fitted:
+            results[k] = again
 
 
 def _line_search_stage(s: _Stages, cands: Sequence[Candidate],

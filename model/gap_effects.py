@@ -949,6 +949,12 @@ def _support_candidates(ctx: Context) -> list[Candidate]:
     return cands
 
 
+ARMATURE_VARIANT = "shaker armature on its suspension"
+TISSUE_ALONG_AXIS_VARIANT = "tissue under the shaker, along its axis"
+"""The two variants of :func:`_armature_candidates`: the tissue is the armature with no
+suspension (its first three parameters; the armature's f_s → 0)."""
+
+
 def _armature_candidates(ctx: Context, suspended: bool) -> list[Candidate]:
     """A mass between the force and the bone, along the drive axis, only in the setups that
     drive that input: the shaker's moving mass m on its suspension (k_s, 5 % damping) when
@@ -997,11 +1003,11 @@ def _armature_candidates(ctx: Context, suspended: bool) -> list[Candidate]:
             return EffectTerms(dZ_input=tuple(dZs), in_gain=gain)
 
         if suspended:
-            cands.append(Candidate("support_resonance", "shaker armature on its suspension",
+            cands.append(Candidate("support_resonance", ARMATURE_VARIANT,
                                    name, "input", labels, lo, hi, starts, build, describe,
                                    ctx.in_bones[j]))
         else:
-            cands.append(Candidate("soft_tissue", "tissue under the shaker, along its axis",
+            cands.append(Candidate("soft_tissue", TISSUE_ALONG_AXIS_VARIANT,
                                    name, "input", labels, lo, hi, starts, build, describe,
                                    ctx.in_bones[j]))
     return cands
