@@ -2275,13 +2275,27 @@ def _other_reading_null_stage(s: _Stages, reading: _Reading, v: _Verdict,
         crit_h = crit_p = float(chi2_dist.isf(opt.p_value / max(1, best.screened_places),
                                               n_own))
     gap_o = excess_gap(chi2_h, held_o.n)
+    if gap_o > opt.near_noise_gap:
+        return v
+    return _none_unless_beyond_null(
+        v, f"under the other dashpot reading ({reading.model.dashpot_lever}) {what} "
+        f"brings the held-out gap to {gap_o:.3g}", chi2_h, chi2_f, crit_h, crit_p)
+
+
+def _none_unless_beyond_null(v: _Verdict, null_txt: str, chi2_h: float, chi2_f: float,
+                             crit_h: float, crit_p: float) -> _Verdict:
+    """``v`` when its effect is significant beyond a null near the noise (held-out χ²
+    ``chi2_h``, fitted-line χ² ``chi2_f``): held-out χ² drop above ``crit_h``, or positive
+    and, pooled with the fitted lines, above ``crit_p``; else ``none``, the reason starting
+    with ``null_txt`` (what brings the held-out gap where)."""
+    best = v.best
+    assert best is not None
     drop = chi2_h - best.chi2_heldout
     drop_pooled = drop + chi2_f - best.chi2_fitted
-    if drop > crit_h or (drop > 0 and drop_pooled > crit_p) or gap_o > opt.near_noise_gap:
+    if drop > crit_h or (drop > 0 and drop_pooled > crit_p):
         return v
-    reason = (f"under the other dashpot reading ({reading.model.dashpot_lever}) {what} "
-              f"brings the held-out gap to {gap_o:.3g}, and {v.verdict} is not significant "
-              f"beyond it (held-out chi2 drop {drop:.3g} <= {crit_h:.3g}"
+    reason = (f"{null_txt}, and {v.verdict} is not significant beyond it (held-out chi2 "
+              f"drop {drop:.3g} <= {crit_h:.3g}"
               + (f", with the fitted lines {drop_pooled:.3g} <= {crit_p:.3g}" if drop > 0
                  else "") + f"); before it: {v.reason}")
     return replace(v, verdict="none", reason=reason)
@@ -2311,16 +2325,10 @@ def _null_extension_null_stage(s: _Stages, v: _Verdict, results: Sequence[Candid
     crit_h = _significance_threshold(best, opt, null_ext.chi2_heldout, exact)
     crit_p = _significance_threshold(best, opt,
                                      null_ext.chi2_heldout + null_ext.chi2_fitted, exact)
-    drop = null_ext.chi2_heldout - best.chi2_heldout
-    drop_pooled = drop + null_ext.chi2_fitted - best.chi2_fitted
-    if drop > crit_h or (drop > 0 and drop_pooled > crit_p):
-        return v
-    reason = (f"parameter updating with one damping coefficient per dashpot brings the "
-              f"held-out gap to {null_ext.gap_after:.3g}, and {v.verdict} is not significant "
-              f"beyond it (held-out chi2 drop {drop:.3g} <= {crit_h:.3g}"
-              + (f", with the fitted lines {drop_pooled:.3g} <= {crit_p:.3g}" if drop > 0
-                 else "") + f"); before it: {v.reason}")
-    return replace(v, verdict="none", reason=reason)
+    return _none_unless_beyond_null(
+        v, f"parameter updating with one damping coefficient per dashpot brings the "
+        f"held-out gap to {null_ext.gap_after:.3g}", null_ext.chi2_heldout,
+        null_ext.chi2_fitted, crit_h, crit_p)
 
 
 def _not_excluded(s: _Stages, results: Sequence[CandidateResult]) -> list[dict[str, object]]:
