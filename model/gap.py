@@ -2467,7 +2467,8 @@ def diagnose(data: GapData, model: PelvisModel, options: GapOptions | None = Non
     damping per dashpot, the chain's tolerances, the verdict (module docstring); before a
     verdict ``unexplained``, the global line search for springs between bones, then the
     leading effects refitted under the dashpot reading not chosen (which replaces the
-    chosen one when it names an effect).
+    chosen one when it names an effect); a named effect is then tested against the null
+    under the reading not chosen and against one damping per dashpot alone.
     Returns the design 4.4 report (``Diagnosis.report``) plus arrays for plots.
     """
     opt = options or GapOptions()
