@@ -1657,17 +1657,26 @@ def _joint_fit_stage(s: _Stages,
     stuck = [k for k, res in enumerate(results) if res.candidate.null is not None
              and res.chi2_fitted > s.chi2_base_fitted + float(
                  chi2_dist.isf(opt.p_value, res.candidate.n_params))]
-    for k, fitted in zip(stuck, parallel_map(
-            lambda k: _joint_finish(results[k].candidate, s.fit, s.held, np.concatenate(
-                [np.log(theta), results[k].candidate.null]), bounds, opt,
-                opt.max_nfev_joint), stuck, opt.jobs), strict=True):
+    _finish_again(s, results, [(k, np.concatenate([np.log(theta), results[k].candidate.null]))
+                               for k in stuck])
+    _armature_tissue_cross_refit(s, results)
+    s.timing["joint_fit_s"] = time.perf_counter() - t2
+    return results
+
+
+def _finish_again(s: _Stages, results: list[CandidateResult],
+                  jobs: Sequence[tuple[int, np.ndarray]]) -> None:
+    """Finish ``results[k]``'s candidate again from ``x0`` for each ``(k, x0)`` of
+    ``jobs`` (one worker each); replaces it in ``results`` when that lowers its
+    fitted-line χ²."""
+    refits = parallel_map(lambda job: _joint_finish(
+        results[job[0]].candidate, s.fit, s.held, job[1], s.bounds, s.opt,
+        s.opt.max_nfev_joint), jobs, s.opt.jobs)
+    for (k, _x0), fitted in zip(jobs, refits, strict=True):
         again = _fitted_result(results[k].candidate, fitted, s.held.n,
                                results[k].screened_places)
         if again.chi2_fitted < results[k].chi2_fitted:
             results[k] = again
-    _armature_tissue_cross_refit(s, results)
-    s.timing["joint_fit_s"] = time.perf_counter() - t2
-    return results
 
 
 def _armature_tissue_cross_refit(s: _Stages, results: list[CandidateResult]) -> None:
@@ -1695,14 +1704,7 @@ def _armature_tissue_cross_refit(s: _Stages, results: list[CandidateResult]) -> 
         elif tis.chi2_fitted < arm.chi2_fitted:
             jobs.append((k_arm, np.concatenate(
                 [np.log(tis.theta), tis.u, arm.candidate.lower[n_t:]])))
-    refits = parallel_map(lambda job: _joint_finish(
-        results[job[0]].candidate, s.fit, s.held, job[1], s.bounds, s.opt,
-        s.opt.max_nfev_joint), jobs, s.opt.jobs)
-    for (k, _x0), fitted in zip(jobs, refits, strict=True):
-        again = _fitted_result(results[k].candidate, fitted, s.held.n,
-                               results[k].screened_places)
-        if again.chi2_fitted < results[k].chi2_fitted:
-            results[k] = again
+    _finish_again(s, results, jobs)
 
 
 def _line_search_stage(s: _Stages, cands: Sequence[Candidate],
