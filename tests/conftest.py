@@ -5,10 +5,11 @@ import os
 import pytest
 from hypothesis import HealthCheck, settings
 
-# single-threaded BLAS before numpy is first imported, as the command line sets it: a test
-# file run on its own (numpy imported by the test module itself) otherwise runs the forked
-# workers of ``model.parallel`` on top of BLAS threads (test_gap_support_contacts'
-# test_per_dashpot_damping_data_are_none alone: 26-29 s against 3.2 s, 2-core machine)
+# single-threaded BLAS before numpy is first imported, as the command line sets it:
+# otherwise the fits run on BLAS threads (and forked workers on top of them) whenever a
+# test module that imports numpy is collected before one that imports pelvislab.app (2-core
+# machine: the whole suite 671.9 s against 274.7 s; test_gap_support_contacts'
+# test_per_dashpot_damping_data_are_none alone 26-29 s against 3.2 s)
 import pelvislab.app  # noqa: F401
 
 os.environ.setdefault("QT_QPA_PLATFORM", "offscreen")

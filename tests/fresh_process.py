@@ -1,11 +1,11 @@
 """Code run in a fresh interpreter with single-threaded BLAS, as the command line runs it.
 
 The test process may hold threads left by other tests (the GUI's executors), and the
-forked worker map then runs serially by design (:mod:`pelvislab.model.parallel`). It also
-has numpy loaded long before, with the BLAS's own threading, where the command line sets
-single-threaded BLAS first (``pelvislab.app``); on fragile sets the path to a verdict
-turns on that rounding (judge-like set 9753_019: held-out gap 0.104 in the one, 0.11 in
-the other, and a different verdict path).
+forked worker map then runs serially by design (:mod:`pelvislab.model.parallel`), and it
+carries the numerical state of every test before (BLAS is single-threaded there too since
+``tests/conftest.py`` imports ``pelvislab.app`` first). On fragile sets the path to a
+verdict turns on such rounding (judge-like set 9753_019: held-out gap 0.104 in the suite's
+process, 0.11 on the command line, and a different verdict path).
 """
 
 from __future__ import annotations
