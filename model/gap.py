@@ -104,8 +104,9 @@ class GapOptions:
       short fits' robust cost is within ``finish_tie_rel`` of its best, and keeps the one
       that fits the fitted lines best;
     * ``variants_per_effect``: best-screened variants of each effect that get a joint fit
-      with the base parameters (global ones always), at ``places_per_variant`` best places
-      plus the place carrying the largest residual share;
+      with the base parameters (global ones, every soft-tissue variant and the shaker
+      armature always), at ``places_per_variant`` best places plus the place carrying the
+      largest residual share;
     * ``calibration_tol``: relative gain error each measured FRF may carry from the
       measurement chain (force and displacement calibration, tracking). The null hypothesis
       of the verdict is "parameter updating plus per-FRF gains within this tolerance": an
