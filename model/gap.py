@@ -1589,11 +1589,11 @@ def _joint_fit_stage(s: _Stages,
     # the shaker armature at every driven input from each of its starts, the base from the
     # base fit and from the model file's values: a heavy armature drives the base fit far
     # off (judge-like set 7373_025: 0.38 kg at 62 Hz on a 5 Hz suspension, 377 sigma; the
-    # base fit's damping x60-x500 the subject's), from where every start stopped at a
-    # mass or suspension bound (gap 51); from the model's values three of six starts
-    # reach the noise. Every input, as the screen misranks the variant (set 7272_002:
-    # 0.30 kg, screened third of the support variants, never fitted). Finished like the
-    # axis jobs
+    # base fit's damping x60-x500 the subject's), from where no start ended below gap 51
+    # (four of six at the mass's or the suspension's bound); from the model's values
+    # three of six starts reach the noise. Every input, as the screen misranks the
+    # variant (set 7272_002: 0.30 kg, screened third of the support variants, never
+    # fitted). Finished like the axis jobs
     axis_jobs += [(cand, u, len(items), "armature") for items in by_variant.values()
                   for _cost, cand, u in items if cand.variant == ARMATURE_VARIANT]
     jobs.extend(axis_jobs)

@@ -6,8 +6,9 @@ diagnosis), both ``unexplained`` before:
 
 * 7373_025 (a seed first diagnosed in session 18): a 0.38 kg armature at 62 Hz on a
   5 Hz suspension at sacrum_x (377σ). The base fit's damping went to x60-x500 the
-  subject's; from there every armature start stopped at a mass or suspension bound
-  (gap 51). From the model file's values three of six starts reach the noise.
+  subject's; from there no armature start ended below gap 51 (four of six at the mass's
+  or the suspension's bound). From the model file's values three of six starts reach
+  the noise.
 * 7272_002: a 0.30 kg armature (contact 235 Hz, suspension 6.0 Hz) at SIAS_R_x (5.0σ).
   The screen ranked the armature third of the support variants: it was never fitted.
 """
