@@ -1620,18 +1620,19 @@ def _joint_fit_stage(s: _Stages,
 
     # stage 1: short joint fits from every base start; stage 2: the most promising jobs
     # (and every global one) are fitted to convergence
+    own_starts_bases = {"axis": (theta,), "axis, damping refit": (s.undistorted[1],),
+                        "armature": (theta, s.start)}
+
     def start_job(job: tuple[Candidate, np.ndarray, int, str]
                   ) -> list[tuple[float, np.ndarray]]:
         cand, u, _n_screened, starts = job
-        if starts in ("axis", "axis, damping refit"):
-            th = theta if starts == "axis" else s.undistorted[1]
+        if starts in own_starts_bases:
+            # every start of the candidate's own, with each of these base parameters
             return _joint_starts(cand, s.short_lines, [], u, bounds, opt,
-                                 [(th, st) for st in cand.starts])
+                                 [(th, st) for th in own_starts_bases[starts]
+                                  for st in cand.starts])
         if starts == "base":
             return _joint_starts(cand, s.short_lines, [theta], u, bounds, opt)
-        if starts == "armature":
-            return _joint_starts(cand, s.short_lines, [], u, bounds, opt,
-                                 [(th, st) for th in (theta, s.start) for st in cand.starts])
         pairs = spring_starts.get(cand, [])
         if starts == "linearised":
             return _joint_starts(cand, s.short_lines, [], u, bounds, opt, pairs)
