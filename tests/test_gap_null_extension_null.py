@@ -21,7 +21,9 @@ def test_effect_that_one_damping_per_dashpot_explains_as_well_is_not_named(tmp_p
     truth = jl.write_set(jl.make_set(np.random.default_rng([7272, 19])), path)
     assert truth["effect"] == "none"
 
-    # the candidates that competed (whole library, CLI: the same verdict)
+    # the candidates that competed at c3d3cda (with the whole library the CLI then said
+    # `none` too; since e3a4299 it names soft_tissue: the armature jobs give the stuck base
+    # fit one more way out of its local minimum - docs/gap-diagnosis.md "Session 18")
     report = diagnose_in_fresh_process(
         path, effects=["missing_ligament", "per_dashpot_damping"])
     by_effect = {c["effect"]: c for c in report["candidates"]}
