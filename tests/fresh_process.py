@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import json
 import os
+import signal
 import subprocess
 import sys
 from pathlib import Path
@@ -30,15 +31,26 @@ print(json.dumps(gap.diagnose(data, default_model(), gap.GapOptions(**options)).
 """
 
 
-def json_from_fresh_process(code: str, *args: str) -> dict:
+def json_from_fresh_process(code: str, *args: str, timeout_s: float = 600.0) -> dict:
     """Run ``code`` (``python -c``, with ``args`` as ``sys.argv[1:]``) in a new interpreter
-    with single-threaded BLAS; the JSON object its last output line prints."""
+    with single-threaded BLAS; the JSON object its last output line prints. After
+    ``timeout_s`` seconds the interpreter and every process it started are killed and
+    ``subprocess.TimeoutExpired`` is raised."""
     env = {**os.environ, "OPENBLAS_NUM_THREADS": "1", "OMP_NUM_THREADS": "1",
            "MKL_NUM_THREADS": "1"}
-    out = subprocess.run([sys.executable, "-c", code, *args], env=env,
-                         capture_output=True, text=True, timeout=600)
-    assert out.returncode == 0, out.stderr[-2000:]
-    return json.loads(out.stdout.strip().splitlines()[-1])
+    # a session of its own, so that a timeout also ends the workers the diagnosis forks
+    # (killing the interpreter alone left them running, each on a core)
+    with subprocess.Popen([sys.executable, "-c", code, *args], env=env, text=True,
+                          stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                          start_new_session=True) as proc:
+        try:
+            stdout, stderr = proc.communicate(timeout=timeout_s)
+        except subprocess.TimeoutExpired:
+            os.killpg(proc.pid, signal.SIGKILL)
+            proc.communicate()
+            raise
+    assert proc.returncode == 0, stderr[-2000:]
+    return json.loads(stdout.strip().splitlines()[-1])
 
 
 def diagnose_in_fresh_process(path: str | Path, **options: object) -> dict:
