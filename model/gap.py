@@ -2368,7 +2368,9 @@ def _null_extension_null_stage(s: _Stages, v: _Verdict, results: Sequence[Candid
     # a comparison of two extensions of the base, not nested: the effect's own
     # parameters count, as against the base (fresh judge-like set 7272_019, no effect,
     # noise 1.9 %: a 1.2e5 N/m spring at the pubic joint named at held-out chi2 307.4,
-    # gap 0.38 -> 0.16; one damping per dashpot alone 308.2)
+    # gap 0.38 -> 0.16; one damping per dashpot alone 308.2 - since the verdict refits the
+    # null from a passing candidate's θ that set's stuck base fit stops it earlier, and
+    # tests/test_gap_null_extension_null.py checks this stage with that refit off)
     exact = s.data.noise_source == "H_std"
     crit_h = _significance_threshold(best, opt, null_ext.chi2_heldout, exact)
     crit_p = _significance_threshold(best, opt,
