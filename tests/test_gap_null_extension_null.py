@@ -11,9 +11,9 @@ against the other dashpot reading's null, the spring is not significant: ``none`
 
 Since session 19 the spring fails earlier on this set: the base fit is stuck in a local
 minimum, and against the base refitted from the spring's θ it is not significant
-(``tests/test_gap_stuck_base_fit.py``). No other judge-like set of session 18 reached
-this stage, so it is tested here with that earlier test switched off: the candidates are
-tested against the base fit alone, as before session 19.
+(``tests/test_gap_stuck_base_fit.py``). The stage decided no other judge-like set in
+sessions 18 and 19, so it is tested here with that earlier test switched off: the
+candidates are tested against the base fit alone, as before session 19.
 """
 
 import json
