@@ -2049,7 +2049,7 @@ class _Significance:
                  best_by_effect: dict[str, CandidateResult]) -> None:
         self.s, self.cal, self.best_by_effect = s, cal, best_by_effect
         self.exact_noise = s.data.noise_source == "H_std"
-        self._base_refits: dict[int, float] = {}
+        self._base_refits: dict[int, tuple[float, float]] = {}
 
     def refit_base_chi2(self, res: CandidateResult) -> tuple[float, float]:
         """Fitted-line and held-out χ² of the base model (effect off) refitted from
@@ -2057,7 +2057,7 @@ class _Significance:
         too, else a candidate that merely moves the base out of a poor local minimum
         passes: on the fitted lines (review of session 6) and, when the base fit was stuck,
         on the held-out lines as well (judge-like 7272_019, no effect: base fit at fitted
-        χ² 980, 7 parameters at bounds; a 25 g soft tissue reached 872.5 and its held-out
+        χ² 980, 7 parameters at bounds; a 25 g soft tissue reached 872.6 and its held-out
         drop 35.6 passed 16.3; the base refitted from its θ reached 874.7, and the
         tissue's held-out drop against that refit is -0.4)."""
         s = self.s
