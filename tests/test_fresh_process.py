@@ -3,6 +3,7 @@
 import os
 import subprocess
 import time
+from pathlib import Path
 
 import pytest
 
@@ -21,11 +22,18 @@ time.sleep(120)
 
 
 def _alive(pid: int) -> bool:
+    """Whether ``pid`` runs: a killed orphan that the container's init does not reap stays
+    a zombie (state Z in /proc), which counts as ended."""
     try:
         os.kill(pid, 0)
     except ProcessLookupError:
         return False
-    return True
+    stat = Path(f"/proc/{pid}/stat")
+    try:
+        # the state follows the command name, which is in parentheses
+        return stat.read_text().rsplit(")", 1)[1].split()[0] != "Z"
+    except (FileNotFoundError, IndexError):
+        return not stat.parent.parent.exists()  # no /proc (macOS): os.kill decided
 
 
 def test_timeout_kills_the_forked_workers_too(tmp_path):
