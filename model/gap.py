@@ -2039,6 +2039,7 @@ class _Test:
     by_pooled: bool  # decided by the pooled test
     significant: bool
     null_refitted: bool = False  # against the base refitted from the candidate's θ
+    null_chi2_fitted: float = float("nan")  # that refit's fitted-line χ², when used
 
 
 class _Significance:
@@ -2082,7 +2083,7 @@ class _Significance:
         if refit_fitted >= self.s.chi2_base_fitted:
             return test
         return replace(self._test(res, refit_held, refit_fitted),
-                       null_refitted=True)
+                       null_refitted=True, null_chi2_fitted=refit_fitted)
 
     def _test(self, res: CandidateResult, chi2_base: float,
               chi2_base_fitted: float) -> _Test:
@@ -2241,8 +2242,8 @@ def _verdict_stage(s: _Stages, ranked: Sequence[CandidateResult], cal: _Calibrat
             reason = null_reason + "; before it: " + reason
     if test.null_refitted:
         reason += (f"; tested against the base refitted from {best_name}'s parameters, "
-                   f"which fits the fitted lines better than the base fit (the base fit "
-                   f"was stuck)")
+                   f"which fits the fitted lines better than the base fit (chi2 "
+                   f"{test.null_chi2_fitted:.4g} < {s.chi2_base_fitted:.4g})")
     if switched_from is not None and verdict == best_name:
         reason += (f"; chosen over {switched_from.candidate.effect} (first on held-out "
                    f"lines alone) on the pooled chi2 drop less 2 per parameter")

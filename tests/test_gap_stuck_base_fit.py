@@ -37,4 +37,4 @@ def test_candidate_that_only_unsticks_the_base_fit_is_not_named(tmp_path):
     significance = report["significance"]
     assert significance["null"].startswith("the base refitted")
     assert significance["held_out_chi2_drop"] < significance["held_out_critical"]
-    assert "the base fit was stuck" in report["verdict_reason"]
+    assert "fits the fitted lines better than the base fit" in report["verdict_reason"]
