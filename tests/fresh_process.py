@@ -10,6 +10,7 @@ process, 0.11 on the command line, and a different verdict path).
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import signal
@@ -35,7 +36,8 @@ def json_from_fresh_process(code: str, *args: str, timeout_s: float = 600.0) -> 
     """Run ``code`` (``python -c``, with ``args`` as ``sys.argv[1:]``) in a new interpreter
     with single-threaded BLAS; the JSON object its last output line prints. After
     ``timeout_s`` seconds the interpreter and every process it started are killed and
-    ``subprocess.TimeoutExpired`` is raised."""
+    ``subprocess.TimeoutExpired`` is raised; so on any other exception while waiting
+    (Ctrl-C), which is raised again."""
     env = {**os.environ, "OPENBLAS_NUM_THREADS": "1", "OMP_NUM_THREADS": "1",
            "MKL_NUM_THREADS": "1"}
     # a session of its own, so that a timeout also ends the workers the diagnosis forks
@@ -45,8 +47,9 @@ def json_from_fresh_process(code: str, *args: str, timeout_s: float = 600.0) -> 
                           start_new_session=True) as proc:
         try:
             stdout, stderr = proc.communicate(timeout=timeout_s)
-        except subprocess.TimeoutExpired:
-            os.killpg(proc.pid, signal.SIGKILL)
+        except BaseException:  # the timeout, and Ctrl-C, which no longer reaches the group
+            with contextlib.suppress(ProcessLookupError):
+                os.killpg(proc.pid, signal.SIGKILL)
             proc.communicate()
             raise
     assert proc.returncode == 0, stderr[-2000:]
