@@ -2038,8 +2038,13 @@ class _Test:
     critical_pooled: float
     by_pooled: bool  # decided by the pooled test
     significant: bool
-    null_refitted: bool = False  # against the base refitted from the candidate's θ
-    null_chi2_fitted: float = float("nan")  # that refit's fitted-line χ², when used
+    # fitted-line χ² of the base refitted from the candidate's θ, when that refit was
+    # the null (None: the base fit was)
+    null_chi2_fitted: float | None = None
+
+    @property
+    def null_refitted(self) -> bool:
+        return self.null_chi2_fitted is not None
 
 
 class _Significance:
@@ -2077,13 +2082,13 @@ class _Significance:
             return test
         # a candidate that passes is tested again against the base refitted from its own
         # parameters when that refit fits the fitted lines better than the base fit did:
-        # the base fit was stuck, and that refit is the null (the choice is made on the
-        # fitted lines alone; it can only make a pass harder, never easier)
+        # the base fit stopped in a poorer minimum, and that refit is the null (chosen on
+        # the fitted lines alone; it can only make a pass harder, never easier)
         refit_fitted, refit_held = self.refit_base_chi2(res)
         if refit_fitted >= self.s.chi2_base_fitted:
             return test
         return replace(self._test(res, refit_held, refit_fitted),
-                       null_refitted=True, null_chi2_fitted=refit_fitted)
+                       null_chi2_fitted=refit_fitted)
 
     def _test(self, res: CandidateResult, chi2_base: float,
               chi2_base_fitted: float) -> _Test:
