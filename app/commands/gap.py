@@ -228,7 +228,12 @@ def format_report(report: dict) -> str:
     if joint.get("gains"):
         lines.append("  output gains of the null fitted with the base parameters: " + ", ".join(
             f"{n.removeprefix('gain_')} {g:.4f}" for n, g in joint["gains"].items()))
-    at_bound = report.get("base_fit", {}).get("at_bound", {})
+    base_fit = report.get("base_fit", {})
+    if base_fit.get("refitted_from"):
+        lines.append(f"  base parameters refitted from {base_fit['refitted_from']}'s: "
+                     f"fitted-line chi2 {base_fit['chi2_fitted_lines']:.4g} (from its own "
+                     f"starts {base_fit['chi2_fitted_lines_own_starts']:.4g})")
+    at_bound = base_fit.get("at_bound", {})
     if at_bound:
         lines.append("  updating ended at the bounds of its range (x model value): " + ", ".join(
             f"{n} {v:.3g}" for n, v in at_bound.items()))
