@@ -1379,8 +1379,9 @@ class _Stages:
     gap_before: float
     where: dict[str, object]
     timing: dict[str, float]
-    # base refits from candidates' θ by id(candidate result): (θ, fitted χ², held-out χ²)
-    base_refits: dict[int, tuple[np.ndarray, float, float]]
+    # base refits from candidates' θ by id(candidate result): (the result, θ, fitted χ²,
+    # held-out χ²); :func:`_base_refit`
+    base_refits: dict[int, tuple[CandidateResult, np.ndarray, float, float]]
     # the effect whose fitted θ the base was refitted from, when that refit replaced the
     # base fit from its own starts (:func:`_adopt_better_base`); None: it did not
     base_refitted_from: str | None = None
@@ -1499,9 +1500,11 @@ def _base_refit(s: _Stages, res: CandidateResult) -> tuple[np.ndarray, float, fl
                                 s.bounds.lo, s.bounds.hi, s.opt.max_nfev_joint,
                                 s.opt.robust_scale)
         th = np.exp(x)
-        s.base_refits[id(res)] = (th, s.fit.chi2(evaluate(s.fit.ctx, th)[0]),
+        # the entry holds ``res``: its id cannot be reused while the cache lives
+        s.base_refits[id(res)] = (res, th, s.fit.chi2(evaluate(s.fit.ctx, th)[0]),
                                   s.held.chi2(evaluate(s.held.ctx, th)[0]))
-    return s.base_refits[id(res)]
+    _res, th, chi2_fitted, chi2_held = s.base_refits[id(res)]
+    return th, chi2_fitted, chi2_held
 
 
 def _adopt_better_base(s: _Stages, ranked: Sequence[CandidateResult]) -> _Stages:
