@@ -13,7 +13,9 @@ Since session 19 the spring fails earlier on this set: the base fit is stuck in 
 minimum, and against the base refitted from the spring's θ it is not significant
 (``tests/test_gap_stuck_base_fit.py``). The stage decided no other judge-like set in
 sessions 18 and 19, so it is tested here with that earlier test switched off: the
-candidates are tested against the base fit alone, as before session 19.
+candidates are tested against the base fit alone, as before session 19. Since session 20
+the base refitted from the leading candidates' θ replaces the stuck base fit (base gap
+0.15), so that is switched off too (``base_refit_leaders=0``).
 """
 
 import json
@@ -41,7 +43,9 @@ def test_effect_that_one_damping_per_dashpot_explains_as_well_is_not_named(tmp_p
     assert "gap._Significance.__call__" in _AGAINST_BASE_FIT_ONLY
     report = json_from_fresh_process(
         _AGAINST_BASE_FIT_ONLY, str(path),
-        json.dumps({"effects": ["missing_ligament", "per_dashpot_damping"]}))
+        json.dumps({"effects": ["missing_ligament", "per_dashpot_damping"],
+                    "base_refit_leaders": 0}))
+    assert report["base_fit"]["refitted_from"] is None
     by_effect = {c["effect"]: c for c in report["candidates"]}
     spring, null_ext = by_effect["missing_ligament"], by_effect["per_dashpot_damping"]
     # the situation: the spring leads on held-out lines and is significant against the

@@ -45,15 +45,20 @@ EFFECTS = ["soft_tissue", "support_resonance"]
 def test_base_refitted_from_the_leaders_replaces_a_stuck_base_fit(set_7272_019):
     report = diagnose_in_fresh_process(set_7272_019, effects=EFFECTS)
     base = report["base_fit"]
+    assert base["refitted_from"] is not None, "the stuck base fit was kept"
+    assert base["refitted_from"]["effect"] in EFFECTS
     leader = report["candidates"][0]
     # the situation: the base fit from its own starts is stuck well above where the
     # leader's fit ends; the base refitted from a leader's θ is not
-    assert leader["chi2_fitted"] < base["chi2_fitted_lines_own_starts"] - 50
-    assert base["refitted_from"] in EFFECTS
+    own = base["own_starts"]
+    assert leader["chi2_fitted"] < own["chi2_fitted_lines"] - 50
     assert base["chi2_fitted_lines"] < leader["chi2_fitted"] + 10
+    assert own["gap_held_out"] > 0.3
     assert report["gap_before"] < 0.25  # 0.38 from the stuck fit
     assert report["verdict"] == "none", report["verdict_reason"]
     significance = report["significance"]
+    # decided against the replacing refit, not against a refit of the tested candidate
+    assert significance["null"].startswith("the base refitted from base_fit.refitted_from")
     assert significance["held_out_chi2_drop"] < significance["held_out_critical"]
 
 

@@ -229,10 +229,12 @@ def format_report(report: dict) -> str:
         lines.append("  output gains of the null fitted with the base parameters: " + ", ".join(
             f"{n.removeprefix('gain_')} {g:.4f}" for n, g in joint["gains"].items()))
     base_fit = report.get("base_fit", {})
-    if base_fit.get("refitted_from"):
-        lines.append(f"  base parameters refitted from {base_fit['refitted_from']}'s: "
-                     f"fitted-line chi2 {base_fit['chi2_fitted_lines']:.4g} (from its own "
-                     f"starts {base_fit['chi2_fitted_lines_own_starts']:.4g})")
+    refitted_from, own = base_fit.get("refitted_from"), base_fit.get("own_starts")
+    if refitted_from and own:
+        lines.append(f"  base parameters refitted from {refitted_from['effect']}'s "
+                     f"({refitted_from['variant']} @ {refitted_from['place']}): fitted-line "
+                     f"chi2 {base_fit['chi2_fitted_lines']:.4g}, from the model's own starts "
+                     f"{own['chi2_fitted_lines']:.4g} (held-out gap {own['gap_held_out']:.3g})")
     at_bound = base_fit.get("at_bound", {})
     if at_bound:
         lines.append("  updating ended at the bounds of its range (x model value): " + ", ".join(
