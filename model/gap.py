@@ -122,7 +122,9 @@ class GapOptions:
       of them is then named;
     * ``base_refit_leaders``: the base model is refitted (effect off) from the fitted
       parameters of this many leading candidates; the best refit replaces the base fit
-      when it fits the fitted lines better (its own starts missed that minimum);
+      when it lowers the fitted-line χ² by more than ``base_refit_min_gain`` of it (its
+      own starts missed that minimum; smaller gains are the same minimum converged a
+      little further);
     * ``rigid_tissue_factor``: a soft-tissue candidate whose resonance is above this
       factor times the highest measured frequency is rigid in the band (a mass at that
       point) and is not named as soft tissue;
@@ -176,6 +178,7 @@ class GapOptions:
     reading_min_gain: float = 0.25
     other_reading_candidates: int = 3
     base_refit_leaders: int = 3
+    base_refit_min_gain: float = 1e-3
 
 
 @dataclass
@@ -1514,7 +1517,8 @@ def _base_refit(s: _Stages, res: CandidateResult) -> tuple[np.ndarray, float, fl
 
 def _adopt_better_base(s: _Stages, ranked: Sequence[CandidateResult]) -> _Stages:
     """``s`` with the best base refit from the leading candidates' parameters as the base
-    fit, when it fits the fitted lines better than the base fit (else ``s``).
+    fit, when it lowers the fitted-line χ² by more than ``base_refit_min_gain`` of the
+    base fit's (else ``s``).
 
     The base fit's own starts do not always find its best minimum; a joint fit moves the
     base parameters too, and the base refitted from there (effect off) can fit better.
@@ -1536,7 +1540,7 @@ def _adopt_better_base(s: _Stages, ranked: Sequence[CandidateResult]) -> _Stages
     refits = [(_base_refit(s, r), r) for r in leaders]
     (theta, chi2_fitted, _chi2_held), res = min(refits, key=lambda rr: rr[0][1])
     s.timing["base_refit_s"] = s.timing.get("base_refit_s", 0.0) + time.perf_counter() - t0
-    if not chi2_fitted < s.chi2_base_fitted:
+    if not chi2_fitted < (1.0 - s.opt.base_refit_min_gain) * s.chi2_base_fitted:
         return s
     own = (s.chi2_base_fitted, s.chi2_base) if s.chi2_own_starts is None else s.chi2_own_starts
     base = replace(s.base, values=theta, gap_fit=s.fit.gap(evaluate(s.fit.ctx, theta)[0]))
