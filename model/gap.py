@@ -19,6 +19,9 @@ Method (``docs/gap-diagnosis.md`` has the long version):
 5. **Which.** Each candidate of :mod:`pelvislab.model.gap_effects` is screened at every
    place with the base parameters frozen, and the best places are then fitted jointly with
    all base parameters. Candidates are ranked by held-out χ² plus 2 per parameter (AIC).
+   The base model is then refitted from the leading candidates' base parameters; a refit
+   that fits the fitted lines clearly better replaces the base fit (gap, where, null):
+   the base fit's own starts missed that minimum.
 6. **Verdict.** The null hypothesis is parameter updating plus the measurement chain's
    tolerances: one real gain per FRF within ``calibration_tol`` (calibration, tracking)
    and a probe axis within ``tilt_tol_deg``. ``none`` when the base gap is at noise level
@@ -2629,11 +2632,12 @@ def diagnose(data: GapData, model: PelvisModel, options: GapOptions | None = Non
 
     Stages: base fit (and the dashpot reading), where, screening, joint fits, the global
     line search for springs to ground, polish, supports on spring lines, refits with one
-    damping per dashpot, the chain's tolerances, the verdict (module docstring); before a
-    verdict ``unexplained``, the global line search for springs between bones, then the
-    leading effects refitted under the dashpot reading not chosen (which replaces the
-    chosen one when it names an effect); a named effect is then tested against the null
-    under the reading not chosen and against one damping per dashpot alone.
+    damping per dashpot, the base refitted from the leaders' parameters (which may replace
+    the base fit and its "where"), the chain's tolerances, the verdict (module docstring);
+    before a verdict ``unexplained``, the global line search for springs between bones,
+    then the leading effects refitted under the dashpot reading not chosen (which replaces
+    the chosen one when it names an effect); a named effect is then tested against the
+    null under the reading not chosen and against one damping per dashpot alone.
     Returns the design 4.4 report (``Diagnosis.report``) plus arrays for plots.
     """
     opt = options or GapOptions()
