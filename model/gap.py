@@ -1505,7 +1505,13 @@ def _with_base(s: _Stages, base: BaseFit,
 def _base_refit(s: _Stages, res: CandidateResult) -> tuple[np.ndarray, float, float]:
     """The base model (effect off) refitted from ``res``'s parameters with the joint fits'
     budget: its parameters θ, its fitted-line χ² and its held-out χ² (cached per
-    candidate result for the diagnosis)."""
+    candidate result for the diagnosis). The verdict's null must sit at its optimum too,
+    else a candidate that merely moves the base out of a poor local minimum passes: on
+    the fitted lines (review of session 6) and, when the base fit was stuck, on the
+    held-out lines as well (judge-like 7272_019, no effect: base fit at fitted χ² 980, 7
+    parameters at bounds; a 25 g soft tissue reached 872.6 and its held-out drop 35.6
+    passed 16.3; the base refitted from its θ reached 874.7, and the tissue's held-out
+    drop against that refit is -0.4)."""
     if id(res) not in s.base_refits:
         x, _cost, _limit = _lsq(_Model(s.fit, None, None, s.theta.size), np.log(res.theta),
                                 s.bounds.lo, s.bounds.hi, s.opt.max_nfev_joint,
@@ -1546,7 +1552,7 @@ def _adopt_better_base(s: _Stages, ranked: Sequence[CandidateResult]) -> _Stages
     if not chi2_fitted < (1.0 - s.opt.base_refit_min_gain) * s.chi2_base_fitted:
         return s
     own = (s.chi2_base_fitted, s.chi2_base) if s.chi2_own_starts is None else s.chi2_own_starts
-    base = replace(s.base, values=theta, gap_fit=s.fit.gap(evaluate(s.fit.ctx, theta)[0]))
+    base = replace(s.base, values=theta, gap_fit=excess_gap(chi2_fitted, s.fit.n))
     return replace(_with_base(s, base, res), chi2_own_starts=own)
 
 
@@ -2140,18 +2146,6 @@ class _Significance:
         self.s, self.cal, self.best_by_effect = s, cal, best_by_effect
         self.exact_noise = s.data.noise_source == "H_std"
 
-    def refit_base_chi2(self, res: CandidateResult) -> tuple[float, float]:
-        """Fitted-line and held-out χ² of the base model (effect off) refitted from
-        ``res``'s parameters (:func:`_base_refit`). The null must sit at its optimum
-        too, else a candidate that merely moves the base out of a poor local minimum
-        passes: on the fitted lines (review of session 6) and, when the base fit was stuck,
-        on the held-out lines as well (judge-like 7272_019, no effect: base fit at fitted
-        χ² 980, 7 parameters at bounds; a 25 g soft tissue reached 872.6 and its held-out
-        drop 35.6 passed 16.3; the base refitted from its θ reached 874.7, and the
-        tissue's held-out drop against that refit is -0.4)."""
-        _theta, chi2_fitted, chi2_held = _base_refit(self.s, res)
-        return chi2_fitted, chi2_held
-
     def __call__(self, res: CandidateResult) -> _Test:
         s = self.s
         test = self._test(res, s.chi2_base, s.chi2_base_fitted)
@@ -2169,8 +2163,8 @@ class _Significance:
         # parameters when that refit fits the fitted lines better than the base fit did:
         # the base fit stopped in a poorer minimum, and that refit is the null (chosen on
         # the fitted lines alone; it can only make a pass harder, never easier)
-        refit_fitted, refit_held = self.refit_base_chi2(res)
-        if refit_fitted >= self.s.chi2_base_fitted:
+        _theta, refit_fitted, refit_held = _base_refit(s, res)
+        if refit_fitted >= s.chi2_base_fitted:
             return test
         return replace(self._test(res, refit_held, refit_fitted), null_kind="refit",
                        null_chi2_fitted=refit_fitted)
@@ -2194,7 +2188,8 @@ class _Significance:
         by_pooled = crit_h >= drop > 0 and drop_pooled > crit_p
         if by_pooled:
             # against the better of the base fit and its refit from the candidate's point
-            pooled_base = min(chi2_base + chi2_base_fitted, sum(self.refit_base_chi2(res)))
+            _theta, refit_fitted, refit_held = _base_refit(self.s, res)
+            pooled_base = min(chi2_base + chi2_base_fitted, refit_fitted + refit_held)
             drop_pooled = pooled_base - res.chi2_heldout - res.chi2_fitted
             by_pooled = drop_pooled > crit_p
         # significant against updating alone and against updating + calibration tolerance
