@@ -186,8 +186,8 @@ def test_spring_between_bones_screened_behind_another_joint_is_found():
 
 
 def test_global_search_finds_a_spring_between_bones_that_the_joint_fits_missed(monkeypatch):
-    """The search of the springs between bones along their lines, run only before a
-    verdict ``unexplained`` (``_line_search_stage(between_bones=True)``), on the set above
+    """The search of the springs between bones along their lines, run when no candidate
+    has come near the noise (``_line_search_stage(between_bones=True)``), on the set above
     with the joint fits' springs between bones taken away (as they were before a026161:
     no local start reached the spring). The springs to ground and their search stay; the
     pair search must find the spring at its joint."""
