@@ -2630,9 +2630,10 @@ def diagnose(data: GapData, model: PelvisModel, options: GapOptions | None = Non
     damping per dashpot, the base refitted from the leaders' parameters (which may replace
     the base fit and its "where"), the chain's tolerances, the verdict (module docstring);
     when no candidate has come near the noise, the global line search for springs between
-    bones and the verdict again; before a verdict ``unexplained``, the leading effects refitted under the dashpot reading not chosen (which replaces
-    the chosen one when it names an effect); a named effect is then tested against the
-    null under the reading not chosen and against one damping per dashpot alone.
+    bones and the verdict again; before a verdict ``unexplained``, the leading effects
+    refitted under the dashpot reading not chosen (which replaces the chosen one when it
+    names an effect); a named effect is then tested against the null under the reading not
+    chosen and against one damping per dashpot alone.
     Returns the design 4.4 report (``Diagnosis.report``) plus arrays for plots.
     """
     opt = options or GapOptions()
