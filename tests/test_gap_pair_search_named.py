@@ -32,12 +32,18 @@ EFFECTS = ["support_resonance", "missing_ligament", "per_dashpot_damping"]
 EFFECTS_7777 = ["added_mass", "missing_ligament", "per_dashpot_damping"]
 
 
+def _ligament_set(tmp_path_factory, seed: int, index: int, variant: str):
+    """Judge-like set ``seed``_``index`` written to a temporary file; its truth must be a
+    missing ligament of ``variant``."""
+    path = tmp_path_factory.mktemp("pair") / f"set_{seed}_{index:03d}.h5"
+    truth = jl.write_set(jl.make_set(np.random.default_rng([seed, index])), path)
+    assert truth["effect"] == "missing_ligament" and truth["variant"] == variant
+    return path
+
+
 @pytest.fixture(scope="module")
 def set_7575_007(tmp_path_factory):
-    path = tmp_path_factory.mktemp("pair") / "set_7575_007.h5"
-    truth = jl.write_set(jl.make_set(np.random.default_rng([7575, 7])), path)
-    assert truth["effect"] == "missing_ligament" and truth["variant"] == "sacrotuberous"
-    return path
+    return _ligament_set(tmp_path_factory, 7575, 7, "sacrotuberous")
 
 
 def test_spring_between_bones_is_searched_when_a_bed_contact_would_be_named(set_7575_007):
@@ -58,10 +64,7 @@ def test_spring_between_bones_is_searched_when_a_bed_contact_would_be_named(set_
 
 @pytest.fixture(scope="module")
 def set_7777_029(tmp_path_factory):
-    path = tmp_path_factory.mktemp("pair") / "set_7777_029.h5"
-    truth = jl.write_set(jl.make_set(np.random.default_rng([7777, 29])), path)
-    assert truth["effect"] == "missing_ligament" and truth["variant"] == "sacrospinous"
-    return path
+    return _ligament_set(tmp_path_factory, 7777, 29, "sacrospinous")
 
 
 def test_spring_between_bones_is_searched_while_the_best_gap_is_above_the_noise(
