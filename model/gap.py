@@ -1824,12 +1824,10 @@ def _armature_tissue_cross_refit(s: _Stages, results: list[CandidateResult]) -> 
 def _line_search_stage(s: _Stages, cands: Sequence[Candidate],
                        results: Sequence[CandidateResult],
                        n_screened: dict[tuple[str, str], int],
-                       between_bones: bool = False,
-                       min_gap: float | None = None) -> list[CandidateResult]:
+                       between_bones: bool = False) -> list[CandidateResult]:
     """Springs to ground (``between_bones``: springs between two bones) searched globally
-    on their lines when no candidate has come near the noise (best gap above ``min_gap``,
-    default ``near_noise_gap``; ``n_screened``: places screened per (effect, variant)).
-    Returns the new results (none when the stage does not run)."""
+    on their lines (``n_screened``: places screened per (effect, variant)); the caller
+    runs it only when no candidate has come near the noise. Returns the new results."""
     # a strong spring to ground with light joint damping (judge-like set 2468_012: 8.1e4
     # N/m on the left ilium, joints damped 14-24 N s/m, 78 sigma) puts a sharp suspension
     # resonance in the band that no start above reaches (the spring stopped at 17.5, a
@@ -1843,8 +1841,7 @@ def _line_search_stage(s: _Stages, cands: Sequence[Candidate],
     opt, bounds = s.opt, s.bounds
     searched = [cand for cand in cands if cand.line_spring is not None
                 and bool(cand.line_spring.bone_b) == between_bones]
-    gate = opt.near_noise_gap if min_gap is None else min_gap
-    if not (searched and min(r.gap_after for r in results) > gate):
+    if not searched:
         return []
 
     def search_job(task: tuple[Candidate, np.ndarray, np.ndarray | None]
@@ -2678,7 +2675,8 @@ def diagnose(data: GapData, model: PelvisModel, options: GapOptions | None = Non
     results = _joint_fit_stage(s, by_variant, spring_starts)
     n_screened = {key: len(items) for key, items in by_variant.items()}
     t_search = time.perf_counter()
-    results += _line_search_stage(s, cands, results, n_screened)
+    if min(r.gap_after for r in results) > opt.near_noise_gap:
+        results += _line_search_stage(s, cands, results, n_screened)
     timing["line_search_s"] = time.perf_counter() - t_search
     t3 = time.perf_counter()
     results += _polish_stage(s, cands, results)
@@ -2710,8 +2708,7 @@ def diagnose(data: GapData, model: PelvisModel, options: GapOptions | None = Non
         # Session 12 ran it beside the springs to ground: ~30 s more then, and on 31337
         # ligament #1 it landed at the pubic joint
         t7 = time.perf_counter()
-        new = _line_search_stage(s, cands, results, n_screened, between_bones=True,
-                                 min_gap=pair_gap)
+        new = _line_search_stage(s, cands, results, n_screened, between_bones=True)
         timing["pair_search_s"] = time.perf_counter() - t7
         if new:
             results += new
