@@ -2427,6 +2427,39 @@ def _other_reading_null_stage(s: _Stages, reading: _Reading, v: _Verdict,
         f"brings the held-out gap to {gap_o:.3g}", chi2_h, chi2_f, crit_h, crit_p)
 
 
+@dataclass(frozen=True)
+class _PlainTest:
+    """The verdict's two likelihood-ratio tests of one fit against a null, as numbers."""
+
+    drop: float  # held-out χ² drop
+    crit_h: float
+    drop_pooled: float  # held-out plus fitted-line χ² drop
+    crit_p: float
+
+    @property
+    def significant(self) -> bool:
+        """Held-out drop above its critical value, or positive and, pooled with the
+        fitted lines, above the pooled one."""
+        return self.drop > self.crit_h or (self.drop > 0 and self.drop_pooled > self.crit_p)
+
+    @property
+    def text(self) -> str:
+        return (f"held-out chi2 drop {self.drop:.3g} against {self.crit_h:.3g}, with the "
+                f"fitted lines {self.drop_pooled:.3g} against {self.crit_p:.3g}")
+
+
+def _test_against_base_fit(s: _Stages, res: CandidateResult) -> _PlainTest:
+    """``res`` tested against the base fit alone (no refit of the null from its θ) by the
+    verdict's held-out and pooled likelihood-ratio tests, at its own number of
+    parameters and places tried."""
+    exact = s.data.noise_source == "H_std"
+    drop = s.chi2_base - res.chi2_heldout
+    return _PlainTest(
+        drop, _significance_threshold(res, s.opt, s.chi2_base, exact),
+        drop + s.chi2_base_fitted - res.chi2_fitted,
+        _significance_threshold(res, s.opt, s.chi2_base + s.chi2_base_fitted, exact))
+
+
 def _none_unless_beyond_null(v: _Verdict, null_txt: str, chi2_h: float, chi2_f: float,
                              crit_h: float, crit_p: float) -> _Verdict:
     """``v`` when its effect is significant beyond a null near the noise (held-out χ²
@@ -2452,23 +2485,36 @@ def _null_extension_null_stage(s: _Stages, v: _Verdict, results: Sequence[Candid
     extension alone (one damping coefficient per dashpot: parameter updating beyond design
     4.5's groups, ``NULL_EXTENSIONS``) by the verdict's own tests (held-out χ² drop, or
     pooled with the fitted lines when the held-out drop is positive). When the extension
-    comes near the noise (gap ≤ ``near_noise_gap``) and the effect is not significant
-    beyond it, parameter updating explains the data and the verdict is ``none``, as
-    under the other dashpot reading (:func:`_other_reading_null_stage`). Returns the
-    verdict, changed or not."""
+    is itself significant against the base fit, comes near the noise (gap ≤
+    ``near_noise_gap``) and the effect is not significant beyond it, parameter updating
+    explains the data and the verdict is ``none``, as under the other dashpot reading
+    (:func:`_other_reading_null_stage`). An extension the data do not ask for (not
+    significant against the base fit) is no null: the verdict stays, its reason saying
+    so. Returns the verdict, changed or not."""
     best, opt = v.best, s.opt
     if best is None or v.verdict != best.candidate.effect or best.beyond_null is not None:
         return v
     null_ext = _best_by_effect(results).get(PER_DASHPOT_DAMPING)
     if null_ext is None or null_ext.gap_after > opt.near_noise_gap:
         return v
+    exact = s.data.noise_source == "H_std"
+    ext_test = _test_against_base_fit(s, null_ext)
+    if not ext_test.significant:
+        # the extension is part of the null only where the data ask for it, i.e. where it
+        # is itself significant against the base fit; else the base fit is the null, which
+        # the effect has beaten (fresh judge-like set 7777_021: f_k = 1.0 at 4.5 sigma rms
+        # on grouped damping, held-out chi2 drop 12.1 > 10.8; the extension's 8
+        # coefficients drop it by 7.0, pooled 12.7, where 26.1 is needed; was `none`)
+        return replace(v, reason=(
+            f"{v.reason}; one damping coefficient per dashpot alone (gap "
+            f"{null_ext.gap_after:.3g}) is not significant against the base fit ("
+            f"{ext_test.text}), so it is not part of the null"))
     # a comparison of two extensions of the base, not nested: the effect's own
     # parameters count, as against the base (fresh judge-like set 7272_019, no effect,
     # noise 1.9 %: a 1.2e5 N/m spring at the pubic joint named at held-out chi2 307.4,
     # gap 0.38 -> 0.16; one damping per dashpot alone 308.2 - since the verdict refits the
     # null from a passing candidate's θ that set's stuck base fit stops it earlier, and
     # tests/test_gap_null_extension_null.py checks this stage with that refit off)
-    exact = s.data.noise_source == "H_std"
     crit_h = _significance_threshold(best, opt, null_ext.chi2_heldout, exact)
     crit_p = _significance_threshold(best, opt,
                                      null_ext.chi2_heldout + null_ext.chi2_fitted, exact)
