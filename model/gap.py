@@ -2469,13 +2469,13 @@ def _none_unless_beyond_null(v: _Verdict, null_txt: str, chi2_h: float, chi2_f: 
     best = v.best
     assert best is not None
     drop = chi2_h - best.chi2_heldout
-    drop_pooled = drop + chi2_f - best.chi2_fitted
-    if drop > crit_h or (drop > 0 and drop_pooled > crit_p):
+    test = _PlainTest(drop, crit_h, drop + chi2_f - best.chi2_fitted, crit_p)
+    if test.significant:
         return v
     reason = (f"{null_txt}, and {v.verdict} is not significant beyond it (held-out chi2 "
               f"drop {drop:.3g} <= {crit_h:.3g}"
-              + (f", with the fitted lines {drop_pooled:.3g} <= {crit_p:.3g}" if drop > 0
-                 else "") + f"); before it: {v.reason}")
+              + (f", with the fitted lines {test.drop_pooled:.3g} <= {crit_p:.3g}"
+                 if drop > 0 else "") + f"); before it: {v.reason}")
     return replace(v, verdict="none", reason=reason)
 
 
@@ -2497,13 +2497,13 @@ def _null_extension_null_stage(s: _Stages, v: _Verdict, results: Sequence[Candid
     null_ext = _best_by_effect(results).get(PER_DASHPOT_DAMPING)
     if null_ext is None or null_ext.gap_after > opt.near_noise_gap:
         return v
-    exact = s.data.noise_source == "H_std"
     # a comparison of two extensions of the base, not nested: the effect's own
     # parameters count, as against the base (fresh judge-like set 7272_019, no effect,
     # noise 1.9 %: a 1.2e5 N/m spring at the pubic joint named at held-out chi2 307.4,
     # gap 0.38 -> 0.16; one damping per dashpot alone 308.2 - since the verdict refits the
     # null from a passing candidate's θ that set's stuck base fit stops it earlier, and
     # tests/test_gap_null_extension_null.py checks this stage with that refit off)
+    exact = s.data.noise_source == "H_std"
     crit_h = _significance_threshold(best, opt, null_ext.chi2_heldout, exact)
     crit_p = _significance_threshold(best, opt,
                                      null_ext.chi2_heldout + null_ext.chi2_fitted, exact)
