@@ -2136,10 +2136,23 @@ class _Test:
     # candidate's own θ); and that null's fitted-line χ² when not "base"
     null_kind: str = "base"
     null_chi2_fitted: float | None = None
+    # for an effect fitted with one damping per dashpot: it passed against the null but
+    # not beyond that extension alone, by these drops (held out, pooled) and critical value
+    failed_beyond_null: tuple[float, float, float] | None = None
 
     @property
     def null_refitted(self) -> bool:
         return self.null_kind == "refit"
+
+    def not_significant_txt(self) -> str:
+        """Why the candidate is not significant, for a verdict's reason (starting
+        "is not significant"), or "" when it failed against the null itself."""
+        if self.failed_beyond_null is None:
+            return ""
+        drop, pooled, crit = self.failed_beyond_null
+        return (f"is not significant beyond one damping coefficient per dashpot alone "
+                f"(held-out chi2 drop beyond it {drop:.3g}, with the fitted lines "
+                f"{pooled:.3g}; needs > {crit:.3g})")
 
 
 class _Significance:
@@ -2199,6 +2212,7 @@ class _Significance:
             by_pooled = drop_pooled > crit_p
         # significant against updating alone and against updating + calibration tolerance
         ok = (drop > crit_h or by_pooled) and (drop_cal > crit_h or not self.cal.evident)
+        failed_beyond_null = None
         if res.beyond_null is not None:
             # fitted with one damping per dashpot: the effect must also be significant
             # beyond that extension alone (its own parameters only), held out or pooled
@@ -2206,9 +2220,13 @@ class _Significance:
             n_own = res.candidate.n_params - null.candidate.n_params
             crit_own = float(chi2_dist.isf(opt.p_value / max(1, res.screened_places), n_own))
             beyond_pooled = res.beyond_null + (null.chi2_fitted - res.chi2_fitted)
-            ok = ok and (res.beyond_null > crit_own or (
-                res.beyond_null > 0 and beyond_pooled > crit_own))
-        return _Test(drop, drop_cal, crit_h, drop_pooled, crit_p, by_pooled, ok)
+            beyond = res.beyond_null > crit_own or (
+                res.beyond_null > 0 and beyond_pooled > crit_own)
+            if ok and not beyond:
+                failed_beyond_null = (res.beyond_null, beyond_pooled, crit_own)
+            ok = ok and beyond
+        return _Test(drop, drop_cal, crit_h, drop_pooled, crit_p, by_pooled, ok,
+                     failed_beyond_null=failed_beyond_null)
 
 
 @dataclass
@@ -2267,11 +2285,13 @@ def _verdict_stage(s: _Stages, ranked: Sequence[CandidateResult], cal: _Calibrat
     elif gap_before <= opt.none_gap and not significant:
         verdict = "none"
         reason = (f"base gap {gap_before:.3g} <= {opt.none_gap} and the best candidate "
-                  f"({best_name}) lowers the held-out chi2 by {improvement:.3g}"
-                  + (f" (by {improvement_cal:.3g} with per-FRF gains within "
-                     f"+-{opt.calibration_tol:.2%}), not both > " if cal.evident
-                     else " <= ")
-                  + f"{crit:.3g} (not significant)")
+                  f"({best_name}) "
+                  + (test.not_significant_txt() or
+                     f"lowers the held-out chi2 by {improvement:.3g}"
+                     + (f" (by {improvement_cal:.3g} with per-FRF gains within "
+                        f"+-{opt.calibration_tol:.2%}), not both > " if cal.evident
+                        else " <= ")
+                     + f"{crit:.3g} (not significant)"))
     elif gap_before <= opt.near_noise_gap and not (
             significant and (shrink >= opt.small_shrink or gap_before == 0.0)):
         # the model error is already below the noise: an effect must remove a good part
@@ -2284,6 +2304,7 @@ def _verdict_stage(s: _Stages, ranked: Sequence[CandidateResult], cal: _Calibrat
                   f"the best candidate ({best_name}) "
                   + (f"removes only {shrink:.0%} of it (< {opt.small_shrink:.0%})"
                      if significant else
+                     test.not_significant_txt() or
                      f"is not significant (chi2 drop {improvement:.3g}"
                      + (f", {improvement_cal:.3g} against per-FRF gains within "
                         f"+-{opt.calibration_tol:.2%}" if cal.evident else "")
@@ -2642,6 +2663,11 @@ def _report(s: _Stages, model: PelvisModel, lever_note: str,
             "by": ("held-out lines" if test.significant and not test.by_pooled else
                    "fitted + held-out lines (held-out drop > 0)" if test.significant
                    else None),
+            # a candidate fitted with one damping per dashpot that passed against the null
+            # but failed beyond that extension alone
+            "beyond_null_failed": (None if test.failed_beyond_null is None else dict(zip(
+                ("held_out_chi2_drop", "pooled_chi2_drop", "critical"),
+                (_round(x) for x in test.failed_beyond_null), strict=True))),
             "note": "likelihood-ratio test at p_value / places tried; pooled: the chi2 "
                     "drop on fitted and held-out lines together (against the better of "
                     "the base fit and its refit from the candidate's parameters), used "
