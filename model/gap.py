@@ -2120,6 +2120,27 @@ def _tolerance_stage(s: _Stages, ranked: Sequence[CandidateResult],
 
 
 @dataclass(frozen=True)
+class _PlainTest:
+    """The verdict's two likelihood-ratio tests of one fit against a null, as numbers."""
+
+    drop: float  # held-out χ² drop
+    crit_h: float
+    drop_pooled: float  # held-out plus fitted-line χ² drop
+    crit_p: float
+
+    @property
+    def significant(self) -> bool:
+        """Held-out drop above its critical value, or positive and, pooled with the
+        fitted lines, above the pooled one."""
+        return self.drop > self.crit_h or (self.drop > 0 and self.drop_pooled > self.crit_p)
+
+    @property
+    def text(self) -> str:
+        return (f"held-out chi2 drop {self.drop:.3g} against {self.crit_h:.3g}, with the "
+                f"fitted lines {self.drop_pooled:.3g} against {self.crit_p:.3g}")
+
+
+@dataclass(frozen=True)
 class _Test:
     """The verdict's tests of one candidate against the null."""
 
@@ -2137,8 +2158,8 @@ class _Test:
     null_kind: str = "base"
     null_chi2_fitted: float | None = None
     # for an effect fitted with one damping per dashpot: it passed against the null but
-    # not beyond that extension alone, by these drops (held out, pooled) and critical value
-    failed_beyond_null: tuple[float, float, float] | None = None
+    # not this test beyond that extension alone
+    failed_beyond_null: _PlainTest | None = None
 
     @property
     def null_refitted(self) -> bool:
@@ -2149,10 +2170,10 @@ class _Test:
         "is not significant"), or "" when it failed against the null itself."""
         if self.failed_beyond_null is None:
             return ""
-        drop, pooled, crit = self.failed_beyond_null
+        t = self.failed_beyond_null
         return (f"is not significant beyond one damping coefficient per dashpot alone "
-                f"(held-out chi2 drop beyond it {drop:.3g}, with the fitted lines "
-                f"{pooled:.3g}; needs > {crit:.3g})")
+                f"(held-out chi2 drop beyond it {t.drop:.3g}, with the fitted lines "
+                f"{t.drop_pooled:.3g}; needs > {t.crit_h:.3g})")
 
 
 class _Significance:
@@ -2219,12 +2240,12 @@ class _Significance:
             null = self.best_by_effect[PER_DASHPOT_DAMPING]
             n_own = res.candidate.n_params - null.candidate.n_params
             crit_own = float(chi2_dist.isf(opt.p_value / max(1, res.screened_places), n_own))
-            beyond_pooled = res.beyond_null + (null.chi2_fitted - res.chi2_fitted)
-            beyond = res.beyond_null > crit_own or (
-                res.beyond_null > 0 and beyond_pooled > crit_own)
-            if ok and not beyond:
-                failed_beyond_null = (res.beyond_null, beyond_pooled, crit_own)
-            ok = ok and beyond
+            beyond = _PlainTest(res.beyond_null, crit_own,
+                                res.beyond_null + (null.chi2_fitted - res.chi2_fitted),
+                                crit_own)
+            if ok and not beyond.significant:
+                failed_beyond_null = beyond
+            ok = ok and beyond.significant
         return _Test(drop, drop_cal, crit_h, drop_pooled, crit_p, by_pooled, ok,
                      failed_beyond_null=failed_beyond_null)
 
@@ -2448,27 +2469,6 @@ def _other_reading_null_stage(s: _Stages, reading: _Reading, v: _Verdict,
         f"brings the held-out gap to {gap_o:.3g}", chi2_h, chi2_f, crit_h, crit_p)
 
 
-@dataclass(frozen=True)
-class _PlainTest:
-    """The verdict's two likelihood-ratio tests of one fit against a null, as numbers."""
-
-    drop: float  # held-out χ² drop
-    crit_h: float
-    drop_pooled: float  # held-out plus fitted-line χ² drop
-    crit_p: float
-
-    @property
-    def significant(self) -> bool:
-        """Held-out drop above its critical value, or positive and, pooled with the
-        fitted lines, above the pooled one."""
-        return self.drop > self.crit_h or (self.drop > 0 and self.drop_pooled > self.crit_p)
-
-    @property
-    def text(self) -> str:
-        return (f"held-out chi2 drop {self.drop:.3g} against {self.crit_h:.3g}, with the "
-                f"fitted lines {self.drop_pooled:.3g} against {self.crit_p:.3g}")
-
-
 def _test_against_base_fit(s: _Stages, res: CandidateResult) -> _PlainTest:
     """``res`` tested against the base fit alone (no refit of the null from its θ) by the
     verdict's held-out and pooled likelihood-ratio tests, at its own number of
@@ -2665,9 +2665,10 @@ def _report(s: _Stages, model: PelvisModel, lever_note: str,
                    else None),
             # a candidate fitted with one damping per dashpot that passed against the null
             # but failed beyond that extension alone
-            "beyond_null_failed": (None if test.failed_beyond_null is None else dict(zip(
-                ("held_out_chi2_drop", "pooled_chi2_drop", "critical"),
-                (_round(x) for x in test.failed_beyond_null), strict=True))),
+            "beyond_null_failed": (None if test.failed_beyond_null is None else {
+                "held_out_chi2_drop": _round(test.failed_beyond_null.drop),
+                "pooled_chi2_drop": _round(test.failed_beyond_null.drop_pooled),
+                "critical": _round(test.failed_beyond_null.crit_h)}),
             "note": "likelihood-ratio test at p_value / places tried; pooled: the chi2 "
                     "drop on fitted and held-out lines together (against the better of "
                     "the base fit and its refit from the candidate's parameters), used "
