@@ -224,6 +224,9 @@ def format_report(report: dict) -> str:
              f"  gap before (held-out model error beyond noise, in sigma; 0 = noise level): "
              f"{report['gap_before']:.3g}"
              f"   noise: {report.get('noise', {}).get('source', '?')}"]
+    noise_note = (report.get("noise") or {}).get("note")
+    if noise_note:
+        lines.append(f"  noise: {noise_note}")
     joint = (report.get("calibration") or {}).get("joint_null") or {}
     if joint.get("gains"):
         lines.append("  output gains of the null fitted with the base parameters: " + ", ".join(
