@@ -147,6 +147,9 @@ class GapOptions:
       ligament by joint springs x30 and a joint locked by damping x1e6; frequency-dependent
       stiffness by every spring x2.4) and call it ``none`` (thesis ch. 6: the optimiser's
       values are not to be trusted). A parameter ending at a bound is listed in the report;
+    * ``std_scale_limit``, ``std_scale_max_gap``: a declared ``H_std`` is scaled to the
+      data's scatter about the base fit when they differ by more than this factor either
+      way and the fitted-line gap is at most this (:func:`_declared_noise_check`);
     * ``jobs``: worker processes for the candidate fits (0 = every available core; 1 =
       serial). The result does not depend on it (:func:`pelvislab.model.parallel.parallel_map`).
     """
@@ -319,7 +322,7 @@ def std_roughness(sigma: np.ndarray, mask: np.ndarray) -> float:
     lines, pooled over the FRFs (dimensionless).
 
     A σ that follows a smooth law (a fraction of each FRF's peak or of |H|) gives ~0:
-    at most 0.011 over 220 judge-like files. A σ estimated per line from k averages
+    at most 0.011 over 261 judge-like files (session 23). A σ estimated per line from k averages
     scatters as sqrt(χ²₂ₖ/2k): with k = 4 the median is ≈ 0.43, and 1/σ² is then biased
     high by 2k/(2k − 2) = 1.33 on average, which a gap in noise units reads as a model
     error of sqrt(0.33) = 0.58 σ.
@@ -396,8 +399,9 @@ def scatter_ratio(residual: np.ndarray, sigma: np.ndarray, mask: np.ndarray) -> 
 
 STD_ROUGH_LIMIT = 0.2
 """:func:`std_roughness` above which a declared σ is taken for a per-line estimate and
-smoothed (:func:`smooth_std`): 0.011 at most for exact σ, ≈ 0.43 from 4 averages, ≈ 0.18
-from 20 (where 1/σ² is biased by only 1.05)."""
+smoothed (:func:`smooth_std`): 0.011 at most for exact σ and 0.09-0.10 for the simulated
+chain's per-line estimate (measured), ≈ 0.43 from 4 averages (measured), ≈ 0.18 expected
+from 20 (computed; 1/σ² is biased by only 1.05 there)."""
 
 
 def prepare_data(frequency_hz: np.ndarray, H: np.ndarray, H_std: np.ndarray | None,
