@@ -222,6 +222,10 @@ class GapData:
     std_scale: float = 1.0
 
 
+_THIRD_DIFFERENCE_C2 = np.array([1.0, 9.0, 9.0, 1.0])
+"""Squared coefficients of the third difference (1, −3, 3, −1): Var(Δ³e) = Σ c² σ²."""
+
+
 def _running_median(x: np.ndarray, half_window: int) -> np.ndarray:
     """Median of ``x`` over a centred window of ``2 half_window + 1`` values (clipped at
     the ends: the first/last full window is used there)."""
@@ -259,7 +263,7 @@ def estimate_noise(H: np.ndarray, half_window: int = 8, noise_form_gain: float =
     """
     n_f, n_out, n_in = H.shape
     sigma = np.full(H.shape, np.nan)
-    c2 = np.array([1.0, 9.0, 9.0, 1.0])
+    c2 = _THIRD_DIFFERENCE_C2
     lines = np.arange(n_f)
     for o in range(n_out):
         for i in range(n_in):
@@ -382,7 +386,7 @@ def scatter_ratio(residual: np.ndarray, sigma: np.ndarray, mask: np.ndarray) -> 
     2.5 where a gap of hundreds to thousands enters the differences; 1.28-1.51 where
     ``H_std`` is the rms of Re or Im alone (a factor sqrt 2 too small).
     """
-    c2 = np.array([1.0, 9.0, 9.0, 1.0])
+    c2 = _THIRD_DIFFERENCE_C2
     terms = []
     for o, i, idx in _measured_runs(mask):
         if idx.size < 12:
