@@ -978,9 +978,10 @@ def _armature_candidates(ctx: Context, suspended: bool) -> list[Candidate]:
                    for z in ((0.05,) if suspended else (0.3,)))
     # the suspension resonance lies in the band and is sharp (5 % damping): a start more
     # than ~30 % off its frequency ends at a tissue-like minimum with no suspension
-    # (judge-like set 8787_003: 0.42 kg on 11.8 Hz, contact 101 Hz; from all twelve own
-    # starts at f_s = 10 Hz, m = 0.1 kg the fits ended at f_s = 0.3 Hz or f_t = 5000 Hz,
-    # held-out gap 1.6-5.3; from the best point of this grid, 0.23). Contact frequency
+    # (judge-like set 8787_003: 0.42 kg on 11.8 Hz, contact 101 Hz; of the twelve own
+    # starts' fits, at f_s = 10 Hz and m = 0.1 kg, eight ended with f_s at its lower bound,
+    # three with m at its lower bound, one at f_s = 52 Hz: held-out gap 1.52-5.27 after a
+    # base gap of 1.64; from the best point of this grid, 0.23). Contact frequency
     # over the band, mass 50 g - 0.8 kg, suspension 3-40 Hz (a lab shaker's 5-20 Hz with a
     # margin): 180 points, ~0.2 s with the base frozen
     grid = tuple(np.log([f, 0.05, m, f_s]) for f in _f_starts(ctx, 6)

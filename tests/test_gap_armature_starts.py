@@ -16,8 +16,9 @@ Also from the best points of its grid, the base frozen at the base fit (session 
 
 * 8787_003: a 0.42 kg armature (contact 101 Hz, suspension 11.8 Hz) at
   iliac_fossa_drive_L (12σ), named a bed contact at the drive point (gap 1.64 -> 0.59).
-  The armature's own starts (suspension 10 Hz, 0.1 kg) ended with no suspension or a
-  rigid contact (gap >= 1.6); from the grid's best point 0.23.
+  The armature's own starts (suspension 10 Hz, 0.1 kg) ended with the suspension or the
+  mass at its lower bound, or at a 52 Hz suspension (gap 1.52-5.27); from the grid's
+  best point 0.23.
 """
 
 import numpy as np
