@@ -1126,20 +1126,25 @@ def _joint_finish(cand: Candidate, fit: _Lines, held: _Lines, x0: np.ndarray,
 # Where: residual map, shares, FRAC, COMAC, rigidity
 # ---------------------------------------------------------------------------------------
 
+def _ranked_with_base_frozen(cand: Candidate, us: Sequence[np.ndarray], fit: _Lines,
+                             theta: np.ndarray, opt: GapOptions) -> list[np.ndarray]:
+    """``us`` (effect parameters, clipped into the bounds) ordered by the robust cost of
+    ``cand`` on ``fit`` with the base frozen at ``theta``: one evaluation each, no fit;
+    equal costs keep their order."""
+    probe = _Model(fit, cand, theta, len(theta))
+    clipped = [np.clip(u, cand.lower + 1e-9, cand.upper - 1e-9) for u in us]
+    costs = [_robust_cost(probe.residual(u), opt.robust_scale) for u in clipped]
+    return [clipped[k] for k in sorted(range(len(clipped)), key=costs.__getitem__)]
+
+
 def _short_fit_from_best_starts(cand: Candidate, theta: np.ndarray, fit: _Lines,
                                short_lines: _Lines, bounds: _Bounds, opt: GapOptions,
                                n_best: int) -> tuple[float, np.ndarray]:
     """(robust cost, x) of the best short joint fit of ``cand`` from its ``n_best`` starts
     ranked by robust cost with the base frozen at ``theta`` (each with the base from
     ``theta``)."""
-    probe = _Model(fit, cand, theta, len(theta))
-    scored = []
-    for u0 in cand.starts:
-        u0 = np.clip(u0, cand.lower + 1e-9, cand.upper - 1e-9)
-        scored.append((_robust_cost(probe.residual(u0), opt.robust_scale), u0))
-    scored.sort(key=lambda t: t[0])
     best: tuple[float, np.ndarray] = (float("inf"), np.array([]))
-    for _c, u0 in scored[:n_best]:
+    for u0 in _ranked_with_base_frozen(cand, cand.starts, fit, theta, opt)[:n_best]:
         cost, x = _joint_start(cand, short_lines, [theta], u0, bounds, opt)
         if cost < best[0] or not best[1].size:
             best = (cost, x)
@@ -1150,14 +1155,9 @@ def _screened_grid_starts(cand: Candidate, fit: _Lines, theta: np.ndarray, opt: 
                           ) -> list[tuple[np.ndarray, np.ndarray]]:
     """(θ, u) starts for a joint fit: the ``opt.screened_grid_starts`` points of
     ``cand.screen_grid`` with the lowest robust cost on ``fit`` with the base frozen at
-    ``theta`` (one evaluation each, no fit), each with ``theta``."""
-    probe = _Model(fit, cand, theta, len(theta))
-    scored = []
-    for k, u in enumerate(cand.screen_grid):
-        u = np.clip(u, cand.lower + 1e-9, cand.upper - 1e-9)
-        scored.append((_robust_cost(probe.residual(u), opt.robust_scale), k, u))
-    scored.sort(key=lambda t: (t[0], t[1]))
-    return [(theta, u) for _c, _k, u in scored[:opt.screened_grid_starts]]
+    ``theta`` (:func:`_ranked_with_base_frozen`), each with ``theta``."""
+    ranked = _ranked_with_base_frozen(cand, cand.screen_grid, fit, theta, opt)
+    return [(theta, u) for u in ranked[:opt.screened_grid_starts]]
 
 
 def _spring_from_support(res: CandidateResult, k0_n_per_m: float) -> np.ndarray:
