@@ -112,7 +112,8 @@ class GapOptions:
     * ``variants_per_effect``: best-screened variants of each effect that get a joint fit
       with the base parameters (global ones, every soft-tissue variant and the shaker
       armature always), at ``places_per_variant`` best places plus the place carrying the
-      largest residual share;
+      largest residual share (the armature at every driven input and the point mass at
+      every bone also from their own starts with the base at the model file's values);
     * ``calibration_tol``: relative gain error each measured FRF may carry from the
       measurement chain (force and displacement calibration, tracking). The null hypothesis
       of the verdict is "parameter updating plus per-FRF gains within this tolerance": an
@@ -1877,10 +1878,10 @@ def _joint_fit_stage(s: _Stages,
     # a heavy point mass likewise, from its own starts with the base at the model file's
     # values: the base fit absorbs it by driving mass, stiffness and damping far off
     # (judge-like set 8888_002: 0.31 kg on a 0.33 kg sacrum, 575 sigma, damped per dashpot;
-    # eight parameters at the updating bounds, the pubic damping x100), from where every
-    # start stopped at gap 69-70 and nothing was named; from the model's values 8.3, and
-    # with one damping per dashpot 0.0). Every bone (three), each a job with a finish of
-    # its own
+    # eight parameters at the updating bounds, the pubic damping x100-x500 the subject's),
+    # from where (and from the undistorted and grid bases) the mass's best start ended at
+    # gap 69.1-70.3 and nothing was named; from the model's values 8.3, and with one
+    # damping per dashpot 0.0). Every bone (three), each a job with a finish of its own
     axis_jobs += [(cand, u, len(items), "model values") for items in by_variant.values()
                   for _cost, cand, u in items if cand.effect == "added_mass"]
     jobs.extend(axis_jobs)

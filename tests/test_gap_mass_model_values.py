@@ -4,9 +4,9 @@ values (issue 10).
 Fresh judge-like set 8888_002 (``tests/judge_like_generator.py``, written without reading
 the diagnosis): a 0.31 kg point mass on a 0.33 kg sacrum (575σ), the subject damped per
 dashpot (S1_R 378 N s/m, S2_R 12 N s/m), no H_std. The base fit absorbed the mass by
-driving eight parameters to the updating bounds and the pubic damping to x100 the
-subject's; from there, and from the undistorted and grid bases, every added-mass start
-stopped at held-out gap 69-70 (base gap 110) and the verdict was ``unexplained``. From
+driving eight parameters to the updating bounds and the pubic damping to x100-x500 the
+subject's; from there, and from the undistorted and grid bases, the added-mass job's best
+start ended at held-out gap 69.1-70.3 (base gap 110) and the verdict was ``unexplained``. From
 the model file's values the mass reaches 8.3 alone and 0.0 with one damping per dashpot.
 """
 
