@@ -1875,8 +1875,9 @@ def _joint_fit_stage(s: _Stages,
     # grid start's short fit beat the own starts' and finished at 0.48, the own at 0.15)
     axis_jobs += [(cand, u, len(items), "screened grid") for items in by_variant.values()
                   for _cost, cand, u in items if cand.screen_grid]
-    # a heavy point mass likewise, from its own starts with the base at the model file's
-    # values: the base fit absorbs it by driving mass, stiffness and damping far off
+    # the point mass, like the armature above, from its own starts with the base at the
+    # model file's values: a base fit absorbs a heavy mass by driving mass, stiffness and
+    # damping far off
     # (judge-like set 8888_002: 0.31 kg on a 0.33 kg sacrum, 575 sigma, damped per dashpot;
     # eight parameters at the updating bounds, the pubic damping x100-x500 the subject's),
     # from where (and from the undistorted and grid bases) the mass's best start ended at
