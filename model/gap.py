@@ -33,7 +33,10 @@ Method (``docs/gap-diagnosis.md`` has the long version):
    or removes most of it; ``unexplained`` otherwise (``where`` still points at the region),
    unless the null fitted as a whole (base parameters with one gain per output within the
    tolerance) explains the held-out lines once the fitted model's own prediction
-   uncertainty is counted (:func:`_chain_null_explains`): then ``none``.
+   uncertainty is counted (:func:`_chain_null_explains`): then ``none``. Where the held-out
+   lines read near the noise but the fitted lines do not (a resonance between held-out
+   lines), the candidate that passes the tests and brings the fitted lines near the noise
+   is named instead of ``none`` (:func:`_held_out_miss`).
 
 Numerics only: arrays in, dict out; no I/O.
 """
@@ -3042,7 +3045,8 @@ def diagnose(data: GapData, model: PelvisModel, options: GapOptions | None = Non
     """Run the whole diagnosis on prepared data against the base ``model``.
 
     Stages: base fit (and the dashpot reading), where, screening, joint fits, the global
-    line search for springs to ground, polish, supports on spring lines, refits with one
+    line search for springs to ground, polish, supports on spring lines, the leading
+    spring to ground's line at the other bones, refits with one
     damping per dashpot, the base refitted from the leaders' parameters (which may replace
     the base fit and its "where"), the chain's tolerances, the verdict (module docstring);
     while the best candidate leaves the held-out lines measurably above the noise, the
