@@ -21,9 +21,9 @@ def test_ground_spring_moved_to_the_true_bone(tmp_path):
     assert truth["effect"] == "missing_ligament"
     assert truth["place"]["bones"] == ["innominate_right"]
 
-    # the springs alone (whole library, CLI: the same verdict and place, gap 1.76 -> 0)
+    # the effects that led (whole library, CLI: the same verdict and place)
     report = diagnose_in_fresh_process(
-        path, effects=["missing_ligament"])
+        path, effects=["missing_ligament", "support_resonance", "per_dashpot_damping"])
     assert report["verdict"] == "missing_ligament", report["verdict_reason"]
     spring = next(c for c in report["candidates"] if c["effect"] == "missing_ligament")
     assert spring["place"] == "innominate_right to ground"
