@@ -2124,74 +2124,6 @@ def _polish_stage(s: _Stages, cands: Sequence[Candidate],
     return new
 
 
-def _leading_ground_spring(s: _Stages, results: Sequence[CandidateResult]
-                           ) -> CandidateResult | None:
-    """The best spring to ground when it is among the leading effects
-    (``polish_effects``), not at the noise's floor (gap > ``restart_gap``) and ahead of
-    every support; else None."""
-    opt = s.opt
-    leaders = sorted(_best_by_effect(results).values(), key=lambda r: r.score)
-    spring = next((r for r in leaders[:opt.polish_effects]
-                   if r.candidate.effect == "missing_ligament"), None)
-    # not when a support already scores better than the spring: the stages that start
-    # from it could only add supports there (judge-like support sets 4242_011 and
-    # 4242_023: 8.8 and 6.5 s of 32 and 30 s, verdicts as without it)
-    support = next((r for r in leaders if r.candidate.effect == "support_resonance"), None)
-    if not (spring is not None and spring.candidate.line_spring is not None
-            and not spring.candidate.line_spring.bone_b and spring.gap_after > opt.restart_gap
-            and (support is None or spring.score < support.score)):
-        return None
-    return spring
-
-
-def _spring_on_other_bones_stage(s: _Stages, cands: Sequence[Candidate],
-                                 results: Sequence[CandidateResult]
-                                 ) -> list[CandidateResult]:
-    """The leading spring to ground's line of action moved to every other bone whose
-    place reaches it, fitted jointly with the base. Returns the new results."""
-    # a grounded spring near a joint acts almost the same on either bone, and the search
-    # can settle on the wrong one (fresh judge-like set 8989_004: a 2.3e5 N/m iliolumbar
-    # spring on the right innominate named a 2.8e6 N/m spring to ground on the sacrum, on
-    # the true line to within 5 mm, gap 1.76 -> 0.50; the same line on the innominate,
-    # started at 1/3 of the sacrum's stiffness, finished at 2.6e5 N/m and gap 0.04). Its
-    # stiffness there is unknown: starts at 1, 1/3, 1/10 and 1/30 of it, from the spring's
-    # and the base fit's θ; the three best short fits are finished (on that set the
-    # best short fit finished at 1.47, the second at 0.04)
-    opt, bounds = s.opt, s.bounds
-    spring = _leading_ground_spring(s, results)
-    if spring is None:
-        return []
-    line = spring.candidate.line_spring
-    v = spring.u[:3]
-    stiffness = line.k0_n_per_m * float(v @ v)
-    if stiffness <= 0.0:
-        return []
-    axis = v / np.linalg.norm(v)
-    point = line.centre_m + spring.u[3:6]
-    tasks = []
-    for cand in cands:
-        other = cand.line_spring
-        if other is None or other.bone_b or cand.place == spring.candidate.place:
-            continue
-        # the line's point closest to the place's centre: within reach, or not this place
-        d = point + axis * float(axis @ (other.centre_m - point)) - other.centre_m
-        if np.any(np.abs(d) > other.reach_m):
-            continue
-        pairs = [(theta, np.concatenate([np.sqrt(stiffness * f / other.k0_n_per_m) * axis, d]))
-                 for theta in (spring.theta, s.theta) for f in (1.0, 1 / 3, 1 / 10, 1 / 30)]
-        tasks.append((cand, pairs))
-    if not tasks:
-        return []
-    shorts = parallel_map(lambda t: _joint_starts(t[0], s.short_lines, [], t[1][0][1],
-                                                  bounds, opt, t[1]), tasks, opt.jobs)
-    finishes = [(cand, x) for (cand, _pairs), starts in zip(tasks, shorts, strict=True)
-                for _cost, x in starts[:3]]
-    fitted = parallel_map(lambda t: _joint_finish(t[0], s.fit, s.held, t[1], bounds, opt,
-                                                  opt.max_nfev_joint), finishes, opt.jobs)
-    return [_fitted_result(cand, f, s.held.n, spring.screened_places)
-            for (cand, _x), f in zip(finishes, fitted, strict=True)]
-
-
 def _support_on_line_stage(s: _Stages, results: Sequence[CandidateResult]
                            ) -> list[CandidateResult]:
     """A leading spring to ground refitted as a damped support on its line, and the spring
@@ -2202,8 +2134,17 @@ def _support_on_line_stage(s: _Stages, results: Sequence[CandidateResult]
     # measured points stayed above 4): its fitted line refitted as a resonant, damped
     # contact (support_on_line)
     opt, fit, held, bounds = s.opt, s.fit, s.held, s.bounds
-    spring = _leading_ground_spring(s, results)
-    if spring is None or not (opt.effects is None or "support_resonance" in opt.effects):
+    leaders = sorted(_best_by_effect(results).values(), key=lambda r: r.score)
+    spring = next((r for r in leaders[:opt.polish_effects]
+                   if r.candidate.effect == "missing_ligament"), None)
+    # not when a support already scores better than the spring: the stage could only add
+    # supports there (judge-like support sets 4242_011 and 4242_023: 8.8 and 6.5 s of 32
+    # and 30 s, verdicts as without it)
+    support = next((r for r in leaders if r.candidate.effect == "support_resonance"), None)
+    if not (spring is not None and spring.candidate.line_spring is not None
+            and not spring.candidate.line_spring.bone_b and spring.gap_after > opt.restart_gap
+            and (support is None or spring.score < support.score)
+            and (opt.effects is None or "support_resonance" in opt.effects)):
         return []
     # every grounded place's best spring, not only the leader's: the spring can settle
     # on the wrong bone (a bed under the right iliac fossa, all 21 FRFs of the
@@ -3099,13 +3040,8 @@ def diagnose(data: GapData, model: PelvisModel, options: GapOptions | None = Non
     results += _polish_stage(s, cands, results)
     timing["polish_s"] = time.perf_counter() - t3
     t5 = time.perf_counter()
-    # both stages start from the spring that leads before either adds results
-    leading_before = list(results)
-    results += _support_on_line_stage(s, leading_before)
+    results += _support_on_line_stage(s, results)
     timing["support_on_line_s"] = time.perf_counter() - t5
-    t11 = time.perf_counter()
-    results += _spring_on_other_bones_stage(s, cands, leading_before)
-    timing["spring_on_other_bones_s"] = time.perf_counter() - t11
     t4 = time.perf_counter()
     results += _null_extension_stage(s, results)
     timing["null_extension_s"] = time.perf_counter() - t4
