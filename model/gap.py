@@ -2614,6 +2614,7 @@ def _verdict_stage(s: _Stages, ranked: Sequence[CandidateResult], cal: _Calibrat
         if missed is not None:
             best, test, gap_fit_after = missed
             best_name = best.candidate.effect
+            switched_from = None  # chosen here on the pooled drop, not by the switch
             verdict = "none" if best_name in NULL_EXTENSIONS else best_name
             reason = (f"the held-out lines read near the noise (gap {gap_before:.3g}) but "
                       f"the fitted lines do not (base gap {gap_fit_before:.3g} there): a "
@@ -2986,8 +2987,7 @@ def diagnose(data: GapData, model: PelvisModel, options: GapOptions | None = Non
     """Run the whole diagnosis on prepared data against the base ``model``.
 
     Stages: base fit (and the dashpot reading), where, screening, joint fits, the global
-    line search for springs to ground, polish, supports on spring lines, the leading
-    spring to ground's line at the other bones, refits with one
+    line search for springs to ground, polish, supports on spring lines, refits with one
     damping per dashpot, the base refitted from the leaders' parameters (which may replace
     the base fit and its "where"), the chain's tolerances, the verdict (module docstring);
     while the best candidate leaves the held-out lines measurably above the noise, the
