@@ -2452,8 +2452,14 @@ class _Significance:
                      failed_beyond_null=failed_beyond_null)
 
 
+def _pooled_gain(res: CandidateResult, test: _Test) -> float:
+    """The pooled χ² drop less 2 per parameter: what a candidate decided on the pooled
+    evidence is chosen by."""
+    return test.drop_pooled - 2 * res.candidate.n_params
+
+
 def _held_out_miss(s: _Stages, nameable: Sequence[CandidateResult],
-                   significance: _Significance
+                   significance: _Significance, gap_fit_before: float
                    ) -> tuple[CandidateResult, _Test, float] | None:
     """The effect the held-out lines missed, for a base fit near the noise on the held-out
     lines (gap <= ``near_noise_gap``) but not on the fitted ones (gap > it): a resonance
@@ -2464,9 +2470,9 @@ def _held_out_miss(s: _Stages, nameable: Sequence[CandidateResult],
     (held out, or pooled over fitted and held-out lines with a held-out drop > 0), those
     that bring the fitted-line gap near the noise or shrink it by ``min_shrink``; the one
     with the largest pooled χ² drop less 2 per parameter (as the switch in
-    :func:`_verdict_stage`). Returns it, its test and its fitted-line gap, or None."""
+    :func:`_verdict_stage`); ``gap_fit_before`` is the base fit's fitted-line gap.
+    Returns it, its test and its fitted-line gap, or None."""
     opt = s.opt
-    gap_fit_before = excess_gap(s.chi2_base_fitted, s.fit.n)
     passing = []
     for res in nameable:
         if res.beyond_null is not None:
@@ -2480,7 +2486,7 @@ def _held_out_miss(s: _Stages, nameable: Sequence[CandidateResult],
             passing.append((res, test, gap_fit_after))
     if not passing:
         return None
-    return max(passing, key=lambda p: p[1].drop_pooled - 2 * p[0].candidate.n_params)
+    return max(passing, key=lambda p: _pooled_gain(p[0], p[1]))
 
 
 @dataclass
@@ -2523,10 +2529,8 @@ def _verdict_stage(s: _Stages, ranked: Sequence[CandidateResult], cal: _Calibrat
             passing = [(r, significance(r)) for r in nameable if r.beyond_null is None]
             passing = [(r, t) for r, t in passing if t.significant]
             if passing:
-                alt, t_alt = max(passing,
-                                 key=lambda rt: rt[1].drop_pooled - 2 * rt[0].candidate.n_params)
-                if alt is not best and t_alt.drop_pooled - 2 * alt.candidate.n_params > (
-                        test.drop_pooled - 2 * best.candidate.n_params):
+                alt, t_alt = max(passing, key=lambda rt: _pooled_gain(*rt))
+                if alt is not best and _pooled_gain(alt, t_alt) > _pooled_gain(best, test):
                     switched_from = best
                     best = alt
                     test = t_alt
@@ -2610,7 +2614,7 @@ def _verdict_stage(s: _Stages, ranked: Sequence[CandidateResult], cal: _Calibrat
             reason = null_reason + "; before it: " + reason
     gap_fit_before = excess_gap(s.chi2_base_fitted, s.fit.n)
     if below_noise and gap_fit_before > opt.near_noise_gap:
-        missed = _held_out_miss(s, nameable, significance)
+        missed = _held_out_miss(s, nameable, significance, gap_fit_before)
         if missed is not None:
             best, test, gap_fit_after = missed
             best_name = best.candidate.effect
