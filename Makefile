@@ -23,8 +23,10 @@ demo: $(STAMP)
 lint: $(STAMP)
 	$(BIN)/ruff check .
 
+# One test process per core (pytest-xdist): the gap diagnoses dominate the suite and their
+# serial parts (base fits) left a core idle; worksteal evens out the minute-long tests.
 test: lint
-	$(BIN)/python -m pytest -q
+	$(BIN)/python -m pytest -q -n logical --dist worksteal
 
 BENCH_STAMP := $(VENV)/.installed-bench-stamp
 
