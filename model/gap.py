@@ -66,6 +66,7 @@ from pelvislab.model.gap_effects import (
     base_structure,
     calibration_gains,
     candidate_library,
+    effect_jacobian,
     evaluate,
     line_spring_basis,
     line_spring_parameters,
@@ -630,9 +631,11 @@ class _Model:
 
     def jacobian(self, x: np.ndarray) -> np.ndarray:
         """∂residual/∂x: exact in log θ (the atoms); in the effect parameters, forward
-        differences (step 1e-6) - of ΔZ alone, contracted with the residual's solve, for
-        parameters that enter only through ΔZ (all of a ΔZ-only effect's, a null
-        extension's), of the whole model (one solve each) for the others."""
+        differences (step 1e-6) of the effect's terms, contracted with the residual's
+        solve (no solve per parameter) - of ΔZ alone for parameters that enter only through
+        ΔZ (all of a ΔZ-only effect's, a null extension's), of every term (frequency
+        factors, ΔZ per input, output rows, gains: :func:`effect_jacobian`) for the
+        others."""
         theta, u = self.split(x)
         s = self.solved(x)
         ctx = self.lines.ctx
@@ -651,18 +654,16 @@ class _Model:
             if u.size:
                 blocks.append(J[:, n_th:])
             return np.concatenate(blocks, axis=1)
-        r0 = self.lines.residual(s.H)
-        cols = []
-        for k in range(u.size):
-            if k in via_dZ:
-                cols.append(J[:, n_th + via_dZ.index(k)])
-                continue
-            h = 1e-6 * max(1.0, abs(u[k]))
+        others = [k for k in range(u.size) if k not in via_dZ]
+        steps = [1e-6 * max(1.0, abs(u[k])) for k in others]
+        changed = []
+        for k, h in zip(others, steps, strict=True):
             uk = u.copy()
             uk[k] += h
-            Hk, _ = evaluate(ctx, theta, self.cand.build(uk, ctx))
-            self.nfev += 1
-            cols.append((self.lines.residual(Hk) - r0) / h)
+            changed.append(self.cand.build(uk, ctx))
+        J_others = self.lines.jac(effect_jacobian(ctx, s, changed, steps))
+        cols = [J[:, n_th + via_dZ.index(k)] if k in via_dZ else J_others[:, others.index(k)]
+                for k in range(u.size)]
         blocks.append(np.stack(cols, axis=1))
         return np.concatenate(blocks, axis=1)
 

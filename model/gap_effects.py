@@ -282,6 +282,8 @@ class Solved:
     groups: tuple[tuple[list[int], np.ndarray], ...]
     H: np.ndarray  # (n_f, n_out, n_in), measurement-chain gains applied
     gain: np.ndarray | None  # (n_f, n_out, n_in) gains, None = none
+    matrices: tuple[np.ndarray, np.ndarray, np.ndarray]  # M, K, C at theta
+    H_raw: np.ndarray  # (n_f, n_out, n_in) before the gains
 
 
 def solve(ctx: Context, theta: np.ndarray, terms: EffectTerms | None = None) -> Solved:
@@ -296,9 +298,7 @@ def solve(ctx: Context, theta: np.ndarray, terms: EffectTerms | None = None) -> 
     n_f = w.size
     M, K, C = base.matrices(theta)
     # the plain viscous factors (eq. 4.54): a_m = −ω², a_k = 1, a_c = iω
-    factors = (_split_factor(terms.a_m, -(w**2), None),
-               _split_factor(terms.a_k, np.ones_like(w), None),
-               _split_factor(terms.a_c, None, w))
+    factors = _plain_factors(terms, w)
     Z = _dynamic_stiffness(factors, (M, K, C), n_f)
     if terms.dZ is not None:
         Z = Z + terms.dZ
@@ -321,15 +321,95 @@ def solve(ctx: Context, theta: np.ndarray, terms: EffectTerms | None = None) -> 
         X = np.linalg.solve(Zg, np.broadcast_to(rhs, (n_f, *rhs.shape)))
         H[:, :, cols] = o @ X[..., n_out:]
         groups.append((cols, X))
-    gain = None
-    if terms.out_gain is not None or terms.in_gain is not None:
-        gain = np.ones(H.shape, complex)
-        if terms.out_gain is not None:
-            gain = gain * terms.out_gain[:, :, None]
-        if terms.in_gain is not None:
-            gain = gain * terms.in_gain[:, None, :]
-        H = H * gain
-    return Solved(np.asarray(theta, float), terms, factors, tuple(groups), H, gain)
+    gain = _gain(terms, H.shape)
+    return Solved(np.asarray(theta, float), terms, factors, tuple(groups),
+                  H if gain is None else H * gain, gain, (M, K, C), H)
+
+
+def _gain(terms: EffectTerms, shape: tuple[int, ...]) -> np.ndarray | None:
+    """The measurement-chain gain (n_f, n_out, n_in) of ``terms``; None when it has none."""
+    if terms.out_gain is None and terms.in_gain is None:
+        return None
+    gain = np.ones(shape, complex)
+    if terms.out_gain is not None:
+        gain = gain * terms.out_gain[:, :, None]
+    if terms.in_gain is not None:
+        gain = gain * terms.in_gain[:, None, :]
+    return gain
+
+
+def _plain_factors(terms: EffectTerms, omega: np.ndarray
+                   ) -> tuple[tuple[np.ndarray | None, np.ndarray | None], ...]:
+    """(real, imaginary) parts of a_m, a_k, a_c of ``terms`` (eq. 4.54 where it leaves one
+    unchanged: a_m = −ω², a_k = 1, a_c = iω)."""
+    return (_split_factor(terms.a_m, -(omega**2), None),
+            _split_factor(terms.a_k, np.ones_like(omega), None),
+            _split_factor(terms.a_c, None, omega))
+
+
+def _difference(new: np.ndarray | None, old: np.ndarray | None) -> np.ndarray | None:
+    """``new − old`` of two optional arrays (None = zero); None when both are None."""
+    if new is None and old is None:
+        return None
+    if old is None:
+        return np.asarray(new)
+    return -np.asarray(old) if new is None else np.asarray(new) - old
+
+
+def effect_jacobian(ctx: Context, solved: Solved, changed: Sequence[EffectTerms],
+                    steps: Sequence[float]) -> np.ndarray:
+    """∂H along changes of the effect's terms, (n_f, n_out, n_in, k): column k is the
+    first-order change of H from ``solved.terms`` to ``changed[k]`` divided by
+    ``steps[k]`` (a forward difference of the terms, not of H), carried through the solve
+    already made: with ``A = Z⁻¹Oᵀ``, ``B = Z⁻¹Iᵀ`` of each solved group (Z complex
+    symmetric), ``δH = G ⊙ (δO B − Aᵀ δZ B) + δG ⊙ (O B)`` for changes δZ of the
+    dynamic stiffness (frequency factors, common and per-input ΔZ), δO of the output rows
+    and δG of the gains. No solve per column: for effects that change more than the
+    common ΔZ (frequency factors, gains, output rows, a ΔZ per input) this replaces one
+    solve per parameter. Every ``changed`` must keep the solve's groups (the same inputs
+    with a ΔZ of their own)."""
+    n_f, n_out, n_in = solved.H.shape
+    old = solved.terms
+    o = ctx.out_rows if old.out_rows is None else old.out_rows
+    dH = np.empty((n_f, n_out, n_in, len(changed)), complex)
+    for k, (new, h) in enumerate(zip(changed, steps, strict=True)):
+        # δZ common to every column: the changed frequency factors times M, K, C, and ΔZ
+        dZ = _difference(new.dZ, old.dZ)
+        for X, f_new, f_old in zip(solved.matrices, _plain_factors(new, ctx.omega),
+                                   solved.factors, strict=True):
+            for a_new, a_old, unit in ((f_new[0], f_old[0], 1.0), (f_new[1], f_old[1], 1j)):
+                da = _difference(a_new, a_old)
+                if da is None or not np.any(da):
+                    continue
+                term = (unit * da)[:, None, None] * X
+                dZ = term if dZ is None else dZ + term
+        d_rows = (None if new.out_rows is None and old.out_rows is None
+                  else (ctx.out_rows if new.out_rows is None else new.out_rows) - o)
+        own = [None] * n_in if old.dZ_input is None else list(old.dZ_input)
+        own_new = [None] * n_in if new.dZ_input is None else list(new.dZ_input)
+        if [d is None for d in own] != [d is None for d in own_new]:
+            raise ValueError("changed terms must keep the inputs that carry their own ΔZ")
+        d_raw = np.zeros((n_f, n_out, n_in), complex)
+        for cols, X in solved.groups:
+            A, B = X[..., :n_out], X[..., n_out:]
+            dZ_g = dZ
+            if len(cols) == 1 and own[cols[0]] is not None:
+                d_own = own_new[cols[0]] - own[cols[0]]
+                dZ_g = d_own if dZ_g is None else dZ_g + d_own
+            if dZ_g is not None:
+                d_raw[:, :, cols] -= A.transpose(0, 2, 1) @ (dZ_g @ B)
+            if d_rows is not None:
+                d_raw[:, :, cols] += d_rows @ B
+        gain_new = _gain(new, solved.H.shape)
+        d_gain = None  # a missing gain is 1
+        if gain_new is not None or solved.gain is not None:
+            d_gain = ((1.0 if gain_new is None else gain_new)
+                      - (1.0 if solved.gain is None else solved.gain))
+        col = d_raw if solved.gain is None else solved.gain * d_raw
+        if d_gain is not None:
+            col = col + d_gain * solved.H_raw
+        dH[..., k] = col / h
+    return dH
 
 
 def model_jacobian(ctx: Context, solved: Solved, dZ_directions: np.ndarray | None = None
