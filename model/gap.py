@@ -669,16 +669,23 @@ class _Model:
 
     def _dZ_directions(self, s: Solved, u: np.ndarray, params: Sequence[int]) -> np.ndarray:
         """Forward differences (step 1e-6) of ΔZ in the effect parameters ``params``:
-        (n_f, k, n, n), no solve."""
+        (n_f, k, n, n), no solve. A ΔZ that is the same on every line (a spring: a
+        broadcast view) is differenced once, and the directions are such a view too."""
         dZ = s.terms.dZ
-        dirs = np.empty((dZ.shape[0], len(params), *dZ.shape[1:]), complex)
-        for j, k in enumerate(params):
+        n_f = dZ.shape[0]
+        built = []
+        for k in params:
             h = 1e-6 * max(1.0, abs(u[k]))
             uk = u.copy()
             uk[k] += h
-            np.subtract(self.cand.build(uk, self.lines.ctx).dZ, dZ, out=dirs[:, j])
+            built.append((self.cand.build(uk, self.lines.ctx).dZ, h))
+        same_on_every_line = all(d.strides[0] == 0 for d in [dZ, *(b for b, _h in built)])
+        lines = 1 if same_on_every_line else n_f
+        dirs = np.empty((lines, len(params), *dZ.shape[1:]), complex)
+        for j, (dZ_k, h) in enumerate(built):
+            np.subtract(dZ_k[:lines], dZ[:lines], out=dirs[:, j])
             dirs[:, j] /= h
-        return dirs
+        return np.broadcast_to(dirs, (n_f, *dirs.shape[1:]))
 
 
 def _only_dZ(terms: EffectTerms | None) -> bool:
@@ -1009,10 +1016,23 @@ def _line_spring_search(cand: Candidate, fit: _Lines, theta: np.ndarray, options
         w = w_unit[s:s + 250]
         num = (w @ QA.T) * (w @ QB.T) * fit.w  # (N, n_e)
         gam = np.einsum("Nr,frs,Ns->Nf", w, G, w)[:, f_idx]
+        # r = r0 − k num / (1 + k γ) and Σ √(1 + (r/scale)²) of its parts, in buffers
+        # reused over the stiffnesses (the same operations in the same order)
+        r, den, part = np.empty_like(num), np.empty_like(gam), np.empty(num.shape)
         for j, k in enumerate(k_grid):
-            r = r0 - k * num / (1 + k * gam)
-            cost[s:s + 250, j] = (np.sum(np.sqrt(1 + (r.real / scale) ** 2), axis=1)
-                                  + np.sum(np.sqrt(1 + (r.imag / scale) ** 2), axis=1))
+            np.multiply(k, num, out=r)
+            np.multiply(k, gam, out=den)
+            np.add(1, den, out=den)
+            np.divide(r, den, out=r)
+            np.subtract(r0, r, out=r)
+            total = 0.0
+            for re_or_im in (r.real, r.imag):
+                np.divide(re_or_im, scale, out=part)
+                np.square(part, out=part)
+                np.add(1, part, out=part)
+                np.sqrt(part, out=part)
+                total = total + np.sum(part, axis=1)
+            cost[s:s + 250, j] = total
 
     sqrt_k0 = np.sqrt(place.k0_n_per_m)
 
