@@ -2299,6 +2299,36 @@ class _Calibration:
     evident: bool  # part of the null: the data show the gains
 
 
+def _suspension_not_shown(res: CandidateResult, results: Sequence[CandidateResult],
+                          opt: GapOptions) -> str:
+    """Why a shaker armature on its suspension is the tissue under the shaker's form ("" when
+    it is not): the tissue along the drive axis is the armature without suspension (its
+    first three parameters, f_s → 0), so the armature is named only when its suspension
+    lowers the χ² of fitted and held-out lines together by more than the one-parameter
+    critical value at ``p_value`` against that tissue at the same input, fitted the same way
+    (likelihood-ratio test of the nested model). Judge-like set 9191_001: a 86 g tissue
+    lump at 156 Hz under the shaker, one damping per dashpot, was named the armature with
+    its suspension at 0.93 Hz (below the 5-300 Hz band), a drop of 5.3 against the
+    tissue's fit."""
+    variant = res.candidate.variant
+    if not variant.startswith(ARMATURE_VARIANT):
+        return ""
+    tissue_variant = TISSUE_ALONG_AXIS_VARIANT + variant[len(ARMATURE_VARIANT):]
+    tissues = [r for r in results if r.candidate.variant == tissue_variant
+               and r.candidate.place == res.candidate.place]
+    if not tissues:
+        return ""
+    tissue = min(tissues, key=lambda r: r.chi2_fitted + r.chi2_heldout)
+    drop = tissue.chi2_fitted + tissue.chi2_heldout - res.chi2_fitted - res.chi2_heldout
+    crit = float(chi2_dist.isf(opt.p_value, 1))
+    if drop > crit:
+        return ""
+    f_s = res.candidate.describe(res.u).get("suspension_frequency_hz", float("nan"))
+    return (f"the armature's suspension ({f_s:.3g} Hz) lowers the chi2 of fitted and "
+            f"held-out lines by {drop:.3g} <= {crit:.3g} against the tissue under the "
+            f"shaker at {res.candidate.place} (its form without suspension): soft_tissue")
+
+
 def _tolerance_stage(s: _Stages, ranked: Sequence[CandidateResult],
                      results: Sequence[CandidateResult]) -> _Calibration:
     """The verdict's null hypothesis, parameter updating plus the measurement chain's
@@ -2334,6 +2364,9 @@ def _tolerance_stage(s: _Stages, ranked: Sequence[CandidateResult],
                 f"tissue resonance {f_t:.4g} Hz above the band and a rigid point mass "
                 f"(added_mass) fits the held-out lines as well ({mass.chi2_heldout:.4g} <= "
                 f"{res.chi2_heldout:.4g}): no compliance shown")
+    for res in ranked:
+        if not res.tolerance_note:
+            res.tolerance_note = _suspension_not_shown(res, results, opt)
     # the gains are part of the null only when the data show them: their held-out chi2
     # drop must pass the one-parameter test at p_value (out of sample, a drop expected
     # <= 0 without calibration errors); else the null is updating alone, as before
