@@ -1,6 +1,7 @@
 """The gap diagnosis's least-squares Jacobian (issue 10): the solve shared with the
 residual, ΔZ-direction columns for ΔZ-only effects and for a null extension's parameters
-on any effect, each against plain forward differences of the residual."""
+on any effect, and the columns of every other effect parameter from the same solve
+(``effect_jacobian``), each against differences of the whole model's residual."""
 
 from __future__ import annotations
 
@@ -54,6 +55,17 @@ def residual_differences(model, x, step=1e-4):
     return np.stack(cols, axis=1)
 
 
+def random_point(ctx, cand, seed):
+    """Effect parameters u near the candidate's first start (inside its bounds) and the
+    fit's x = (log θ near the nominal values, u)."""
+    rng = np.random.default_rng(seed)
+    u = np.clip(cand.starts[0] + rng.normal(0, 0.1, cand.n_params),
+                cand.lower + 0.05, cand.upper - 0.05)
+    x = np.concatenate([np.log(ctx.base.nominal) + rng.normal(0, 0.1, ctx.base.n_params),
+                        u])
+    return u, x
+
+
 def assert_columns_close(J, J_fd, rtol=2e-3):
     for k in range(J.shape[1]):
         scale = np.max(np.abs(J_fd[:, k])) + 1e-300
@@ -62,7 +74,7 @@ def assert_columns_close(J, J_fd, rtol=2e-3):
 
 @pytest.mark.parametrize("effect, variant", [
     ("added_mass", None),                                # ΔZ only: every column via ΔZ
-    ("hysteretic_damping", "loss factor (K(1+i eta))"),  # a_k: its column by a solve
+    ("hysteretic_damping", "loss factor (K(1+i eta))"),  # a_k: a change of the factor
     ("soft_tissue", "tissue at output"),                 # ΔZ and an output gain
 ])
 def test_jacobian_with_null_extension_matches_differences(lines, effect, variant):
@@ -71,11 +83,7 @@ def test_jacobian_with_null_extension_matches_differences(lines, effect, variant
     cand = with_extension(candidate(ctx, effect, variant), extension)
     n1 = cand.n_params - extension.n_params
     assert cand.dZ_params[-extension.n_params:] == tuple(range(n1, cand.n_params))
-    rng = np.random.default_rng(3)
-    u = np.clip(cand.starts[0] + rng.normal(0, 0.1, cand.n_params),
-                cand.lower + 0.05, cand.upper - 0.05)
-    x = np.concatenate([np.log(ctx.base.nominal) + rng.normal(0, 0.1, ctx.base.n_params),
-                        u])
+    u, x = random_point(ctx, cand, seed=3)
     model = _Model(lines, cand, None, ctx.base.n_params)
     J = model.jacobian(x)
     assert J.shape == (2 * lines.n, ctx.base.n_params + cand.n_params)
@@ -123,11 +131,7 @@ def test_effect_columns_need_no_solve_and_match_differences(lines, effect, varia
     of the whole model."""
     ctx = lines.ctx
     cand = candidate(ctx, effect, variant)
-    rng = np.random.default_rng(7)
-    u = np.clip(cand.starts[0] + rng.normal(0, 0.1, cand.n_params),
-                cand.lower + 0.05, cand.upper - 0.05)
-    x = np.concatenate([np.log(ctx.base.nominal) + rng.normal(0, 0.1, ctx.base.n_params),
-                        u])
+    _u, x = random_point(ctx, cand, seed=7)
     model = _Model(lines, cand, None, ctx.base.n_params)
     model.residual(x)
     solves = model.nfev
