@@ -2306,7 +2306,7 @@ def _suspension_not_shown(res: CandidateResult, results: Sequence[CandidateResul
     first three parameters, f_s → 0), so the armature is named only when its suspension
     lowers the χ² of fitted and held-out lines together by more than the one-parameter
     critical value at ``p_value`` against that tissue at the same input, fitted the same way
-    (likelihood-ratio test of the nested model). Judge-like set 9191_001: a 86 g tissue
+    (likelihood-ratio test of the nested model). Judge-like set 9191_001: an 86 g tissue
     lump at 156 Hz under the shaker, one damping per dashpot, was named the armature with
     its suspension at 0.93 Hz (below the 5-300 Hz band), a drop of 5.3 against the
     tissue's fit."""
