@@ -2861,6 +2861,30 @@ def _null_extension_null_stage(s: _Stages, v: _Verdict, results: Sequence[Candid
     return tested
 
 
+def _range_about_fit(u_fit: float, half: float, rise_at_null: float,
+                     critical: float) -> tuple[float, float]:
+    """The ends ``(low, high)`` of the range of an effect's parameter ``u`` whose χ² stays
+    within ``critical`` of its best (dimensionless χ², the effect's own units for ``u``).
+
+    ``half`` is the linearised half-width about the best fit ``u_fit`` (the profile taken
+    as a parabola with the Jacobian's curvature); ``rise_at_null`` is the χ² at ``u = 0``
+    (the null, every effect's absence) less that at the best fit, known exactly from the
+    null's own fit. Where the two disagree on whether 0 lies inside (``rise_at_null ≤
+    critical``), the end on the null's side is taken from the parabola through the best
+    fit and the null's exact χ², |u_fit|·√(critical / rise_at_null), so that the range
+    and the likelihood-ratio test at the null never contradict each other: make demo's
+    session had f_k −0.192 … −0.013 by the curvature while the null's χ² lies only 10.50
+    above the best (critical 10.83). Otherwise the linearised end is kept (1357_020: the
+    true profile at both its ends within a factor 1.2 of the critical value)."""
+    low, high = u_fit - half, u_fit + half
+    null_inside_linear = low <= 0.0 <= high
+    if u_fit == 0.0 or null_inside_linear == (rise_at_null <= critical):
+        return low, high
+    reach = (abs(u_fit) * float(np.sqrt(critical / rise_at_null)) if rise_at_null > 0.0
+             else np.inf)
+    return (u_fit - reach, high) if u_fit > 0.0 else (low, u_fit + reach)
+
+
 def _not_excluded(s: _Stages, results: Sequence[CandidateResult]) -> list[dict[str, object]]:
     """Sizes of the global one-parameter effects (f_k, f_c, loss factor) that the data
     cannot exclude: the range of the effect's parameter over which the χ² of fitted and
@@ -2874,11 +2898,16 @@ def _not_excluded(s: _Stages, results: Sequence[CandidateResult]) -> list[dict[s
     approximation of the profile is not trusted and no range is given): Δχ²(δu) =
     δu² / (2 [(JᵀJ)⁻¹]_uu) (χ² = ½ Σ r², J of the fitted and held-out residuals, base
     parameters at their bounds held). On 1357_020 the true profile at the ends of f_k's
-    range (−0.60, 1.43) is 12.2 and 8.4 against 10.8."""
+    range (−0.60, 1.43) is 12.2 and 8.4 against 10.8. The end on the null's side is
+    taken from the null's exact χ² where the curvature alone would contradict it
+    (``_range_about_fit``): ``null_inside`` is then the pooled likelihood-ratio test at
+    u = 0, whose χ² rise is reported as ``chi2_rise_at_null``."""
     opt = s.opt
     exact = s.data.noise_source == "H_std"
     n_null = next((r.candidate.n_params for r in results
                    if r.candidate.effect == PER_DASHPOT_DAMPING), 0)
+    null_ext = min((r for r in results if r.candidate.effect == PER_DASHPOT_DAMPING),
+                   key=lambda r: r.score, default=None)
     best: dict[tuple[str, str], CandidateResult] = {}
     for res in results:
         c = res.candidate
@@ -2906,8 +2935,14 @@ def _not_excluded(s: _Stages, results: Sequence[CandidateResult]) -> list[dict[s
         # one parameter profiled (the others, a null extension's too, refitted)
         crit = _significance_threshold(res, opt, s.chi2_base + s.chi2_base_fitted, exact, 1)
         half = float(np.sqrt(2.0 * crit * max(cov[kf, kf], 0.0)))
-        u_lo = max(float(res.u[0]) - half, float(c.lower[0]))
-        u_hi = min(float(res.u[0]) + half, float(c.upper[0]))
+        # the χ² of all lines at the null: the base fit's, or the per-dashpot extension's
+        # for an effect fitted with it
+        null_chi2 = (s.chi2_base + s.chi2_base_fitted
+                     if res.beyond_null is None or null_ext is None
+                     else null_ext.chi2_heldout + null_ext.chi2_fitted)
+        rise_at_null = null_chi2 - (res.chi2_heldout + res.chi2_fitted)
+        u_lo, u_hi = _range_about_fit(float(res.u[0]), half, rise_at_null, crit)
+        u_lo, u_hi = max(u_lo, float(c.lower[0])), min(u_hi, float(c.upper[0]))
         name = next(iter(c.describe(res.u)))  # the physical name of u[0] (its first key)
 
         def physical(u0: float, c: Candidate = c, res: CandidateResult = res,
@@ -2919,7 +2954,8 @@ def _not_excluded(s: _Stages, results: Sequence[CandidateResult]) -> list[dict[s
                     "high": physical(u_hi),
                     # every one of these effects vanishes at u = 0 (its null)
                     "null_inside": bool(u_lo <= 0.0 <= u_hi),
-                    "chi2_critical": _round(crit), "gap_after": _round(res.gap_after)})
+                    "chi2_critical": _round(crit), "chi2_rise_at_null": _round(rise_at_null),
+                    "gap_after": _round(res.gap_after)})
     return out
 
 

@@ -10,6 +10,9 @@ there, has risen by about the critical value.
 """
 
 import numpy as np
+import pytest
+from hypothesis import given
+from hypothesis import strategies as st
 
 from pelvislab.acquisition.frfset import read_frf
 from pelvislab.app.commands.gap import format_report
@@ -58,6 +61,7 @@ def test_absorbed_frequency_dependent_stiffness_is_bounded_not_ruled_out(tmp_pat
     assert entry["null_inside"] and entry["low"] < 0.0 < entry["high"]
     assert entry["low"] <= entry["fitted"] <= entry["high"]
     assert f_k_true < entry["high"], "the true size must not be excluded"
+    assert entry["chi2_rise_at_null"] <= entry["chi2_critical"]
     assert "not excluded by the data" in format_report(report)
 
     # the range is the profile's: at each end the pooled χ² has risen by ~ the critical
@@ -70,3 +74,30 @@ def test_absorbed_frequency_dependent_stiffness_is_bounded_not_ruled_out(tmp_pat
     for end in (entry["low"], entry["high"]):
         rise = _profile_chi2(s, res.candidate, res.theta, end) - best
         assert entry["chi2_critical"] / 1.6 < rise < 1.6 * entry["chi2_critical"], (end, rise)
+
+
+def test_range_on_the_nulls_side_follows_the_nulls_exact_chi2():
+    # make demo's session: f_k fitted -0.103, linearised half-width 0.0895 (-0.192 ..
+    # -0.013, excluding 0), while the base fit's χ² of all lines lies only 10.50 above the
+    # f_k fit's (critical 10.83): the null is not excluded, and the range must say so
+    low, high = gap._range_about_fit(-0.103, 0.0895, 10.50, 10.83)
+    assert low == pytest.approx(-0.103 - 0.0895)
+    assert high == pytest.approx(-0.103 + 0.103 * np.sqrt(10.83 / 10.50))
+    assert low < 0.0 < high
+    # the opposite disagreement: the curvature reaches 0, the null's χ² lies 40 above
+    low, high = gap._range_about_fit(0.2, 0.25, 40.0, 10.83)
+    assert high == pytest.approx(0.45)
+    assert 0.0 < low == pytest.approx(0.2 - 0.2 * np.sqrt(10.83 / 40.0))
+    # agreement: the linearised range unchanged (1357_020's case)
+    assert gap._range_about_fit(0.41, 1.02, 0.02, 10.83) == pytest.approx((-0.61, 1.43))
+    # the null fits all lines better than the effect: nothing on its side is excluded
+    assert gap._range_about_fit(0.3, 0.1, -1.0, 10.83) == (-np.inf, pytest.approx(0.4))
+
+
+@given(u_fit=st.floats(-3.0, 3.0), half=st.floats(0.0, 3.0), rise=st.floats(-5.0, 100.0),
+       critical=st.floats(0.5, 30.0))
+def test_range_and_the_test_at_the_null_never_disagree(u_fit, half, rise, critical):
+    low, high = gap._range_about_fit(u_fit, half, rise, critical)
+    assert low <= u_fit <= high
+    if u_fit != 0.0:
+        assert (low <= 0.0 <= high) == (rise <= critical)
