@@ -1348,6 +1348,17 @@ def _best_like(results: Sequence[CandidateResult], effect: str, like: CandidateR
     return min(same, key=lambda r: r.score) if same else None
 
 
+def _stage_note(stage: str, seconds: float, results: Sequence[CandidateResult]) -> str:
+    """One progress line after a stage of the diagnosis: its wall time (s) and the best
+    held-out gap so far (σ beyond the noise; 0 = noise level)."""
+    if not results:
+        return f"{stage}: {seconds:.1f} s"
+    best = min(results, key=lambda r: r.score)
+    return (f"{stage}: {seconds:.1f} s; {len(results)} fits so far, best "
+            f"{best.candidate.effect} ({best.candidate.variant} @ {best.candidate.place}) "
+            f"gap {best.gap_after:.3g}")
+
+
 def _best_by_effect(results: Sequence[CandidateResult]) -> dict[str, CandidateResult]:
     """The best-scoring result (variant and place) of every effect."""
     best: dict[str, CandidateResult] = {}
@@ -3125,10 +3136,16 @@ def diagnose(data: GapData, model: PelvisModel, options: GapOptions | None = Non
     if progress:
         progress(f"screened {len(cands)} candidate places in {timing['screen_s']:.1f} s")
     results = _joint_fit_stage(s, by_variant, spring_starts)
+    if progress:
+        progress(_stage_note("joint fits", time.perf_counter() - t1 - timing["screen_s"],
+                             results))
     n_screened = {key: len(items) for key, items in by_variant.items()}
     t_search = time.perf_counter()
     if min(r.gap_after for r in results) > opt.near_noise_gap:
         results += _line_search_stage(s, cands, results, n_screened)
+        if progress:
+            progress(_stage_note("line search for springs to ground",
+                                 time.perf_counter() - t_search, results))
     timing["line_search_s"] = time.perf_counter() - t_search
     t3 = time.perf_counter()
     results += _polish_stage(s, cands, results)
@@ -3139,6 +3156,9 @@ def diagnose(data: GapData, model: PelvisModel, options: GapOptions | None = Non
     t4 = time.perf_counter()
     results += _null_extension_stage(s, results)
     timing["null_extension_s"] = time.perf_counter() - t4
+    if progress:
+        progress(_stage_note("polish, supports on spring lines, refits with one damping "
+                             "per dashpot", time.perf_counter() - t3, results))
     # one entry per effect: its best-scoring variant and place
     best_by_effect = _best_by_effect(results)
     ranked = sorted(best_by_effect.values(), key=lambda r: r.score)
@@ -3162,6 +3182,9 @@ def diagnose(data: GapData, model: PelvisModel, options: GapOptions | None = Non
         t7 = time.perf_counter()
         new = _line_search_stage(s, cands, results, n_screened, between_bones=True)
         timing["pair_search_s"] = time.perf_counter() - t7
+        if progress:
+            progress(_stage_note("line search for springs between bones",
+                                 timing["pair_search_s"], results + new))
         if new:
             results += new
             best_by_effect = _best_by_effect(results)

@@ -199,9 +199,16 @@ def test_no_effect_gives_verdict_none():
     rng = np.random.default_rng(11)
     Hn, sigma = noisy(frf(true_model(), F_HZ, OUT, IN), rng)
     data = prepare_data(F_HZ, Hn, sigma, OUT, IN)
-    rep = diagnose(data, default_model(), OPTS).report
+    notes = []
+    rep = diagnose(data, default_model(), OPTS, progress=notes.append).report
     assert rep["verdict"] == "none", rep["verdict_reason"]
     assert rep["gap_before"] < 0.5
+    # progress on the long stages (CLI --progress on a terminal, the GUI's status line)
+    stages = [n.split(":")[0] for n in notes]
+    assert "joint fits" in stages and any(s.startswith("polish") for s in stages), notes
+    assert stages.index("joint fits") < stages.index(next(s for s in stages
+                                                           if s.startswith("polish")))
+    assert "best" in notes[stages.index("joint fits")]
 
 
 def test_misoriented_sensor_is_found_with_its_place_and_shrink():
