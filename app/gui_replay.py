@@ -36,7 +36,11 @@ class ReplayView(QtWidgets.QWidget):
         self.path: Path | None = None
         self.steps: list[Any] = []
         self._executor = ThreadPoolExecutor(max_workers=1, thread_name_prefix="pelvislab-replay")
-        self._pending: list[tuple[Future, Callable[[Any], None], str]] = []
+        self._pending: list[tuple[Future, Callable[[Any], None], str,
+                                  QtWidgets.QPushButton | None]] = []
+        # the running job's latest progress line, set from the worker thread and shown
+        # by the poll timer (a str assignment: no lock needed)
+        self._progress_note = ""
         self._build()
         self._poll = QtCore.QTimer(self)
         self._poll.setInterval(100)
@@ -86,6 +90,9 @@ class ReplayView(QtWidgets.QWidget):
         self.gap_button.clicked.connect(self.run_gap)
         analysis_layout.addWidget(self.identify_button)
         analysis_layout.addWidget(self.gap_button)
+        self.analysis_status = QtWidgets.QLabel("")
+        self.analysis_status.setWordWrap(True)
+        analysis_layout.addWidget(self.analysis_status)
         left.addWidget(analysis)
         left_widget = QtWidgets.QWidget()
         left_widget.setLayout(left)
@@ -292,7 +299,7 @@ class ReplayView(QtWidgets.QWidget):
 
             return identify_file(path)
 
-        self.submit(work, self.show_identification, "identification")
+        self.submit(work, self.show_identification, "identification", self.identify_button)
 
     def show_identification(self, report: Any) -> None:
         """Parameters with their standard errors; measured vs model FRFs."""
@@ -325,12 +332,17 @@ class ReplayView(QtWidgets.QWidget):
             return
         path = self.path
 
+        def note(message: str) -> None:
+            self._progress_note = f"gap diagnosis: {message}"
+
         def work() -> Any:
             from pelvislab.app.commands.gap import diagnose_file
 
-            return diagnose_file(path)
+            return diagnose_file(path, progress=note)
 
-        self.submit(work, self.show_gap, "gap diagnosis")
+        # a diagnosis takes about a minute here (serial in the worker thread): the
+        # stages' progress lines show where it is
+        self.submit(work, self.show_gap, "gap diagnosis", self.gap_button)
 
     def show_gap(self, result: Any) -> None:
         """Residual map, verdict and candidate effects ranked by shrink (design 4.4)."""
@@ -343,11 +355,21 @@ class ReplayView(QtWidgets.QWidget):
                             for o in where.get("outputs", [])[:3])
         # the reason says why (a verdict 'none' after a large base gap needs it: the
         # calibration null fitted as a whole can explain it)
+        bones = ", ".join(f"{b['bone']} ({100 * b['share']:.0f} %)"
+                          for b in where.get("bones", [])[:3])
         reason = html.escape(str(report.get("verdict_reason", "")))
+        # what the data cannot exclude (a `none` means "not needed", not "absent":
+        # parameter updating can absorb an effect)
+        ranges = "; ".join(
+            f"{html.escape(str(r['effect']))} {html.escape(str(r['parameter']))} "
+            f"{r['low']:.3g} … {r['high']:.3g}" + (" (0 inside)" if r["null_inside"] else "")
+            for r in report.get("not_excluded") or [])
         self.gap_summary.setText(
             f"<b>verdict: {verdict}</b> — gap before {report.get('gap_before', float('nan')):.3g}."
-            f" Largest residual in {bands or '—'}; outputs {outputs or '—'}."
-            + (f"<br><small>{reason}</small>" if reason else ""))
+            f" Largest residual in {bands or '—'}; outputs {outputs or '—'};"
+            f" bones {bones or '—'}."
+            + (f"<br><small>{reason}</small>" if reason else "")
+            + (f"<br><small>not excluded by the data: {ranges}</small>" if ranges else ""))
         residual = getattr(result, "residual_map", None)
         if residual is not None:
             image = np.nan_to_num(np.asarray(residual, dtype=float))
@@ -373,22 +395,35 @@ class ReplayView(QtWidgets.QWidget):
         self.tabs.setCurrentIndex(3)
 
     # ------------------------------------------------------------------ worker plumbing
-    def submit(self, work: Callable[[], Any], done: Callable[[Any], None], what: str) -> Future:
-        """Run ``work`` off the UI thread; ``done(result)`` runs on the UI thread."""
+    def submit(self, work: Callable[[], Any], done: Callable[[Any], None], what: str,
+               button: QtWidgets.QPushButton | None = None) -> Future:
+        """Run ``work`` off the UI thread; ``done(result)`` runs on the UI thread.
+        ``button`` (the one that started it) is disabled until the job ends, so that a
+        second click does not queue the same minute-long job again."""
+        self._progress_note = ""
         future = self._executor.submit(work)
-        self._pending.append((future, done, what))
+        self._pending.append((future, done, what, button))
+        if button is not None:
+            button.setEnabled(False)
         self.file_label.setToolTip(f"{what} running…")
+        self.analysis_status.setText(f"{what} running…")
         return future
 
     def _collect(self) -> None:
         for item in list(self._pending):
-            future, done, what = item
+            future, done, what, button = item
             if not future.done():
+                if self._progress_note:
+                    self.analysis_status.setText(self._progress_note)
                 continue
             self._pending.remove(item)
+            if button is not None:
+                button.setEnabled(True)
+            self.analysis_status.setText("" if self._pending else f"{what} done")
             try:
                 result = future.result()
             except Exception as exc:
+                self.analysis_status.setText(f"{what} failed")
                 QtWidgets.QMessageBox.warning(self, f"{what} failed",
                                               " ".join(str(exc).split()))
                 continue

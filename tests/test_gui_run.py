@@ -132,12 +132,23 @@ def test_replay_gap_diagnosis_shows_verdict_map_and_candidates(operator_window, 
     assert window.open_replay(demo_session)
     replay = window.replay
     qtbot.mouseClick(replay.gap_button, QtCore.Qt.MouseButton.LeftButton)
+    # no second run queued while one runs; the stages' progress shows in the status line
+    assert not replay.gap_button.isEnabled()
+    qtbot.waitUntil(lambda: "gap diagnosis: " in replay.analysis_status.text(),
+                    timeout=180_000)
     qtbot.waitUntil(lambda: replay.candidate_table.rowCount() > 0, timeout=180_000)
+    assert replay.gap_button.isEnabled()
+    assert replay.analysis_status.text() == "gap diagnosis done"
     # the demo session has no unmodelled effect: its channel gains (the simulated
     # speckle, up to ~0.6 %) are within the calibration tolerance (was
     # sensor_misorientation, a 1/cos gain of 1.0057 at sacrum_x)
     assert "verdict: none" in replay.gap_summary.text()
     assert "not significant" in replay.gap_summary.text()  # the verdict's reason follows
+    assert "bones innominate" in replay.gap_summary.text() or "bones sacrum" in (
+        replay.gap_summary.text())
+    # what `none` does not exclude (make demo's session: f_k, 0 inside)
+    assert "not excluded by the data: frequency_dependent_stiffness f_k" in (
+        replay.gap_summary.text())
     image = replay.residual_image.image
     assert image is not None and image.shape[1] >= 2  # frequency x measured pairs
     assert replay.tabs.currentIndex() == 3
