@@ -2886,7 +2886,7 @@ def _range_about_fit(u_fit: float, half: float, rise_at_null: float,
     and the likelihood-ratio test at the null never contradict each other: make demo's
     session had f_k −0.192 … −0.013 by the curvature while the null's χ² lies only 10.50
     above the best (critical 10.83). Otherwise the linearised end is kept (1357_020: the
-    true profile at both its ends within a factor 1.2 of the critical value)."""
+    true profile at its ends 12.2 and 8.4 against 10.8)."""
     low, high = u_fit - half, u_fit + half
     null_inside_linear = low <= 0.0 <= high
     if u_fit == 0.0 or null_inside_linear == (rise_at_null <= critical):
