@@ -273,12 +273,16 @@ def test_cli_diagnose_writes_json_and_report(tmp_path, capsys):
     path = tmp_path / "s.h5"
     write_frf(path, FrfSet(F_HZ, Hn, OUT, IN, H_std=sigma))
     out = tmp_path / "gap.json"
-    code = main(["gap", "diagnose", str(path), "--json", str(out), "--effects", "added_mass"])
+    code = main(["gap", "diagnose", str(path), "--json", str(out), "--effects", "added_mass",
+                 "--progress"])
     assert code == 0
     rep = json.loads(out.read_text())
     assert set(rep) >= {"gap_before", "where", "candidates", "verdict"}
     assert rep["verdict"] in ("none", "added_mass", "unexplained")
-    assert "verdict" in capsys.readouterr().out
+    printed = capsys.readouterr()
+    assert "verdict" in printed.out
+    # --progress: the stages on stderr although it is not a terminal here
+    assert "  joint fits: " in printed.err and "  screened " in printed.err
     assert len(rep["plots"]) == 2
     for p in rep["plots"]:
         assert open(p, "rb").read(8) == b"\x89PNG\r\n\x1a\n"

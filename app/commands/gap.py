@@ -56,6 +56,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                    help="damping is updated up to FACTOR times the model's values "
                         "(default 3e4: appendix E's 0.8 N s/m -> 24000 N s/m)")
     d.add_argument("--no-plots", action="store_true", help="do not write PNG plots")
+    d.add_argument("--progress", dest="verbose_progress", action="store_true",
+                   help="print a line per stage (base fit, screen, joint fits, searches) "
+                        "on stderr even when not a terminal")
     d.add_argument("--jobs", type=int, default=0, metavar="N",
                    help=_JOBS_HELP)
     d.set_defaults(handler=_diagnose)
@@ -82,8 +85,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     b.set_defaults(handler=_benchmark)
 
 
-def _progress() -> object:
-    if sys.stderr.isatty():
+def _progress(always: bool = False) -> object:
+    """A progress printer on stderr: on a terminal, or ``always`` (``--progress``)."""
+    if always or sys.stderr.isatty():
         return lambda msg: print(f"  {msg}", file=sys.stderr, flush=True)
     return None
 
@@ -197,7 +201,7 @@ def _diagnose(args: argparse.Namespace) -> int:
     effects = None
     if args.effects:
         effects = tuple(e.strip() for e in args.effects.split(",") if e.strip())
-    report = diagnose_file(args.session, args.model, _progress(), effects,
+    report = diagnose_file(args.session, args.model, _progress(args.verbose_progress), effects,
                            args.updating_range, args.damping_max, args.jobs)
     plots: list[str] = []
     if not args.no_plots:
@@ -376,8 +380,7 @@ def _benchmark(args: argparse.Namespace) -> int:
     if args.kinds:
         kinds = [k.strip() for k in args.kinds.split(",") if k.strip()]
     result = run_benchmark(generator, kinds=kinds, cases_per_kind=args.cases,
-                           progress=_progress() if not args.verbose_progress else
-                           (lambda m: print(f"  {m}", file=sys.stderr, flush=True)),
+                           progress=_progress(args.verbose_progress),
                            chain_generator=chain, chain_cases_per_kind=chain_cases,
                            options=GapOptions(jobs=args.jobs))
     result["generator"] = " + ".join(names)
