@@ -2915,10 +2915,9 @@ def _not_excluded(s: _Stages, results: Sequence[CandidateResult]) -> list[dict[s
     u = 0, whose χ² rise is reported as ``chi2_rise_at_null``."""
     opt = s.opt
     exact = s.data.noise_source == "H_std"
-    n_null = next((r.candidate.n_params for r in results
-                   if r.candidate.effect == PER_DASHPOT_DAMPING), 0)
     null_ext = min((r for r in results if r.candidate.effect == PER_DASHPOT_DAMPING),
                    key=lambda r: r.score, default=None)
+    n_null = null_ext.candidate.n_params if null_ext is not None else 0
     best: dict[tuple[str, str], CandidateResult] = {}
     for res in results:
         c = res.candidate
