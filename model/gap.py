@@ -1012,8 +1012,12 @@ def _line_spring_search(cand: Candidate, fit: _Lines, theta: np.ndarray, options
     w_unit = g @ Q.T  # (n_lines, r): unit stiffness
     scale = options.robust_scale
     cost = np.empty((n_lines, k_grid.size))  # robust cost (soft l1) up to a constant
-    for s in range(0, n_lines, 250):
-        w = w_unit[s:s + 250]
+    # lines per block: its buffers (~6 arrays of n_e complex values per line) stay in a
+    # core's cache (3000 lines of 2220 values: 4.5 s in blocks of 250, 3.0 s in blocks of
+    # 9; each line's values and sums are the same in any block)
+    chunk = max(1, 20000 // max(f_idx.size, 1))
+    for s in range(0, n_lines, chunk):
+        w = w_unit[s:s + chunk]
         num = (w @ QA.T) * (w @ QB.T) * fit.w  # (N, n_e)
         gam = np.einsum("Nr,frs,Ns->Nf", w, G, w)[:, f_idx]
         # r = r0 − k num / (1 + k γ) and Σ √(1 + (r/scale)²) of its parts, in buffers
@@ -1032,7 +1036,7 @@ def _line_spring_search(cand: Candidate, fit: _Lines, theta: np.ndarray, options
                 np.add(1, part, out=part)
                 np.sqrt(part, out=part)
                 total = total + np.sum(part, axis=1)
-            cost[s:s + 250, j] = total
+            cost[s:s + chunk, j] = total
 
     sqrt_k0 = np.sqrt(place.k0_n_per_m)
 
