@@ -104,7 +104,10 @@ def test_strong_spring_on_a_per_dashpot_subject_is_refitted_with_the_extension()
     # explains nothing of the spring's misfit, so it looked insignificant and no effect
     # was refitted with it: the spring stopped at gap ~11 and a support on its line was
     # named. Every effect is now refitted with the extension when no candidate comes near
-    # the noise.
+    # the noise. The library here leaves the support out (with it: 88 s against 46 s on
+    # one core, the same spring at the same gap): what the test needs is the spring's own
+    # refit, and without it the spring stops at gap 13.8 and the last assertion fails
+    # (checked by disabling the stage's "no candidate near the noise" branch)
     mass = {"innominate_right": 0.479, "innominate_left": 0.659, "sacrum": 0.255}
     stiffness = {"io_R": 1.034e6, "asa_R": 7.16e5, "asd_R": 1.251e6, "pss_R": 7.98e5,
                  "psl_R": 9.25e5, "io_L": 1.221e6, "asa_L": 7.10e5, "asd_L": 1.214e6,
@@ -120,7 +123,7 @@ def test_strong_spring_on_a_per_dashpot_subject_is_refitted_with_the_extension()
     k = k + 1.9e5 * np.outer(row, row)
     data = _data(_layout_frf(m, c, k), seed=29, noise_of_h=0.0106)
     report = diagnose(data, default_model(), GapOptions(
-        effects=("per_dashpot_damping", "missing_ligament", "support_resonance"))).report
+        effects=("per_dashpot_damping", "missing_ligament"))).report
     assert report["verdict"] == "missing_ligament", report["verdict_reason"]
     best = report["candidates"][0]
     assert best["place"] == "innominate_right to ground"
