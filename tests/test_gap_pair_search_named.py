@@ -8,6 +8,10 @@ sacrum (with one damping per dashpot) takes the held-out gap from 235 to 79: shr
 above ``min_shrink``. Until session 21 that named ``support_resonance``, because the global
 search of the springs between bones ran only before a verdict ``unexplained``. It now runs
 whenever no candidate has come near the noise, and finds the spring at sij_right, gap 0.
+Its end-to-end test (59 s in the suite) was removed in session 29 to keep ``make test``
+under 10 minutes: the case below runs the same search behind the finer gate, and fails as
+well when the search runs only before ``unexplained`` (checked in session 29: the search
+did not run); ``pelvislab gap diagnose`` on set 7575_007 still shows the case.
 
 Judge-like set 7777_029: a sacrospinous ligament, 5.1e4 N/m from the sacrum to the right
 innominate, 24.7 sigma. The base fit absorbs it with twelve parameters at their bounds. A
@@ -27,9 +31,6 @@ from pelvislab.model.gap import GapOptions
 from pelvislab.tests import judge_like_generator as jl
 from pelvislab.tests.fresh_process import diagnose_in_fresh_process
 
-# the bed contact is named with one damping per dashpot added; without that null extension
-# it removes only 45 % and the verdict would be "unexplained", which searched before too
-EFFECTS = ["support_resonance", "missing_ligament", "per_dashpot_damping"]
 # the effect that leads on 7777_029 below near_noise_gap with the whole library (a point
 # mass on the left innominate until session 25; since the mass's job from the model file's
 # values its leading place is the sacrum, gap 1.31, and f_k leads at 0.77), with one
@@ -44,31 +45,6 @@ def _ligament_set(tmp_path_factory, seed: int, index: int, variant: str):
     truth = jl.write_set(jl.make_set(np.random.default_rng([seed, index])), path)
     assert truth["effect"] == "missing_ligament" and truth["variant"] == variant
     return path
-
-
-@pytest.fixture(scope="module")
-def set_7575_007(tmp_path_factory):
-    return _ligament_set(tmp_path_factory, 7575, 7, "sacrotuberous")
-
-
-def test_spring_between_bones_is_searched_when_a_bed_contact_would_be_named(set_7575_007):
-    report = diagnose_in_fresh_process(set_7575_007, effects=EFFECTS)
-    by_effect = {c["effect"]: c for c in report["candidates"]}
-    bed = by_effect["support_resonance"]
-    # the situation: the bed contact alone would be named (shrink above min_shrink) while
-    # leaving a gap far above the noise
-    assert bed["shrink"] >= GapOptions().min_shrink
-    assert bed["gap_after"] > 10 * GapOptions().near_noise_gap
-    assert "pair_search_s" in report["timing_s"]
-    assert report["verdict"] == "missing_ligament", report["verdict_reason"]
-    best = report["candidates"][0]
-    assert best["effect"] == "missing_ligament"
-    assert best["variant"] == "extra spring" and best["place"] == "sij_right"
-    # gap 0 on the machines of sessions 21-25; 5.14 on session 26's (AMD EPYC, same
-    # packages): the search's minimum there depends on the BLAS kernels' rounding (the
-    # base refit adopted differs: base gap 235 against 220). Either way the spring leaves
-    # a small part of what the bed contact leaves (56.9 on that machine)
-    assert best["gap_after"] < 0.2 * bed["gap_after"]
 
 
 @pytest.fixture(scope="module")
