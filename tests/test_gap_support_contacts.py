@@ -301,7 +301,10 @@ def test_a_stalled_spring_to_ground_is_refitted_on_the_line_of_its_support(tmp_p
     same gap with 4 parameters fewer and keeps the verdict."""
     from pelvislab.model.pelvis import default_model
 
-    rep = diagnose(judge_like_data(2468, 32, tmp_path), default_model()).report
+    # the spring and the support that won on its line (the whole library gives the same
+    # verdict and gap: 34 s against 23 s)
+    rep = diagnose(judge_like_data(2468, 32, tmp_path), default_model(),
+                   GapOptions(effects=("missing_ligament", "support_resonance"))).report
     best = rep["candidates"][0]
     assert rep["verdict"] == "missing_ligament", rep["verdict_reason"]
     assert best["place"] == "innominate_left to ground"
