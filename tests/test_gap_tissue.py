@@ -178,7 +178,8 @@ def test_tissue_above_the_band_that_a_rigid_mass_matches_is_the_mass(tmp_path):
     path = tmp_path / "set_1357_007.h5"
     truth = jl.write_set(jl.make_set(np.random.default_rng([1357, 7])), path)
     assert truth["effect"] == "added_mass"
-    report = diagnose_file(path).to_json()
+    # the two effects that tied (the whole library gives the same: 23 s against 8 s)
+    report = diagnose_file(path, effects=("soft_tissue", "added_mass")).to_json()
     assert report["verdict"] == "added_mass", report["verdict_reason"]
     tissue = next(c for c in report["candidates"] if c["effect"] == "soft_tissue")
     assert tissue["within_tolerance"] and "no compliance shown" in tissue["within_tolerance"]
