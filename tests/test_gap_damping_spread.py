@@ -104,7 +104,7 @@ def test_strong_spring_on_a_per_dashpot_subject_is_refitted_with_the_extension()
     # explains nothing of the spring's misfit, so it looked insignificant and no effect
     # was refitted with it: the spring stopped at gap ~11 and a support on its line was
     # named. Every effect is now refitted with the extension when no candidate comes near
-    # the noise. The library here leaves the support out (with it: 88 s against 46 s on
+    # the noise. The library here leaves the support out (with it: 76 s against 46 s on
     # one core, the same spring at the same gap): what the test needs is the spring's own
     # refit, and without it the spring stops at gap 13.8 and the last assertion fails
     # (checked by disabling the stage's "no candidate near the noise" branch)
