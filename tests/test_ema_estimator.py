@@ -224,7 +224,7 @@ def test_setups_with_unmeasured_frfs_fall_back_to_common_denominator(system):
 
 def test_no_mode_on_a_grid_coarser_than_the_bandwidths_says_why(system):
     # damping 100x lighter than the fixture's: zeta 0.03-0.09 % (appendix E: 0.02-0.5 %),
-    # half-power bandwidths of 0.07-0.26 Hz on a 10 Hz grid (make demo's)
+    # half-power bandwidths of 0.07-0.26 Hz on a 10 Hz grid (make demo's without its zooms)
     M, K, C, _, _ = system
     f = np.arange(30.0, 300.01, 10.0)
     H = add_noise(receptance(M, K, 0.01 * C, f, list(range(6)), [0]), 0.01, seed=8)

@@ -77,9 +77,10 @@ def test_absorbed_frequency_dependent_stiffness_is_bounded_not_ruled_out(tmp_pat
 
 
 def test_range_on_the_nulls_side_follows_the_nulls_exact_chi2():
-    # make demo's session: f_k fitted -0.103, linearised half-width 0.0895 (-0.192 ..
-    # -0.013, excluding 0), while the base fit's χ² of all lines lies only 10.50 above the
-    # f_k fit's (critical 10.83): the null is not excluded, and the range must say so
+    # make demo's session on its 10 Hz grid (session 28): f_k fitted -0.103, linearised
+    # half-width 0.0895 (-0.192 .. -0.013, excluding 0), while the base fit's χ² of all lines
+    # lies only 10.50 above the f_k fit's (critical 10.83): the null is not excluded, and the
+    # range must say so
     low, high = gap._range_about_fit(-0.103, 0.0895, 10.50, 10.83)
     assert low == pytest.approx(-0.103 - 0.0895)
     assert high == pytest.approx(-0.103 + 0.103 * np.sqrt(10.83 / 10.50))
