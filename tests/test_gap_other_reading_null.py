@@ -38,7 +38,7 @@ def test_effect_not_beyond_the_other_readings_null_is_not_named(tmp_path):
     # under midpoint reaches gap 0.10 by itself (0.19 before) and the verdict is `none`
     # without the other reading's null. That default run was asserted here until session
     # 29 and dropped to keep `make test` under 10 minutes (~25 s); the no-effect sets of
-    # the judge-like re-runs (docs/gap-diagnosis.md) check such verdicts at scale
+    # the judge-like re-runs (docs/gap-diagnosis-history.md) check such verdicts at scale
 
     # the stage under test, as it ran before: one start finished per joint fit
     report = _report(path, finish_ties=0)

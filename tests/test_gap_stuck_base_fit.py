@@ -18,7 +18,7 @@ Two defences, each tested alone:
 * without that (``base_refit_leaders=0``), a candidate that passes is tested again against
   the base refitted from its own θ (session 19).
 
-The limit that stays (docs/gap-diagnosis.md, "Session 19"): with the tissue alone in the
+The limit that stays (docs/gap-diagnosis-history.md, "Session 19"): with the tissue alone in the
 library it ends in another local minimum (fitted 922.5, held out 323.3), the base refitted
 from there reaches only 962.2 / 332.4, and the tissue still passes against that.
 """
