@@ -245,8 +245,8 @@ def update_by_mac(
     it is scaled by the pooled residual variance, which mixes shape, frequency and damping
     residuals and can underestimate the errors several-fold (measured: see docs/ema.md).
     ``filter_rigid``: correlate the shapes filtered as in fig. 14.1 (default; the filter
-    removes the 6 global rigid motions, so a layout of 6 or fewer measured directions, or
-    one that leaves fewer independent directions than measured modes, is refused with a
+    removes the 6 global rigid motions, so a layout that does not determine all six, or
+    that leaves fewer independent directions than measured modes, is refused with a
     ValueError) or the plain shapes at the channels (``False``).
     ``n_starts``: the nominal start, then random starts (log-uniform ±``perturbation`` for
     positive parameters, ±``perturbation`` × range for coordinates); stops early when the
