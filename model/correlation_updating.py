@@ -204,6 +204,19 @@ def _coordinate_groups(model: PelvisModel, names: Sequence[str]) -> list[str]:
     return groups
 
 
+def updating_space(model: PelvisModel, params: Sequence[str], *, symmetric: bool = True,
+                   bound_factor: float = 10.0, coordinate_range_m: float = 0.01
+                   ) -> ParameterSpace:
+    """The parameter space :func:`update_by_mac` updates: ``params`` of
+    :func:`~pelvislab.model.parameters.parameter_space` (``symmetric`` names), with the
+    attachment coordinates of every spring group named as ``r_<group>_...`` (bounds nominal
+    ± ``coordinate_range_m``, m). Raises KeyError for a name the model does not have."""
+    return parameter_space(model, symmetric=symmetric, only=list(params),
+                           bound_factor=bound_factor,
+                           coordinates=_coordinate_groups(model, params),
+                           coordinate_range_m=coordinate_range_m)
+
+
 @one_blas_thread
 def update_by_mac(
     model: PelvisModel,
@@ -260,10 +273,8 @@ def update_by_mac(
     if jacobian not in ("analytic", "fd"):
         raise ValueError(f"jacobian must be 'analytic' or 'fd', not {jacobian!r}")
     if space is None:
-        space = parameter_space(model, symmetric=symmetric, only=params,
-                                bound_factor=bound_factor,
-                                coordinates=_coordinate_groups(model, params),
-                                coordinate_range_m=coordinate_range_m)
+        space = updating_space(model, params, symmetric=symmetric, bound_factor=bound_factor,
+                               coordinate_range_m=coordinate_range_m)
     names = list(space.names)
     n_m = measured.frequency_hz.size
 

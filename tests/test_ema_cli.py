@@ -111,3 +111,77 @@ def test_pelvis_session_reports_rigid_content_and_flags_a_misoriented_sensor(tmp
     flagged = [c["name"] for c in doc["channel_check"] if c["flagged"]]
     assert flagged == ["c4"]
     assert "channel c4 is inconsistent" in capsys.readouterr().err
+
+
+def test_update_matches_the_models_modes_to_the_measured_ones(tmp_path, capsys):
+    # thesis ch. 14 from the command line: modes measured on a subject with k_io x1.2 and
+    # k_asa x0.9 (ch. 11 triaxial layout, 2.5 Hz grid, 1 % noise); appendix E updated on them
+    from pelvislab.model.frf import Points, frf
+    from pelvislab.model.parameters import parameter_space
+    from pelvislab.model.pelvis import load_model
+    from pelvislab.tests.test_ema_rigid_body import triaxial_geometry
+
+    nominal = load_model()
+    space = parameter_space(nominal, symmetric=True, only=["k_io", "k_asa"])
+    truth = space.as_dict()
+    truth = {"k_io": 1.2 * truth["k_io"], "k_asa": 0.9 * truth["k_asa"]}
+    subject = space.apply(space.from_dict(truth))
+    bones, pos, dirs = triaxial_geometry()
+    f = np.arange(5.0, 300.01, 2.5)
+    drive = Points(("innominate_left", "sacrum"), pos[[15, 30]], [[0.0, 1.0, 0.0], [1.0, 0, 0]])
+    H = add_noise(frf(subject, f, Points(tuple(bones), pos, dirs), drive), 0.01, seed=4)
+    outputs = Channels([f"c{k}" for k in range(len(bones))], bones, pos, dirs)
+    inputs = Channels(["drive", "sacrum_drive"], ["innominate_left", "sacrum"], pos[[15, 30]],
+                      [[0.0, 1.0, 0.0], [1.0, 0.0, 0.0]])
+    write_frf(tmp_path / "u.h5", FrfSet(f, H, outputs, inputs))
+    out = tmp_path / "u.json"
+    assert main(["ema", str(tmp_path / "u.h5"), "--json", str(out),
+                 "--update", "k_io,k_asa"]) == 0
+    upd = json.loads(out.read_text())["model_updating"]
+    assert upd["filter_rigid"] is True and "error" not in upd
+    for name, value in truth.items():
+        assert upd["parameters"][name]["value"] == pytest.approx(value, rel=0.03)
+    assert all(abs(p["frequency_error"]) < 0.01 for p in upd["pairs"])
+    assert "model updating (eq. 14.1)" in capsys.readouterr().err
+
+
+def test_update_refused_by_the_layout_still_writes_the_modes(tmp_path, capsys):
+    # five probes along x (make demo's layout) cannot determine the six rigid motions the
+    # fig. 14.1 filter removes: the EMA result is written with the reason, exit 1; plain
+    # MAC (--no-rigid-filter) updates
+    from pelvislab.model.frf import Points, frf
+    from pelvislab.model.landmarks import load_landmarks
+    from pelvislab.model.pelvis import load_model
+
+    cat = load_landmarks()
+    names = ["sacrum_x", "SIAS_R_x", "SIAS_L_x", "SIPS_R_x", "SIPS_L_x"]
+    outs = Channels(names, [cat[n].bone for n in names], [cat[n].position_m for n in names],
+                    [cat[n].direction for n in names])
+    ins = Channels(["SIAS_R_x"], [cat["SIAS_R_x"].bone], [cat["SIAS_R_x"].position_m],
+                   [-cat["SIAS_R_x"].direction])
+    f = np.arange(226.0, 238.01, 0.25)  # a zoom window across the 231.9 Hz mode
+    H = add_noise(frf(load_model(), f, Points(tuple(outs.bone), outs.position_m,
+                                              outs.direction),
+                      Points(tuple(ins.bone), ins.position_m, ins.direction)), 0.01, seed=5)
+    write_frf(tmp_path / "d.h5", FrfSet(f, H, outs, ins))
+    out = tmp_path / "d.json"
+    assert main(["ema", str(tmp_path / "d.h5"), "--json", str(out), "--update", "k_io"]) == 1
+    doc = json.loads(out.read_text())
+    assert len(doc["modes"]) == 1
+    assert "determine 3 of 6" in doc["model_updating"]["error"]
+    assert "--no-rigid-filter" in capsys.readouterr().err
+    out2 = tmp_path / "d2.json"
+    assert main(["ema", str(tmp_path / "d.h5"), "--json", str(out2), "--update", "k_io",
+                 "--no-rigid-filter"]) == 0
+    upd = json.loads(out2.read_text())["model_updating"]
+    assert upd["pairs"][0]["model"] == 4 and abs(upd["pairs"][0]["frequency_error"]) < 1e-3
+
+
+def test_update_names_checked_before_any_fit(session, tmp_path, capsys):
+    tmp, _ = session
+    out = tmp_path / "x.json"
+    assert main(["ema", str(tmp / "s.h5"), "--json", str(out), "--update", "k_io,k_foo"]) == 1
+    assert "unknown parameter(s) ['k_foo']" in capsys.readouterr().err
+    assert main(["ema", str(tmp / "s.h5"), "--json", str(out), "--model", "m.toml"]) == 1
+    assert "go with --update" in capsys.readouterr().err
+    assert not out.exists()

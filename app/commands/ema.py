@@ -2,8 +2,9 @@
 
 Poles by p-LSCF with a stabilisation diagram, residues by LSFD (``pelvislab.model.ema``),
 rigid-body content of the shapes and a per-channel rigid-motion check
-(``pelvislab.model.rigid_body``). Writes a JSON file
-(``-`` for stdout) and prints a one-line-per-mode summary on stderr.
+(``pelvislab.model.rigid_body``); with ``--update``, MAC-based model updating on the
+identified modes (thesis eq. 14.1, ``pelvislab.model.correlation_updating``). Writes a
+JSON file (``-`` for stdout) and prints a one-line-per-mode summary on stderr.
 """
 
 from __future__ import annotations
@@ -35,6 +36,20 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                    help="polish the selected poles by a bounded nonlinear pole/residue fit")
     p.add_argument("--no-diagram", action="store_true",
                    help="leave the stabilisation diagram out of the JSON")
+    p.add_argument("--update", metavar="NAMES",
+                   help="then update these model parameters (comma-separated, e.g. "
+                   "k_io,k_asa,c_sij; attachment coordinates r_<group>_<a|b>_<x|y|z>) so the "
+                   "model's modes match the measured ones: MAC-based updating, thesis eq. 14.1 "
+                   "(JSON key model_updating)")
+    p.add_argument("--model", metavar="M.toml",
+                   help="model to update (with --update); default: thesis appendix E")
+    p.add_argument("--with-damping", action="store_true",
+                   help="with --update: match the measured damping ratios too (only where the "
+                   "grid resolves the modes' bandwidths; default: shapes and frequencies)")
+    p.add_argument("--no-rigid-filter", action="store_true",
+                   help="with --update: correlate the plain shapes at the channels instead of "
+                   "the rigid-body filtered ones of thesis fig. 14.1 (which need a layout that "
+                   "determines all six rigid motions)")
     p.set_defaults(handler=run_ema)
 
 
@@ -134,6 +149,34 @@ def _channel_check(frf: object, result: object) -> list[dict] | None:
             for c in range(len(outputs))]
 
 
+def mac_updating(frf: object, result: object, model: object, names: list[str],
+                 filter_rigid: bool = True, with_damping: bool = False) -> dict:
+    """``model``'s parameters ``names`` updated on the EMA's modes (thesis eq. 14.1,
+    :func:`~pelvislab.model.correlation_updating.update_by_mac`), as a JSON-ready dict. A
+    layout or mode set the updating refuses gives ``{"error": reason, ...}`` instead, so
+    that the EMA result is still written. Shapes (MAC) and natural frequencies are matched;
+    the measured damping ratios only ``with_damping``: the EMA's damping is not reliable
+    for modes narrower than the line spacing (docs/ema.md), and its relative errors would
+    outweigh the frequencies'."""
+    from pelvislab.model.correlation_updating import MeasuredModes, update_by_mac
+
+    head = {"method": "MAC-based model updating (thesis eq. 14.1, fig. 14.1 correlation)",
+            "parameters_requested": names, "filter_rigid": filter_rigid,
+            "damping_ratios_fitted": with_damping}
+    if result.frequency_hz.size == 0:
+        return {**head, "error": "no measured mode to update the model on"}
+    o = frf.outputs
+    measured = MeasuredModes(result.frequency_hz, result.shapes, tuple(o.bone), o.position_m,
+                             o.direction, damping_ratio=result.damping_ratio)
+    try:
+        updated = update_by_mac(model, measured, names, filter_rigid=filter_rigid,
+                                damping_weight=1.0 if with_damping else 0.0)
+    except ValueError as exc:
+        return {**head, "error": str(exc).replace("filter_rigid=False",
+                                                  "--no-rigid-filter (filter_rigid=False)")}
+    return {**head, **updated.as_dict()}
+
+
 def run_ema(args: argparse.Namespace) -> int:
     """Handler of ``pelvislab ema``."""
     from pelvislab.acquisition.frfset import read_frf
@@ -145,6 +188,21 @@ def run_ema(args: argparse.Namespace) -> int:
             raise FileExistsError(f"{out} exists; not overwriting it")
         if not out.parent.is_dir():
             raise FileNotFoundError(f"output folder {out.parent} does not exist")
+    if (args.model or args.no_rigid_filter or args.with_damping) and not args.update:
+        raise ValueError("--model, --no-rigid-filter and --with-damping go with --update")
+    model, names = None, []
+    if args.update:  # the model and the names checked before any fit
+        from pelvislab.model.correlation_updating import updating_space
+        from pelvislab.model.pelvis import load_model
+
+        names = [n.strip() for n in args.update.split(",") if n.strip()]
+        if not names:
+            raise ValueError("--update needs at least one parameter name")
+        model = load_model(args.model)
+        try:
+            updating_space(model, names)
+        except KeyError as exc:
+            raise ValueError(f"--update: {exc.args[0]}") from None
     frf = read_frf(Path(args.session))
     if args.max_order is not None and args.max_order < 1:
         raise ValueError(f"--max-order must be >= 1, got {args.max_order}")
@@ -152,6 +210,10 @@ def run_ema(args: argparse.Namespace) -> int:
                  H_std=frf.H_std, max_order=args.max_order, frequencies_hz=args.frequencies,
                  refine=args.refine)
     doc = result_to_json(frf, result, diagram=not args.no_diagram)
+    if args.update:
+        doc["model_updating"] = _clean(mac_updating(
+            frf, result, model, names, filter_rigid=not args.no_rigid_filter,
+            with_damping=args.with_damping))
     text = json.dumps(doc, indent=1)
     if out is None:
         print(text)
@@ -170,4 +232,16 @@ def run_ema(args: argparse.Namespace) -> int:
                   f"{c['direction_error_deg']:.0f} deg off)", file=sys.stderr)
     if not doc["modes"]:
         print("no mode found in the band", file=sys.stderr)
+    upd = doc.get("model_updating")
+    if upd is not None:
+        if "error" in upd:
+            print(f"model updating: not done: {upd['error']}", file=sys.stderr)
+            return 1
+        print(f"model updating (eq. 14.1): {upd['message']}", file=sys.stderr)
+        for name, p in upd["parameters"].items():
+            print(f"  {name:14s} {p['value']:.5g} +- {p['std']:.2g}", file=sys.stderr)
+        for pair in upd["pairs"]:
+            print(f"  measured mode {pair['measured']} <-> model mode {pair['model']}: MAC "
+                  f"{pair['mac']:.4f}, frequency error {100 * pair['frequency_error']:+.2f} %",
+                  file=sys.stderr)
     return 0
