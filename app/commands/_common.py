@@ -11,6 +11,12 @@ from pelvislab.app.errors import NotImplementedCommand
 Handler = Callable[[argparse.Namespace], "int | None"]
 
 
+def comma_list(text: str) -> list[str]:
+    """The names of a comma-separated option value (``"k_io, k_asa,"`` -> ``["k_io",
+    "k_asa"]``): blanks around names and empty items dropped."""
+    return [item.strip() for item in text.split(",") if item.strip()]
+
+
 def not_implemented(command: str) -> Handler:
     """A handler for a registered command whose feature is not built yet (exit code 2)."""
 

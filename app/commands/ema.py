@@ -15,6 +15,8 @@ import math
 import sys
 from pathlib import Path
 
+from pelvislab.app.commands._common import comma_list
+
 
 def register(subparsers: argparse._SubParsersAction) -> None:
     """Add ``ema`` to the CLI."""
@@ -195,7 +197,7 @@ def run_ema(args: argparse.Namespace) -> int:
         from pelvislab.model.correlation_updating import updating_space
         from pelvislab.model.pelvis import load_model
 
-        names = [n.strip() for n in args.update.split(",") if n.strip()]
+        names = comma_list(args.update)
         if not names:
             raise ValueError("--update needs at least one parameter name")
         model = load_model(args.model)

@@ -23,6 +23,7 @@ from typing import Any
 
 from pelvislab.app.commands._common import (
     check_new_output,
+    comma_list,
     keep_freed_memory_for_reuse,
     write_json,
 )
@@ -200,7 +201,7 @@ def _diagnose(args: argparse.Namespace) -> int:
     keep_freed_memory_for_reuse()
     effects = None
     if args.effects:
-        effects = tuple(e.strip() for e in args.effects.split(",") if e.strip())
+        effects = tuple(comma_list(args.effects))
     report = diagnose_file(args.session, args.model, _progress(args.verbose_progress), effects,
                            args.updating_range, args.damping_max, args.jobs)
     plots: list[str] = []
@@ -378,7 +379,7 @@ def _benchmark(args: argparse.Namespace) -> int:
                      f"on a {args.chain_step_hz:g} Hz grid)")
     kinds = None
     if args.kinds:
-        kinds = [k.strip() for k in args.kinds.split(",") if k.strip()]
+        kinds = comma_list(args.kinds)
     result = run_benchmark(generator, kinds=kinds, cases_per_kind=args.cases,
                            progress=_progress(args.verbose_progress),
                            chain_generator=chain, chain_cases_per_kind=chain_cases,

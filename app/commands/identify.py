@@ -9,7 +9,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from pelvislab.app.commands._common import check_new_output, write_json
+from pelvislab.app.commands._common import check_new_output, comma_list, write_json
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -144,7 +144,7 @@ def identify_file(path: str | Path, method: str = "frf", params: list[str] | Non
 
 def _identify(args: argparse.Namespace) -> int:
     out = check_new_output(args.json)
-    free = [s.strip() for s in args.params.split(",") if s.strip()] if args.params else None
+    free = comma_list(args.params) if args.params else None
     progress = _progress(sys.stderr.isatty() or args.verbose > 0)
     report = identify_file(
         args.session, args.method, free, args.model, progress, symmetric=args.symmetric,

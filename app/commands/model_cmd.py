@@ -6,6 +6,8 @@ import argparse
 import json
 import sys
 
+from pelvislab.app.commands._common import comma_list
+
 
 def register(subparsers: argparse._SubParsersAction) -> None:
     """Add ``model modes`` and ``model frf`` to the CLI."""
@@ -87,7 +89,7 @@ def _modes(args: argparse.Namespace) -> int:
 
 
 def _names(text: str) -> list[str]:
-    names = [n.strip() for n in text.split(",") if n.strip()]
+    names = comma_list(text)
     if not names:
         raise ValueError("no landmark names given")
     return names
