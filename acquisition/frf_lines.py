@@ -76,17 +76,36 @@ def drive_force_phasor(frequency_hz: float, drive_amplitude_vpp: float,
                   offset=0.0, residual_rms=0.0, n_used=0, method="calibration")
 
 
-def displacement_phasor(tracking: TrackingResult, prf_hz: float, frequency_hz: float,
-                        **options: object) -> Phasor:
-    """Displacement phasor (m) of a tracked record at the drive frequency.
+def bone_sampling_delay_s(record_delay_s: float, tracking: TrackingResult) -> float:
+    """When a pulse samples the bone, s after the pulse leaves (the trigger): half the echo's
+    round trip, ``(record_delay_s + tracking.echo_time_s) / 2``.
 
-    Pulse ``k`` is at ``k / prf_hz`` after the first pulse (the ns trigger offsets are
-    negligible on this time scale); lost echoes (NaN) are dropped, which selects the
-    least-squares fit. ``options`` go to :func:`estimate_phasor`.
+    The echo reports where the bone was when the pulse reached it, one way (depth / c)
+    after the pulse: 5.3 us under 8.2 mm of tissue, 26 us under 40 mm. Taking it as the
+    pulse's own time turns the phasor by +omega * delay: 0.05 rad (5 % of |H|, in
+    quadrature) at 300 Hz under 40 mm, beyond the noise of a good line.
+    record_delay_s: the record's start after the trigger (``echoes`` attribute ``delay_s``,
+    design 4.2). NaN (no echo tracked) gives 0.
+    """
+    delay = 0.5 * (float(record_delay_s) + float(getattr(tracking, "echo_time_s", np.nan)))
+    return delay if np.isfinite(delay) else 0.0
+
+
+def displacement_phasor(tracking: TrackingResult, prf_hz: float, frequency_hz: float,
+                        sampling_delay_s: float = 0.0, **options: object) -> Phasor:
+    """Displacement phasor (m) of a tracked record at the drive frequency, referred to the
+    first pulse (design 4.2).
+
+    Pulse ``k`` leaves at ``k / prf_hz`` after the first pulse (the ns trigger offsets are
+    negligible on this time scale) and samples the bone ``sampling_delay_s`` later
+    (:func:`bone_sampling_delay_s`; 0 for a motion that was sampled at the pulses);
+    lost echoes (NaN) are dropped, which selects the least-squares fit. ``options`` go to
+    :func:`estimate_phasor`.
     """
     n = tracking.displacement_m.size
-    return estimate_phasor(tracking.displacement_m, np.arange(n) / float(prf_hz), frequency_hz,
-                           **options)  # type: ignore[arg-type]
+    return estimate_phasor(tracking.displacement_m,
+                           np.arange(n) / float(prf_hz) + float(sampling_delay_s),
+                           frequency_hz, **options)  # type: ignore[arg-type]
 
 
 def _combine(values: list[complex], stds: list[float]) -> tuple[complex, float]:

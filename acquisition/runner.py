@@ -254,10 +254,13 @@ def process_channel(channel: ChannelData, frequency_hz: float, options: Any = No
     """Track ``channel``'s echoes and estimate the displacement phasor, in place.
 
     Uses :func:`pelvislab.acquisition.tracking.track_echoes` (ch. 8) and
-    :func:`pelvislab.acquisition.phasor.estimate_phasor` with pulse times k / prf (s),
-    referred to the first pulse. Tracking failures leave ``phasor_m`` None and say why in
-    ``quality['message']``.
+    :func:`pelvislab.acquisition.phasor.estimate_phasor`, referred to the first pulse: echo
+    ``k`` samples the bone at k / prf plus half the echo's round trip (s,
+    :func:`~pelvislab.acquisition.frf_lines.bone_sampling_delay_s`, in
+    ``quality['bone_sampling_delay_s']``). Tracking failures leave ``phasor_m`` None and say
+    why in ``quality['message']``.
     """
+    from pelvislab.acquisition.frf_lines import bone_sampling_delay_s
     from pelvislab.acquisition.phasor import estimate_phasor
     from pelvislab.acquisition.tracking import track_echoes
 
@@ -273,9 +276,10 @@ def process_channel(channel: ChannelData, frequency_hz: float, options: Any = No
         channel.quality = {"ok": False, "message": f"tracking failed: {exc}"}
         return channel
     disp = np.asarray(result.displacement_m, dtype=float)
-    time_s = np.arange(disp.size, dtype=float) / channel.prf_hz
+    sampling_delay_s = bone_sampling_delay_s(channel.delay_s, result)
+    time_s = np.arange(disp.size, dtype=float) / channel.prf_hz + sampling_delay_s
     lost = np.asarray(getattr(result, "lost", np.zeros(disp.size, bool)), dtype=bool)
-    quality: dict[str, Any] = {}
+    quality: dict[str, Any] = {"bone_sampling_delay_s": sampling_delay_s}
     corr = np.asarray(getattr(result, "correlation", np.ones(disp.size)), dtype=float)
     snr = np.asarray(getattr(result, "snr_db", np.full(disp.size, np.nan)), dtype=float)
     quality["correlation_median"] = float(np.nanmedian(corr)) if corr.size else float("nan")

@@ -104,6 +104,10 @@ class TrackingResult:
     clipped: (n,) True where the echo peak reached the digitizer's code limits (integer
         codes only; clipping distorts the echo: lower the receiver gain).
     warnings: what went wrong or was corrected, in words (empty when all is well).
+    echo_time_s: mean arrival time of the bone echo after the record's first sample, s (the
+        gate's centre plus the mean tracked delay, trigger offsets included); with the
+        record delay it gives the round trip, half of which is when each pulse samples the
+        bone (:func:`pelvislab.acquisition.frf_lines.bone_sampling_delay_s`).
     """
 
     displacement_m: np.ndarray
@@ -122,6 +126,7 @@ class TrackingResult:
     echo_amplitude_v: float = float("nan")
     clipped: np.ndarray | None = None
     warnings: list[str] = field(default_factory=list)
+    echo_time_s: float = float("nan")
 
 
 # --------------------------------------------------------------------------------------------
@@ -914,6 +919,10 @@ def track_echoes(codes: np.ndarray, trigger_offset_s: np.ndarray | None, sample_
         if valid[0] != 0:
             warnings.append(f"pulse 0 lost: displacement relative to pulse {valid[0]}")
     rel = t - t0
+    # where the echo sits in the record: the gate's centre (the reference echo's position,
+    # symmetric about its envelope peak) plus the mean tracked delay (drift moves it)
+    echo_time_s = (0.5 * (start + stop) / fs
+                   + (float(np.nanmean(t)) if valid.size else float("nan")))
     return TrackingResult(
         displacement_m=-0.5 * speed_of_sound_m_s * rel, delay_s=rel, gate=(start, stop),
         correlation=corr, snr_db=snr, peak_hops=hops, lost=lost, gate_shift_samples=shift,
@@ -921,7 +930,7 @@ def track_echoes(codes: np.ndarray, trigger_offset_s: np.ndarray | None, sample_
         sample_rate_hz=fs, speed_of_sound_m_s=float(speed_of_sound_m_s),
         estimator=opts.estimator,
         echo_amplitude_v=float(np.max(np.abs(ref.q + 1j * ref.q_hilbert)) * volts_per_count),
-        clipped=clipped, warnings=warnings)
+        clipped=clipped, warnings=warnings, echo_time_s=echo_time_s)
 
 
 def _clipped(codes: np.ndarray, w0: int, ref: _Reference, L: int) -> np.ndarray:

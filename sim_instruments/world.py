@@ -538,12 +538,9 @@ class World:
                          else float(self.config.speed_of_sound_for(ch)))
             ratio = self.speed_ratio(ch)
             meas[ch] = U / ratio
-            u = (U * carrier).real
             drift = self._drift(ch, start + t_pulse)
             drifts[ch] = drift
             mean_drift = float(drift.mean()) if drift.size else 0.0
-            u_eff = u - (drift - mean_drift)
-            offsets = -rng.uniform(0.0, 1.0 / fs, n_segments)
             if setup is None:
                 acoustics = Acoustics(speed_of_sound_m_s=c_assumed * ratio)
                 live = None
@@ -554,6 +551,12 @@ class World:
                 acoustics = replace(acoustics, bone_depth_m=self.phantom.depth_m,
                                     attenuation_db_per_m_mhz=0.0, speckle_level_db=-300.0,
                                     bone_reflection=self.phantom.reflection)
+            # each pulse meets the bone one way (depth / c) after it leaves: the echo
+            # reports the motion then, not at the pulse (26 us under 40 mm of tissue)
+            one_way_s = (acoustics.bone_depth_m + mean_drift) / acoustics.speed_of_sound_m_s
+            u = (U * carrier * np.exp(1j * w * one_way_s)).real
+            u_eff = u - (drift - mean_drift)
+            offsets = -rng.uniform(0.0, 1.0 / fs, n_segments)
             rx = live if live is not None else Receiver(enabled=False)
             rx = replace(rx, snr_db=self.snr_db)
             codes, vpc = synthesize_channel(
