@@ -207,12 +207,17 @@ class Fault(Event):
 
 @dataclass(frozen=True)
 class RunFinished(Event):
-    """The run ended: ``status`` is completed, aborted, interrupted or failed."""
+    """The run ended: ``status`` is completed, aborted, interrupted or failed.
+
+    ``unsafe``: what the safe state could not confirm during the run (an ``OUTP OFF`` that
+    failed, a pulser that did not answer); empty when every output went off each time. Not
+    empty means an output may still be on: the operator must switch it off by hand."""
 
     status: str
     reason: str
     n_done: int
     n_steps: int
+    unsafe: tuple[str, ...] = ()
 
 
 Listener = Callable[[Event], None]
@@ -439,6 +444,7 @@ class Runner:
         self.state = "idle"
         self._notes: list[str] = []
         self._notes_lock = threading.Lock()
+        self._unsafe: list[str] = []  # safe-state failures, in order, each once
 
     # -------------------------------------------------------------- listeners
     def subscribe(self, listener: Listener, critical: bool = False) -> None:
@@ -516,12 +522,24 @@ class Runner:
     def _safe_state(self) -> None:
         got = self._lock.acquire(timeout=0.05)  # never wait long for the runner thread
         try:
-            self.bench.safe_state()
+            failed = list(self.bench.safe_state() or [])
         except BaseException as exc:  # Bench.safe_state should not raise; be sure anyway
             log.error("safe state: %s", exc)
+            failed = [f"safe state: {type(exc).__name__}: {exc}"]
         finally:
             if got:
                 self._lock.release()
+        self._unsafe += [m for m in failed if m not in self._unsafe]
+
+    @property
+    def unsafe(self) -> tuple[str, ...]:
+        """Safe-state failures met so far (see :class:`RunFinished`)."""
+        return tuple(self._unsafe)
+
+    def _outputs_phrase(self) -> str:
+        return ("OUTPUTS NOT CONFIRMED OFF (" + "; ".join(self._unsafe)
+                + "): switch the shaker amplifier off by hand" if self._unsafe
+                else "outputs off")
 
     # -------------------------------------------------------------- helpers
     def add_note(self, text: str) -> None:
@@ -677,9 +695,9 @@ class Runner:
         finally:
             self._safe_state()
         self.state = "finished"
-        if status != "completed":
+        if status != "completed" or self._unsafe:
             try:
-                self._log(f"run {status}: {reason}; outputs off", "ERROR")
+                self._log(f"run {status}: {reason}; {self._outputs_phrase()}", "ERROR")
             except Exception as exc:
                 log.error("listener failed on the final log line: %s", exc)
         try:
@@ -687,7 +705,7 @@ class Runner:
         except Exception as exc:
             log.error("listener failed on a note: %s", exc)
         done = n_total - len(todo) + self._n_new
-        final = RunFinished(self._t(), status, reason, done, n_total)
+        final = RunFinished(self._t(), status, reason, done, n_total, self.unsafe)
         try:
             self._emit(final)
         except Exception as exc:
@@ -899,7 +917,7 @@ class SessionRecorder:
             self.writer.log(event.reason, "ERROR", flush=True)
         elif isinstance(event, RunFinished):
             logs = command_logs(self.bench) if self.bench is not None else {}
-            self.writer.finish_run(event.status, event.reason, logs)
+            self.writer.finish_run(event.status, event.reason, logs, unsafe=event.unsafe)
 
 
 # --------------------------------------------------------------------------- wiring
@@ -921,6 +939,14 @@ class PreparedSession:
     """Damaged or incomplete step groups found when resuming (kept; measured again)."""
     final: RunFinished | None = None
     _closed: bool = False
+    _unsafe_at_close: list[str] = field(default_factory=list)
+
+    @property
+    def unsafe(self) -> tuple[str, ...]:
+        """Every safe-state failure of the run and of :meth:`close` (empty: every output
+        was confirmed off each time)."""
+        seen = list(self.runner.unsafe)
+        return tuple(seen + [m for m in self._unsafe_at_close if m not in seen])
     _running: threading.Event = field(default_factory=threading.Event)
     _done: threading.Event = field(default_factory=threading.Event)
 
@@ -946,7 +972,7 @@ class PreparedSession:
             self._done.wait(timeout_s)
         self._closed = True
         try:
-            self.bench.safe_state()
+            self._unsafe_at_close += list(self.bench.safe_state() or [])
         finally:
             try:
                 if self.final is None and self.writer.run_group is not None:

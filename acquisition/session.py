@@ -425,13 +425,18 @@ class SessionWriter:
 
     def finish_run(self, status: str, reason: str = "",
                    command_logs: Mapping[str, Sequence[tuple[float, str]]] | None = None,
-                   ) -> None:
-        """Record how the run ended and the instruments' command logs; flush."""
+                   unsafe: Sequence[str] = ()) -> None:
+        """Record how the run ended and the instruments' command logs; flush. ``unsafe``:
+        the safe-state failures of the run (``outputs_confirmed_off`` False, the messages in
+        ``safe_state_errors``)."""
         if self.run_group is not None:
             g = self.run_group
             g.attrs["status"] = status
             g.attrs["reason"] = reason
             g.attrs["ended_utc"] = _utc_now()
+            g.attrs["outputs_confirmed_off"] = not unsafe
+            if unsafe:
+                g.attrs["safe_state_errors"] = "\n".join(unsafe)
             for role, entries in (command_logs or {}).items():
                 lg = g.require_group("command_logs").create_group(role)
                 lg.create_dataset("time_s", data=np.array([t for t, _ in entries], dtype=float))

@@ -486,11 +486,16 @@ class OperatorWindow(QtWidgets.QMainWindow):
         text = f"run {event.status}: {event.n_done}/{event.n_steps} steps"
         if event.reason:
             text += f" — {event.reason}"
+        unsafe = tuple(getattr(event, "unsafe", ()) or ())
+        if unsafe:
+            text += (" — OUTPUTS NOT CONFIRMED OFF (" + "; ".join(unsafe)
+                     + "): switch the shaker amplifier off by hand")
         self._say(text)
         self.statusBar().showMessage(text)
-        if event.status == "failed":
+        if event.status == "failed" or unsafe:
             # Non-modal: the event loop (and STOP, and the plots) must keep running.
-            box = QtWidgets.QMessageBox(QtWidgets.QMessageBox.Icon.Critical, "Run failed",
+            title = "Outputs not confirmed off" if unsafe else "Run failed"
+            box = QtWidgets.QMessageBox(QtWidgets.QMessageBox.Icon.Critical, title,
                                         text, QtWidgets.QMessageBox.StandardButton.Ok, self)
             box.setModal(False)
             box.show()

@@ -384,24 +384,26 @@ class Bench:
         """(drive, trigger): the drive first, so the shaker stops before anything else."""
         return (self.drive, self.trigger)
 
-    def safe_state(self) -> None:
+    def safe_state(self) -> list[str]:
         """Every output off: shaker drive first, then trigger, digitizer abort, pulsers.
 
-        Never raises an Exception: each failure is logged and appended to
-        ``safe_state_errors`` and the remaining instruments are still made safe. A
-        KeyboardInterrupt/SystemExit arriving meanwhile is re-raised only after every
-        instrument has been handled.
+        Returns what could not be made safe this time (empty when every instrument
+        confirmed it): the instruments' own ``safe_state_errors`` (a driver's safe state
+        logs a failed ``OUTP OFF`` and does not raise) and any exception. Never raises an
+        Exception: each failure is logged and appended to ``safe_state_errors`` and the
+        remaining instruments are still made safe. A KeyboardInterrupt/SystemExit arriving
+        meanwhile is re-raised only after every instrument has been handled.
         """
         if self._closed:
-            return
-        steps: list[tuple[str, Any]] = [
-            ("drive", getattr(self.drive, "safe_state", None)),
-            ("trigger", getattr(self.trigger, "safe_state", None)),
-            ("digitizer", getattr(self.digitizer, "abort", None)),
+            return []
+        steps: list[tuple[str, Any, Any]] = [
+            ("drive", self.drive, getattr(self.drive, "safe_state", None)),
+            ("trigger", self.trigger, getattr(self.trigger, "safe_state", None)),
+            ("digitizer", self.digitizer, getattr(self.digitizer, "abort", None)),
         ]
-        steps += [(f"pulsers[{i}]", getattr(p, "safe_state", None))
+        steps += [(f"pulsers[{i}]", p, getattr(p, "safe_state", None))
                   for i, p in enumerate(self.pulsers)]
-        self._run_all(steps, "safe state")
+        return self._run_all(steps, "safe state")
 
     def close(self) -> None:
         """Safe state, then release every instrument. Idempotent; never raises an Exception."""
@@ -412,24 +414,33 @@ class Bench:
         instruments: list[tuple[str, Any]] = [
             ("drive", self.drive), ("trigger", self.trigger), ("digitizer", self.digitizer)
         ] + [(f"pulsers[{i}]", p) for i, p in enumerate(self.pulsers)]
-        self._run_all([(label, getattr(inst, "close", None)) for label, inst in instruments],
-                      "close")
+        self._run_all([(label, inst, getattr(inst, "close", None))
+                       for label, inst in instruments], "close")
 
-    def _run_all(self, steps: list[tuple[str, Any]], what: str) -> None:
+    def _run_all(self, steps: list[tuple[str, Any, Any]], what: str) -> list[str]:
+        """Call every ``(label, instrument, fn)``; returns the failures met (also kept in
+        ``safe_state_errors``), the instruments' own logged ones included."""
         pending: BaseException | None = None
-        for label, fn in steps:
+        failed: list[str] = []
+        for label, inst, fn in steps:
             if fn is None:
                 continue
+            own = getattr(inst, "safe_state_errors", None)
+            seen = len(own) if isinstance(own, list) else 0
             try:
                 fn()
             except BaseException as exc:  # the other outputs must still go off
                 msg = f"{label}: {what} failed: {type(exc).__name__}: {exc}"
-                self.safe_state_errors.append(msg)
+                failed.append(msg)
                 log.error(msg)
                 if not isinstance(exc, Exception) and pending is None:
                     pending = exc
+            if isinstance(own, list):  # logged by the driver, not raised
+                failed += [f"{label}: {m}" for m in own[seen:]]
+        self.safe_state_errors += failed
         if pending is not None:
             raise pending
+        return failed
 
     def __post_init__(self) -> None:
         # Last line of defence: outputs off when the interpreter exits normally or on an

@@ -2,8 +2,9 @@
 
 Exit codes of ``run``: 0 completed; 1 bad input (protocol, bench or session file; nothing
 is written over an existing file); 3 an instrument fault (outputs off, reason recorded,
-every completed step kept); 4 aborted (operator prompt refused); 130 interrupted (Ctrl-C or
-SIGTERM). A one-line reason goes to stderr in every non-zero case.
+every completed step kept); 4 aborted (operator prompt refused); 5 an output could not be
+confirmed off (whatever else happened: the operator must switch the amplifier off by hand);
+130 interrupted (Ctrl-C or SIGTERM). A one-line reason goes to stderr in every non-zero case.
 """
 
 from __future__ import annotations
@@ -20,6 +21,7 @@ from typing import Any, TextIO
 
 EXIT_FAULT = 3
 EXIT_ABORTED = 4
+EXIT_UNSAFE = 5
 EXIT_INTERRUPTED = 130
 
 
@@ -28,7 +30,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p = subparsers.add_parser(
         "run", help="run a protocol headless (simulated bench unless --bench is given)",
         description="Run a measurement protocol and write the session file step by step. "
-        "Exit codes: 0 completed, 1 bad input, 3 instrument fault, 4 aborted, 130 interrupted.",
+        "Exit codes: 0 completed, 1 bad input, 3 instrument fault, 4 aborted, 5 an output "
+        "could not be confirmed off (switch it off by hand), 130 interrupted.",
     )
     p.add_argument("protocol", metavar="PROTOCOL.toml", help="protocol file")
     p.add_argument("--out", required=True, metavar="S.h5", help="session file to write")
@@ -143,6 +146,13 @@ def run_command(args: argparse.Namespace) -> int:
         final = _run_with_signals(prepared)
         elapsed = time.perf_counter() - started
     where = f"{final.n_done} of {final.n_steps} steps in {args.out}"
+    unsafe = prepared.unsafe
+    if unsafe:
+        # the one thing the operator must act on: an output the bench could not switch off
+        print(f"pelvislab run: {final.status}: {final.reason or 'done'}; OUTPUTS NOT "
+              f"CONFIRMED OFF ({'; '.join(unsafe)}): switch the shaker amplifier off by "
+              f"hand; {where}", file=sys.stderr)
+        return EXIT_UNSAFE
     if final.status == "completed":
         print(f"session complete: {where} ({elapsed:.1f} s)", file=sys.stderr)
         return 0

@@ -1,0 +1,90 @@
+"""An output the bench cannot switch off is never reported as "outputs off".
+
+The drivers' safe state logs a failed ``OUTP OFF`` and does not raise (the other outputs
+must still go off), so the bench, the runner, the session file, the CLI and the GUI each
+have to look at what it logged. Checked against the simulator's own output state.
+"""
+
+from __future__ import annotations
+
+import argparse
+
+import pytest
+
+from pelvislab.acquisition import runner as runner_module
+from pelvislab.acquisition.runner import prepare_session
+from pelvislab.acquisition.session import SessionReader
+
+sim_bench = pytest.importorskip("pelvislab.sim_instruments.bench")
+faults = pytest.importorskip("pelvislab.sim_instruments.faults")
+
+PROTOCOL = """
+schema = "pelvislab-protocol"
+schema_version = 1
+name = "unsafe-test"
+[sweep]
+frequencies_hz = [40.0, 100.0, 160.0]
+drive_vpp = 0.2
+settle_s = 0.05
+[ultrasound]
+pulses = 250
+samples = 500
+[[setups]]
+name = "a"
+excitation = "SIAS_R_x"
+transducers = { ch1 = "SIAS_R_x", ch2 = "sacrum_x" }
+"""
+
+
+def _bench(fault):
+    return sim_bench.open_simulated_bench(generators="python", faults=[fault])
+
+
+def test_lost_drive_is_reported_as_not_off_in_event_file_and_log(tmp_path):
+    protocol = tmp_path / "p.toml"
+    protocol.write_text(PROTOCOL)
+    bench = _bench(faults.LostConnection(instrument="drive", at_command=22))
+    with prepare_session(protocol, tmp_path / "s.h5", bench=bench) as session:
+        final = session.run()
+    assert final.status == "failed"
+    assert bench.world.drive.output  # the simulator's drive really is still on
+    assert final.unsafe and all("drive" in m for m in final.unsafe), final.unsafe
+    assert session.unsafe[: len(final.unsafe)] == final.unsafe
+    with SessionReader(tmp_path / "s.h5") as reader:
+        run = reader.handle["runs"]["000"].attrs
+        assert not run["outputs_confirmed_off"]
+        assert "OUTP OFF" in str(run["safe_state_errors"])
+        last = [line for line in reader.log_lines() if "run failed" in line][-1]
+        assert "OUTPUTS NOT CONFIRMED OFF" in last and "outputs off;" not in last
+
+
+def test_run_that_switched_everything_off_says_so(tmp_path):
+    protocol = tmp_path / "p.toml"
+    protocol.write_text(PROTOCOL)
+    bench = _bench(faults.ScpiError(instrument="drive", at_command=22))
+    with prepare_session(protocol, tmp_path / "s.h5", bench=bench) as session:
+        final = session.run()
+    assert final.status == "failed" and final.unsafe == () and session.unsafe == ()
+    assert not bench.world.drive.output
+    with SessionReader(tmp_path / "s.h5") as reader:
+        assert reader.handle["runs"]["000"].attrs["outputs_confirmed_off"]
+
+
+def test_cli_exits_5_and_tells_the_operator(tmp_path, monkeypatch, capsys):
+    from pelvislab.app.commands.run import EXIT_UNSAFE, run_command
+
+    protocol = tmp_path / "p.toml"
+    protocol.write_text(PROTOCOL)
+    real = runner_module.prepare_session
+
+    def with_lost_drive(*args, **kwargs):
+        kwargs["bench"] = _bench(faults.LostConnection(instrument="drive", at_command=22))
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(runner_module, "prepare_session", with_lost_drive)
+    args = argparse.Namespace(protocol=str(protocol), out=str(tmp_path / "s.h5"), bench=None,
+                              resume=False, wait_prompts=False, subject_id=None, quiet=True)
+    assert run_command(args) == EXIT_UNSAFE
+    last = capsys.readouterr().err.strip().splitlines()[-1]
+    assert "OUTPUTS NOT CONFIRMED OFF" in last and "by hand" in last
+    assert "outputs off" not in last
