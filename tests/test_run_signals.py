@@ -14,6 +14,8 @@ import os
 import signal
 import time
 
+import pytest
+
 from pelvislab.app.commands.run import _run_with_signals
 
 
@@ -36,13 +38,14 @@ class _Runner:
 
 
 class _Prepared:
-    def __init__(self, iterations: int) -> None:
+    def __init__(self, iterations: int, signum: int = signal.SIGINT) -> None:
         self.runner = _Runner()
         self.iterations = iterations
+        self.signum = signum
 
     def run(self) -> str:
         self.t_signal = time.monotonic()
-        os.kill(os.getpid(), signal.SIGINT)
+        os.kill(os.getpid(), self.signum)
         hashlib.pbkdf2_hmac("sha256", b"pelvislab", b"salt", self.iterations)  # ~0.4 s
         self.t_end = time.monotonic()
         return "final"
@@ -62,3 +65,17 @@ def test_sigint_during_a_long_c_call_aborts_within_100_ms():
     # everything is put back: handler, wake-up fd
     assert signal.getsignal(signal.SIGINT) is before
     assert signal.set_wakeup_fd(-1) == -1
+
+
+@pytest.mark.skipif(not hasattr(signal, "SIGHUP"), reason="POSIX signal")
+@pytest.mark.parametrize("name", ["SIGHUP", "SIGQUIT"])
+def test_closed_terminal_or_ctrl_backslash_aborts_like_ctrl_c(name):
+    # before, SIGHUP (terminal closed, ssh dropped) and SIGQUIT killed the process with the
+    # shaker still driving: no handler, default action
+    signum = getattr(signal, name)
+    before = signal.getsignal(signum)
+    prepared = _Prepared(_calibrated_iterations(0.1), signum)
+    assert _run_with_signals(prepared) == "final"
+    aborts = [c for c in prepared.runner.calls if c[0] == "abort"]
+    assert aborts and aborts[0][3] == "interrupted" and name in aborts[0][2]
+    assert signal.getsignal(signum) is before

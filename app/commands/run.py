@@ -4,7 +4,8 @@ Exit codes of ``run``: 0 completed; 1 bad input (protocol, bench or session file
 is written over an existing file); 3 an instrument fault (outputs off, reason recorded,
 every completed step kept); 4 aborted (operator prompt refused); 5 an output could not be
 confirmed off (whatever else happened: the operator must switch the amplifier off by hand);
-130 interrupted (Ctrl-C or SIGTERM). A one-line reason goes to stderr in every non-zero case.
+130 interrupted (Ctrl-C, SIGTERM, SIGHUP or SIGQUIT). A one-line reason goes to stderr in
+every non-zero case.
 """
 
 from __future__ import annotations
@@ -162,7 +163,8 @@ def run_command(args: argparse.Namespace) -> int:
 
 
 def _run_with_signals(prepared: Any) -> Any:
-    """Run with SIGINT/SIGTERM turned into an immediate abort (outputs off at once).
+    """Run with SIGINT/SIGTERM/SIGHUP/SIGQUIT turned into an immediate abort (outputs off
+    at once).
 
     The run (simulation, tracking, HDF5 writes) is in the main thread, where CPython runs a
     signal handler only between bytecodes: a long C call (an HDF5 flush, an FFT; 50-230 ms
@@ -172,6 +174,11 @@ def _run_with_signals(prepared: Any) -> Any:
     """
     runner = prepared.runner
     names = {signal.SIGINT: "Ctrl-C (SIGINT)", signal.SIGTERM: "SIGTERM"}
+    # a closed terminal or dropped ssh session (SIGHUP) and Ctrl-\ (SIGQUIT) would otherwise
+    # end the process with the shaker still driving (POSIX only)
+    for name, label in (("SIGHUP", "SIGHUP (terminal closed)"), ("SIGQUIT", "SIGQUIT")):
+        if hasattr(signal, name):
+            names[getattr(signal, name)] = label
 
     def reason(signum: int) -> str:
         return f"interrupted by {names.get(signum, f'signal {signum}')}"
