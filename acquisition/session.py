@@ -568,10 +568,15 @@ class SessionWriter:
         self._h5.flush()
 
     def close(self) -> None:
-        """Flush and close (idempotent)."""
+        """Flush, close and fsync (idempotent): a session reported complete is on the disk,
+        not only in the operating system's cache (a power cut after the run keeps it)."""
         if self._h5.id.valid:
             self._h5.flush()
             self._h5.close()
+            try:
+                fsync_path(self.path)
+            except OSError as exc:  # the data are written; say that the sync failed
+                log.error("fsync of %s failed: %s", self.path, exc)
 
     def __enter__(self) -> SessionWriter:
         return self
@@ -697,6 +702,10 @@ class SessionReader:
             self._h5 = h5py.File(self.path, "r")
         except OSError as exc:
             reason = " ".join(str(exc).split())[:160]
+            if "lock" in reason.lower():  # HDF5's file lock: a writer has it open
+                raise SessionFileError(f"{self.path} is in use by another process (a run in "
+                                       f"progress?); try again when it has finished: "
+                                       f"{reason}") from None
             raise SessionFileError(f"{self.path} is not a readable HDF5 file (truncated or "
                                    f"damaged?): {reason}") from None
         try:

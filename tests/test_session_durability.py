@@ -54,6 +54,33 @@ def test_steps_and_runs_links_are_stored_in_place(tmp_path, protocol):  # noqa: 
         assert len(list(r.steps())) == 12
 
 
+def test_reader_says_when_a_run_holds_the_file(tmp_path, protocol):  # noqa: F811
+    path = tmp_path / "s.h5"
+    with SessionWriter.create(path, protocol, BENCH, "test"):
+        pass
+    holder = subprocess.Popen(
+        [sys.executable, "-c", "import sys, h5py; f = h5py.File(sys.argv[1], 'r+'); "
+         "print('open', flush=True); sys.stdin.read()", str(path)],
+        stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
+    try:
+        assert holder.stdout.readline().strip() == "open"
+        with pytest.raises(SessionFileError, match="in use by another process"):
+            SessionReader(path)
+    finally:
+        holder.communicate("", timeout=30)
+
+
+def test_close_syncs_the_file_to_disk(tmp_path, protocol, monkeypatch):  # noqa: F811
+    from pelvislab.acquisition import session
+
+    synced = []
+    monkeypatch.setattr(session, "fsync_path", lambda p: synced.append(Path(p)))
+    path = tmp_path / "s.h5"
+    with SessionWriter.create(path, protocol, BENCH, "test"):
+        synced.clear()  # creation syncs its temporary file
+    assert synced == [path]
+
+
 @pytest.mark.skipif(shutil.which("strace") is None or sys.platform != "linux",
                     reason="needs strace's fault injection (Linux)")
 def test_kill_at_each_write_of_the_first_steps_leaves_every_earlier_step(tmp_path):
