@@ -75,6 +75,8 @@ def json_safe(value: object) -> object:
 def check_new_output(path: str | Path) -> Path:
     """Refuse, before any long work, an output that exists (results are never overwritten,
     like sessions) or whose folder does not."""
+    import tempfile
+
     target = Path(path)
     if target.is_dir():
         raise IsADirectoryError(f"{target} is a folder; give a file name for the output")
@@ -82,6 +84,12 @@ def check_new_output(path: str | Path) -> Path:
         raise FileExistsError(f"{target} exists; not overwriting it (choose another name)")
     if not target.parent.exists():
         raise FileNotFoundError(f"output folder {target.parent} does not exist")
+    try:  # found before the work, not after a diagnosis of a minute
+        with tempfile.TemporaryFile(dir=target.parent):
+            pass
+    except OSError as exc:
+        raise PermissionError(f"cannot write in the output folder {target.parent}: "
+                              f"{exc.strerror or exc}") from None
     return target
 
 
@@ -96,10 +104,23 @@ def write_json(path: str | Path, document: object) -> Path:
     text = json.dumps(json_safe(document), indent=2, allow_nan=False) + "\n"
     fd, tmp = tempfile.mkstemp(prefix=f".{target.name}.", suffix=".tmp", dir=target.parent)
     try:
+        # mkstemp makes the file private (0600); a result is as readable as any other
+        # file the user writes (the umask decides)
+        umask = os.umask(0)
+        os.umask(umask)
+        if hasattr(os, "fchmod"):
+            os.fchmod(fd, 0o666 & ~umask)
         with os.fdopen(fd, "w") as handle:
             handle.write(text)
-        os.link(tmp, target)  # fails if the name appeared meanwhile: never overwrite
-        Path(tmp).unlink()
+        try:
+            os.link(tmp, target)  # fails if the name appeared meanwhile: never overwrite
+            Path(tmp).unlink()
+        except FileExistsError:
+            raise
+        except OSError:  # no hard links (FAT/exFAT, some SMB shares): keep the result
+            if target.exists():
+                raise FileExistsError(f"{target} exists; not overwriting it") from None
+            os.replace(tmp, target)
     except BaseException:
         Path(tmp).unlink(missing_ok=True)
         raise

@@ -196,8 +196,17 @@ def usable_std(frf: Any) -> tuple[Any, list[str]]:
                   "the noise is estimated from the data instead"]
 
 
+def plot_paths(out: Path) -> list[Path]:
+    """The PNGs ``gap diagnose --json OUT`` writes next to its JSON (OUT without suffix)."""
+    stem = out.with_suffix("")
+    return [Path(f"{stem}_residual_map.png"), Path(f"{stem}_worst_frf.png")]
+
+
 def _diagnose(args: argparse.Namespace) -> int:
     out = check_new_output(args.json)
+    if not args.no_plots:
+        for path in plot_paths(out):  # results are never overwritten, plots neither
+            check_new_output(path)
     keep_freed_memory_for_reuse()
     effects = None
     if args.effects:
@@ -301,7 +310,6 @@ def _plots(result: object, out: Path) -> list[str]:
 
     os.environ.setdefault("QT_QPA_PLATFORM", "offscreen")
     import pyqtgraph as pg
-    from pyqtgraph.exporters import ImageExporter
 
     pg.mkQApp()
     data = result.data  # type: ignore[attr-defined]
@@ -311,7 +319,7 @@ def _plots(result: object, out: Path) -> list[str]:
     columns, f0, df = uniform_columns(f)  # a non-uniform grid drawn at its true frequencies
     img = np.nan_to_num(rmap.reshape(n_f, n_out * n_in))[columns]
     paths = []
-    stem = out.with_suffix("")
+    residual_path, worst_path = plot_paths(out)
     # 1. residual map: frequency x (output, input), |r| in noise units, log colour
     widget = pg.PlotWidget()
     widget.resize(1000, 500)
@@ -323,11 +331,7 @@ def _plots(result: object, out: Path) -> list[str]:
     plot.addItem(image)
     plot.setLabel("bottom", "frequency", units="Hz")
     plot.setLabel("left", "FRF index (output-major)")
-    path = Path(f"{stem}_residual_map.png")
-    exporter = ImageExporter(plot)
-    exporter.parameters()["width"] = 1000
-    exporter.export(str(path))
-    paths.append(str(path))
+    _export(plot, residual_path, paths)
     # 2. the FRF with the largest residual: measured, base model, best candidate
     energy = np.nansum(rmap**2, axis=0)
     o, i = np.unravel_index(int(np.argmax(energy)), energy.shape)
@@ -343,12 +347,21 @@ def _plots(result: object, out: Path) -> list[str]:
         plot.plot(f, np.abs(result.H_best[:, o, i]), pen=pg.mkPen("g", width=2))  # type: ignore
     plot.setLabel("bottom", "frequency", units="Hz")
     plot.setLabel("left", "receptance", units="m/N")
-    path = Path(f"{stem}_worst_frf.png")
+    _export(plot, worst_path, paths)
+    return paths
+
+
+def _export(plot: object, path: Path, paths: list[str]) -> None:
+    """Export ``plot`` as a 1000-pixel-wide PNG at ``path``; listed only if it was written
+    (the exporter does not say when it could not write)."""
+    from pyqtgraph.exporters import ImageExporter
+
     exporter = ImageExporter(plot)
     exporter.parameters()["width"] = 1000
     exporter.export(str(path))
+    if not path.is_file():
+        raise OSError(f"{path} could not be written")
     paths.append(str(path))
-    return paths
 
 
 def _benchmark(args: argparse.Namespace) -> int:
@@ -357,6 +370,9 @@ def _benchmark(args: argparse.Namespace) -> int:
 
     if args.cases < 1:
         raise ValueError("--cases must be >= 1")
+    out = Path(args.json)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    check_new_output(out)  # before the benchmark's minutes, not after
     _check_jobs(args.jobs)
     if args.chain_cases < 0:
         raise ValueError("--chain-cases must be >= 0")
@@ -387,8 +403,6 @@ def _benchmark(args: argparse.Namespace) -> int:
     result["generator"] = " + ".join(names)
     result["command"] = "pelvislab gap benchmark " + " ".join(sys.argv[3:]) \
         if sys.argv[1:3] == ["gap", "benchmark"] else None
-    out = Path(args.json)
-    out.parent.mkdir(parents=True, exist_ok=True)
     write_json(out, result)
     print(format_summary(result))
     print(f"\nJSON: {out}")
