@@ -1043,6 +1043,14 @@ def prepare_session(protocol_path: Path | str, out_path: Path | str,
     try:
         description = bench_description(bench)
         if resume:
+            with SessionReader(out) as reader:
+                recorded = reader.bench()
+            differences = bench_differences(recorded, description)
+            if differences:
+                raise ValueError(
+                    f"--resume: {out} was measured on another bench ({'; '.join(differences)}"
+                    "): its steps and the new ones would not be comparable; resume with the "
+                    "session's bench (--bench), or start a new session")
             writer = SessionWriter.resume(out, protocol.text)
         else:
             writer = SessionWriter.create(out, protocol, description, software_version,
@@ -1072,6 +1080,33 @@ def prepare_session(protocol_path: Path | str, out_path: Path | str,
         bench.close()
         raise
     return PreparedSession(runner, writer, bench, protocol, out, resume, problems)
+
+
+BENCH_KEYS_THAT_SHAPE_THE_DATA = ("simulated", "drive_newton_per_volt", "speed_of_sound_m_s")
+
+
+def bench_differences(recorded: dict[str, Any], current: dict[str, Any]) -> list[str]:
+    """What differs between a session's ``/bench`` and the bench now open, among what
+    shapes the measured FRF: simulated or real, the drive chain's force calibration (N/V)
+    and the speed of sound (also per channel). Instrument identities may change (a
+    repaired instrument) without changing the data."""
+    def norm(value: Any) -> Any:
+        if isinstance(value, np.generic):
+            value = value.item()
+        return complex(value) if isinstance(value, complex) else value
+
+    keys = list(BENCH_KEYS_THAT_SHAPE_THE_DATA)
+    keys += sorted(k for k in {*recorded, *current} if k.startswith("speed_of_sound_m_s_ch"))
+    out = []
+    for key in keys:
+        a, b = norm(recorded.get(key)), norm(current.get(key))
+        if a is None:  # not recorded (an older file): nothing to compare with
+            continue
+        same = (a == b if not isinstance(a, (float, complex)) or b is None
+                else np.isclose(a, b, rtol=1e-9, atol=0.0))
+        if not same:
+            out.append(f"{key}: {a!r} in the session, {b!r} now")
+    return out
 
 
 # --------------------------------------------------------------------------- reprocessing

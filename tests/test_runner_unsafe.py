@@ -88,3 +88,4 @@ def test_cli_exits_5_and_tells_the_operator(tmp_path, monkeypatch, capsys):
     last = capsys.readouterr().err.strip().splitlines()[-1]
     assert "OUTPUTS NOT CONFIRMED OFF" in last and "by hand" in last
     assert "outputs off" not in last
+
