@@ -1117,23 +1117,43 @@ def reprocess_session(source: Path | str, target: Path | str, tracking_options: 
     """Recompute displacement, phasors and /frf of ``source`` from its raw echoes alone.
 
     Writes a new session ``target`` (never over an existing file) with the same /protocol,
-    /bench and raw echoes, and a log line naming the source and the options. Returns
-    (steps reprocessed, problems met: damaged or incomplete groups skipped).
+    /bench and raw echoes, and a log line naming the source and the options. The file is
+    built under a temporary name and given ``target``'s name only when complete (a killed
+    reprocessing leaves nothing at ``target``). Refuses a speed of sound outside
+    100-10000 m/s (the protocol's range), and options with which no FRF line survives
+    (every echo lost). Returns (steps reprocessed, problems met: damaged or incomplete
+    groups skipped).
     """
+    import os
+
     import h5py
 
     from pelvislab.acquisition.frfset import write_frf
-    from pelvislab.acquisition.session import SESSION_SCHEMA, SESSION_SCHEMA_VERSION, create_log
+    from pelvislab.acquisition.session import (
+        SESSION_SCHEMA,
+        SESSION_SCHEMA_VERSION,
+        _publish,
+        create_log,
+        remove_stale_partials,
+    )
 
     source, target = Path(source), Path(target)
     if target.exists():
         raise FileExistsError(f"{target} exists; not overwriting it")
     if target.resolve() == source.resolve():
         raise ValueError("--out must differ from the session being reprocessed")
+    if speed_of_sound_m_s is not None and not (
+            math.isfinite(speed_of_sound_m_s) and 100.0 < speed_of_sound_m_s <= 10_000.0):
+        raise ValueError(f"speed of sound {speed_of_sound_m_s} m/s: must be within "
+                         "100-10000 m/s")
+    if not target.parent.is_dir():
+        raise FileNotFoundError(f"output folder {target.parent} does not exist")
+    remove_stale_partials(target)
+    partial = target.with_name(f".{target.name}.{os.getpid()}.partial")
     reader = SessionReader(source)
     try:
         names = reader.step_names()
-        with h5py.File(target, "w-") as out:
+        with h5py.File(partial, "w-") as out:
             for k in reader.handle.attrs:
                 out.attrs[k] = reader.handle.attrs[k]
             out.attrs["schema"] = SESSION_SCHEMA
@@ -1150,7 +1170,8 @@ def reprocess_session(source: Path | str, target: Path | str, tracking_options: 
             done: list[StepData] = []
             for n, step in enumerate(reader.steps()):
                 for c in step.channels:
-                    process_channel(c, step.frequency_hz, tracking_options, speed_of_sound_m_s)
+                    process_channel(c, step.frequency_hz, tracking_options,
+                                    speed_of_sound_m_s)
                 failed = [str(c.quality.get("message", "")) for c in step.channels
                           if str(c.quality.get("message", "")).startswith("tracking failed")]
                 if not done and step.channels and len(failed) == len(step.channels):
@@ -1185,11 +1206,16 @@ def reprocess_session(source: Path | str, target: Path | str, tracking_options: 
                 frf = frf_from_steps(done, *layout)
             else:
                 frf = frf_from_steps(done)
+            if done and not np.isfinite(frf.H).any():
+                raise ValueError(
+                    f"with tracking options {tracking_options!r}"
+                    + (f" and {speed_of_sound_m_s} m/s" if speed_of_sound_m_s else "")
+                    + ": no step kept an FRF line (every channel's tracking failed or was "
+                    "judged bad); nothing written")
             write_frf(out, frf)
+        _publish(partial, target)
         problems = reader.damaged + reader.incomplete
-    except BaseException:
-        target.unlink(missing_ok=True)
-        raise
     finally:
+        partial.unlink(missing_ok=True)
         reader.close()
     return len(done), problems

@@ -35,6 +35,7 @@ Method (all echoes at once, no Python loop per echo):
 from __future__ import annotations
 
 import functools
+import math
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -81,6 +82,27 @@ class TrackingOptions:
     block_size: int = 32
     hop_threshold_periods: float = 0.25
     coarse_lag_step: int = 4
+
+    def __post_init__(self) -> None:
+        # a value outside these ranges loses every echo or means nothing; say so at once
+        # rather than after reprocessing a whole session into NaN
+        ranges = {"min_in_record": (0.0, 1.0), "gate_threshold": (0.0, 1.0),
+                  "min_correlation": (0.0, 1.0), "hop_threshold_periods": (0.0, 10.0)}
+        for name, (low, high) in ranges.items():
+            value = getattr(self, name)
+            if not (isinstance(value, (int, float)) and math.isfinite(value)
+                    and low < value <= high) and not (name == "min_correlation"
+                                                      and value == 0.0):
+                raise ValueError(f"tracking option {name} = {value!r}: must be within "
+                                 f"({low:g}, {high:g}]")
+        minima = {"gate_margin_samples": 0, "max_lag_samples": 1, "filter_order": 1,
+                  "reference_iterations": 0, "initial_reference_echoes": 1,
+                  "block_size": 4, "coarse_lag_step": 1}
+        for name, low in minima.items():
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, int) or value < low:
+                raise ValueError(f"tracking option {name} = {value!r}: must be an integer "
+                                 f">= {low}")
 
 
 @dataclass

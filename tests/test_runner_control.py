@@ -431,6 +431,33 @@ def test_reprocess_with_unusable_options_fails_and_writes_nothing(tmp_path):
     assert not out.exists()
 
 
+def test_reprocess_refuses_nonsense_and_publishes_only_a_complete_file(tmp_path):
+    # before: --min-correlation 2 wrote a session whose /frf was all NaN ("reprocessed 14
+    # steps"), --speed-of-sound 0 was silently ignored, and a killed reprocess left a
+    # damaged file at --out that blocked the next try
+    from pelvislab.acquisition.tracking import TrackingOptions
+
+    bench = make_bench()
+    with prepare(tmp_path, bench) as session:
+        session.run()
+    src, out = tmp_path / "s.h5", tmp_path / "r.h5"
+    with pytest.raises(ValueError, match="min_correlation = 2"):
+        TrackingOptions(min_correlation=2.0)
+    with pytest.raises(ValueError, match="block_size"):
+        TrackingOptions(block_size=0)
+    for c in (0.0, float("nan"), 1e9):
+        with pytest.raises(ValueError, match="speed of sound"):
+            r.reprocess_session(src, out, None, c)
+    with pytest.raises(ValueError, match="no step kept an FRF line"):
+        r.reprocess_session(src, out, TrackingOptions(min_correlation=1.0))
+    assert not out.exists()
+    seen = []
+    n, _ = r.reprocess_session(src, out, None, None,
+                               lambda done, total: seen.append(out.exists()))
+    assert n == 8 and seen and not any(seen)  # the name appears only when complete
+    assert out.is_file() and not [f for f in tmp_path.iterdir() if f.suffix == ".partial"]
+
+
 def test_repeats_are_merged_by_inverse_variance_and_resumable(tmp_path):
     from pelvislab.acquisition.session import combine_lines
 
