@@ -20,6 +20,7 @@ from typing import Any
 import numpy as np
 from PySide6 import QtCore, QtGui, QtWidgets
 
+from pelvislab.app.gui_dialogs import alert, set_headless
 from pelvislab.app.gui_plots import (
     AScanPanel,
     DisplacementPanel,
@@ -344,13 +345,13 @@ class OperatorWindow(QtWidgets.QMainWindow):
         if problem is None and out.exists():
             problem = f"{out} exists: choose another output file (sessions are never overwritten)"
         if problem is not None:
-            QtWidgets.QMessageBox.warning(self, "Cannot start", problem)
+            alert(self, "Cannot start", problem, critical=False)
             return
         try:
             self.control = SessionControl(protocol, out, self.subject_edit.text().strip(),
                                           self.bench_path)
         except Exception as exc:
-            QtWidgets.QMessageBox.critical(self, "Cannot start", " ".join(str(exc).split()))
+            alert(self, "Cannot start", str(exc))
             return
         self._frf_lines.clear()
         self.frf.clear_curves()
@@ -532,8 +533,7 @@ class OperatorWindow(QtWidgets.QMainWindow):
         try:
             self.replay.open_session(path)
         except Exception as exc:
-            QtWidgets.QMessageBox.critical(self, "Cannot open session",
-                                           " ".join(str(exc).split()))
+            alert(self, "Cannot open session", str(exc))
             return False
         self.tabs.setCurrentWidget(self.replay)
         self.setWindowTitle(f"pelvislab — replay {path.name}")
@@ -559,9 +559,11 @@ def run_gui(session_file: Path | None = None, screenshot: Path | None = None,
     ``analyse``: ``identify`` or ``gap`` on the replayed session; a screenshot waits for it.
     """
     import os
+    import signal
 
     if screenshot is not None:
         os.environ.setdefault("QT_QPA_PLATFORM", "offscreen")
+    set_headless(screenshot is not None)  # nobody can answer a dialog offscreen
     app = QtWidgets.QApplication.instance() or QtWidgets.QApplication(["pelvislab"])
     window = OperatorWindow(session_file, bench_path=bench_path)
     window.resize(*size)
@@ -582,7 +584,22 @@ def run_gui(session_file: Path | None = None, screenshot: Path | None = None,
         {"identify": window.replay.run_identification,
          "gap": window.replay.run_gap}[analyse]()
     if screenshot is None:
-        code = app.exec()
+        # Ctrl-C in the terminal closes the window like its close button (a running session
+        # ends safely); Python runs signal handlers only between bytecodes, so a timer
+        # wakes the interpreter while Qt's loop waits
+        def on_sigint(*_: object) -> None:
+            window.close()  # its closeEvent stops a running session safely first
+            app.quit()
+
+        previous = signal.signal(signal.SIGINT, on_sigint)
+        wake = QtCore.QTimer()
+        wake.timeout.connect(lambda: None)
+        wake.start(200)
+        try:
+            code = app.exec()
+        finally:
+            wake.stop()
+            signal.signal(signal.SIGINT, previous)
         _dispose(app, window)
         return code
     deadline = time.monotonic() + max(0.0, after_s)

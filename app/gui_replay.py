@@ -8,6 +8,7 @@ packages' functions, run in a worker thread so the window stays responsive.
 from __future__ import annotations
 
 import html
+import logging
 from collections.abc import Callable
 from concurrent.futures import Future, ThreadPoolExecutor
 from pathlib import Path
@@ -17,6 +18,7 @@ import numpy as np
 import pyqtgraph as pg
 from PySide6 import QtCore, QtWidgets
 
+from pelvislab.app.gui_dialogs import GuiError, alert
 from pelvislab.app.gui_plots import (
     AScanPanel,
     DisplacementPanel,
@@ -25,6 +27,8 @@ from pelvislab.app.gui_plots import (
     draw_step,
     echo_trace,
 )
+
+log = logging.getLogger(__name__)
 
 
 class ReplayView(QtWidgets.QWidget):
@@ -164,8 +168,7 @@ class ReplayView(QtWidgets.QWidget):
         try:
             self.open_session(Path(path))
         except Exception as exc:
-            QtWidgets.QMessageBox.critical(self, "Cannot open session",
-                                           " ".join(str(exc).split()))
+            alert(self, "Cannot open session", str(exc))
 
     def open_session(self, path: Path) -> None:
         """Open ``path`` (raises with a one-line reason for a bad file)."""
@@ -424,8 +427,10 @@ class ReplayView(QtWidgets.QWidget):
                 result = future.result()
             except Exception as exc:
                 self.analysis_status.setText(f"{what} failed")
-                QtWidgets.QMessageBox.warning(self, f"{what} failed",
-                                              " ".join(str(exc).split()))
+                try:
+                    alert(self, f"{what} failed", str(exc), critical=False)
+                except GuiError as error:  # offscreen: the screenshot shows the status
+                    log.error("%s", error)
                 continue
             done(result)
 

@@ -1,0 +1,45 @@
+"""``pelvislab gui`` never waits for a click nobody can give, and Ctrl-C closes it."""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import time
+
+import pytest
+
+ENV = dict(os.environ, QT_QPA_PLATFORM="offscreen")
+
+
+def _gui(*args: str, timeout: float = 60.0) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", "pelvislab.app", "gui", *args], env=ENV,
+                          capture_output=True, text=True, timeout=timeout)
+
+
+def test_screenshot_of_a_bad_file_fails_with_one_line_instead_of_a_dialog(tmp_path):
+    # before: a modal "Cannot open session" box that nobody could answer, forever
+    bad = tmp_path / "bad.h5"
+    bad.write_text("not a session")
+    done = _gui(str(bad), "--screenshot", str(tmp_path / "x.png"))
+    assert done.returncode == 1
+    assert "Cannot open session" in done.stderr and "not a readable HDF5" in done.stderr
+    assert not (tmp_path / "x.png").exists()
+    done = _gui(str(bad), "--screenshot", str(tmp_path / "x.png"), "--after", "inf")
+    assert done.returncode == 1 and "--after" in done.stderr
+
+
+@pytest.mark.skipif(sys.platform == "win32", reason="POSIX signal")
+def test_ctrl_c_closes_the_window(tmp_path):
+    proc = subprocess.Popen([sys.executable, "-m", "pelvislab.app", "gui"], env=ENV,
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        time.sleep(3.0)  # the window is up (before that, Python's own KeyboardInterrupt)
+        proc.send_signal(signal.SIGINT)
+        # before: Qt's loop never let Python run its handler; the window stayed open
+        proc.wait(timeout=20)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            pytest.fail("pelvislab gui still open 20 s after Ctrl-C")
