@@ -222,3 +222,28 @@ def test_wait_prompts_answered_then_stdin_closed_aborts(tmp_path):
     with SessionReader(out) as reader:
         assert [s.setup for s in reader.steps()] == ["a"] * 4  # setup a confirmed and kept
         assert reader.status[0] == "aborted"
+
+
+def test_sigterm_while_waiting_at_the_operator_prompt_ends_the_run(tmp_path):
+    # before: the prompt's read of stdin blocked inside a runner listener, so Ctrl-C or
+    # SIGTERM left the run waiting (outputs off, but no end) until Enter or end of input
+    protocol = tmp_path / "p.toml"
+    protocol.write_text(PROTOCOL)
+    out = tmp_path / "s.h5"
+    proc = subprocess.Popen([sys.executable, "-m", "pelvislab.app", "run", str(protocol),
+                             "--out", str(out), "--wait-prompts"],
+                            stdin=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        line = ""
+        while "PROMPT" not in line:
+            line = proc.stderr.readline()
+            assert line, "no prompt before the end of the output"
+        proc.send_signal(signal.SIGTERM)  # stdin stays open: nobody answers
+        code = proc.wait(timeout=15)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+        proc.stdin.close()
+    assert code == 130
+    with SessionReader(out) as reader:
+        assert reader.status[0] == "interrupted"

@@ -84,6 +84,16 @@ class ConsoleProgress:
         self.stream.write(text + "\n")
         self.stream.flush()
 
+    def _answer(self) -> None:
+        """Enter confirms the operator prompt; end of input aborts the run."""
+        answer = sys.stdin.readline()
+        if self.runner.aborted:
+            return
+        if not answer:
+            self.runner.abort("operator prompt: no answer (stdin closed)")
+        else:
+            self.runner.confirm()
+
     def __call__(self, event: Any) -> None:
         from pelvislab.acquisition import runner as r
 
@@ -93,11 +103,10 @@ class ConsoleProgress:
                 self.stream.write("press Enter when the transducers are in place (Ctrl-C "
                                   "aborts) ")
                 self.stream.flush()
-                answer = sys.stdin.readline()
-                if not answer:
-                    self.runner.abort("operator prompt: no answer (stdin closed)")
-                else:
-                    self.runner.confirm()
+                # read in a thread: blocked in this listener, the runner could not see an
+                # abort (Ctrl-C, SIGTERM) until Enter; its own wait does (_wait_prompt)
+                threading.Thread(target=self._answer, name="pelvislab-prompt",
+                                 daemon=True).start()
             elif not self.quiet:
                 self._line(f"prompt (auto-continue): {event.message}")
         elif self.quiet:
