@@ -209,8 +209,8 @@ class Fault(Event):
 class RunFinished(Event):
     """The run ended: ``status`` is completed, aborted, interrupted or failed.
 
-    ``unsafe``: what the safe state could not confirm during the run (an ``OUTP OFF`` that
-    failed, a pulser that did not answer); empty when every output went off each time. Not
+    ``unsafe``: what the run's last safe state could not confirm (an ``OUTP OFF`` that
+    failed, a pulser that did not answer); empty when every output was confirmed off. Not
     empty means an output may still be on: the operator must switch it off by hand."""
 
     status: str
@@ -444,7 +444,7 @@ class Runner:
         self.state = "idle"
         self._notes: list[str] = []
         self._notes_lock = threading.Lock()
-        self._unsafe: list[str] = []  # safe-state failures, in order, each once
+        self._unsafe: list[str] = []  # failures of the last safe state that completed
 
     # -------------------------------------------------------------- listeners
     def subscribe(self, listener: Listener, critical: bool = False) -> None:
@@ -522,18 +522,18 @@ class Runner:
     def _safe_state(self) -> None:
         got = self._lock.acquire(timeout=0.05)  # never wait long for the runner thread
         try:
-            failed = list(self.bench.safe_state() or [])
-        except BaseException as exc:  # Bench.safe_state should not raise; be sure anyway
-            log.error("safe state: %s", exc)
-            failed = [f"safe state: {type(exc).__name__}: {exc}"]
+            # what matters is whether the outputs are off now: the last call that completed
+            # decides (an interrupt inside one leaves it to the next, e.g. the run's end)
+            self._unsafe = list(self.bench.safe_state() or [])
+        except BaseException as exc:  # Bench.safe_state raises only an interrupt, after
+            log.error("safe state: %s", exc)  # every instrument; the run's end redoes it
         finally:
             if got:
                 self._lock.release()
-        self._unsafe += [m for m in failed if m not in self._unsafe]
 
     @property
     def unsafe(self) -> tuple[str, ...]:
-        """Safe-state failures met so far (see :class:`RunFinished`)."""
+        """Failures of the last completed safe state (see :class:`RunFinished`)."""
         return tuple(self._unsafe)
 
     def _outputs_phrase(self) -> str:
@@ -939,14 +939,15 @@ class PreparedSession:
     """Damaged or incomplete step groups found when resuming (kept; measured again)."""
     final: RunFinished | None = None
     _closed: bool = False
-    _unsafe_at_close: list[str] = field(default_factory=list)
+    _unsafe_at_close: list[str] | None = None
 
     @property
     def unsafe(self) -> tuple[str, ...]:
-        """Every safe-state failure of the run and of :meth:`close` (empty: every output
-        was confirmed off each time)."""
-        seen = list(self.runner.unsafe)
-        return tuple(seen + [m for m in self._unsafe_at_close if m not in seen])
+        """What the last completed safe state could not confirm off: :meth:`close`'s, or
+        the run's (empty: every output confirmed off)."""
+        if self._unsafe_at_close is not None:
+            return tuple(self._unsafe_at_close)
+        return self.runner.unsafe
     _running: threading.Event = field(default_factory=threading.Event)
     _done: threading.Event = field(default_factory=threading.Event)
 
@@ -972,7 +973,7 @@ class PreparedSession:
             self._done.wait(timeout_s)
         self._closed = True
         try:
-            self._unsafe_at_close += list(self.bench.safe_state() or [])
+            self._unsafe_at_close = list(self.bench.safe_state() or [])
         finally:
             try:
                 if self.final is None and self.writer.run_group is not None:

@@ -89,3 +89,29 @@ def test_cli_exits_5_and_tells_the_operator(tmp_path, monkeypatch, capsys):
     assert "OUTPUTS NOT CONFIRMED OFF" in last and "by hand" in last
     assert "outputs off" not in last
 
+
+
+def test_an_interrupt_inside_a_safe_state_is_not_an_output_left_on():
+    # repeated Ctrl-C: the signal handler's interrupt raised inside Bench.safe_state (after
+    # every instrument was handled) was reported as "OUTPUTS NOT CONFIRMED OFF"
+    import threading
+
+    from pelvislab.acquisition.runner import Runner, RunInterrupted
+
+    class Bench:
+        calls = 0
+
+        def safe_state(self):
+            Bench.calls += 1
+            if Bench.calls == 1:
+                raise RunInterrupted("interrupted by Ctrl-C (SIGINT)")
+            return ["drive: OUTP OFF failed"] if Bench.calls == 2 else []
+
+    runner = Runner.__new__(Runner)
+    runner._lock, runner.bench, runner._unsafe = threading.RLock(), Bench(), []
+    runner._safe_state()
+    assert runner.unsafe == ()
+    runner._safe_state()
+    assert runner.unsafe == ("drive: OUTP OFF failed",)
+    runner._safe_state()  # the last completed safe state decides
+    assert runner.unsafe == ()

@@ -153,8 +153,21 @@ def run_command(args: argparse.Namespace) -> int:
         prepared.runner.subscribe(ConsoleProgress(prepared.runner, sys.stderr,
                                                   args.wait_prompts, args.quiet))
         started = time.perf_counter()
-        final = _run_with_signals(prepared)
+        # closed (outputs off, file closed) while the handlers still turn signals into an
+        # abort: repeated Ctrl-C during the close raised KeyboardInterrupt in it; then the
+        # signals are ignored until the summary is out (the run has ended, outputs off)
+        restore: dict[int, Any] = {}
+        final = _run_with_signals(prepared, close=True, then_ignore=restore)
         elapsed = time.perf_counter() - started
+    try:
+        return _report(args, prepared, final, elapsed)
+    finally:
+        for sig, handler in restore.items():
+            signal.signal(sig, handler)
+
+
+def _report(args: argparse.Namespace, prepared: Any, final: Any, elapsed: float) -> int:
+    """The run's last line on stderr and its exit code."""
     where = f"{final.n_done} of {final.n_steps} steps in {args.out}"
     unsafe = prepared.unsafe
     if unsafe:
@@ -171,7 +184,8 @@ def run_command(args: argparse.Namespace) -> int:
     return {"failed": EXIT_FAULT, "aborted": EXIT_ABORTED}.get(final.status, EXIT_INTERRUPTED)
 
 
-def _run_with_signals(prepared: Any) -> Any:
+def _run_with_signals(prepared: Any, close: bool = False,
+                      then_ignore: dict[int, Any] | None = None) -> Any:
     """Run with SIGINT/SIGTERM/SIGHUP/SIGQUIT turned into an immediate abort (outputs off
     at once).
 
@@ -179,7 +193,9 @@ def _run_with_signals(prepared: Any) -> Any:
     signal handler only between bytecodes: a long C call (an HDF5 flush, an FFT; 50-230 ms
     measured under load) delays it. So a watcher thread, woken by the signal's wake-up byte
     (written at once by CPython's C-level handler), aborts right away; the handler in the
-    main thread then still raises to cut a wait short.
+    main thread then still raises to cut a wait short. ``close``: also close ``prepared``
+    (safe state, file, instruments) before the handlers are put back. ``then_ignore``: leave
+    the signals ignored instead and put the handlers to restore in this dict.
     """
     runner = prepared.runner
     names = {signal.SIGINT: "Ctrl-C (SIGINT)", signal.SIGTERM: "SIGTERM"}
@@ -205,10 +221,18 @@ def _run_with_signals(prepared: Any) -> Any:
     try:
         return prepared.run()
     finally:
-        if watcher is not None:
-            watcher.close()
-        for sig, handler in previous.items():
-            signal.signal(sig, handler)
+        try:
+            if close:
+                prepared.close()
+        finally:
+            if watcher is not None:
+                watcher.close()
+            for sig, handler in previous.items():
+                if then_ignore is not None:
+                    then_ignore[sig] = handler
+                    signal.signal(sig, signal.SIG_IGN)
+                else:
+                    signal.signal(sig, handler)
 
 
 class _SignalWatcher:
