@@ -248,6 +248,12 @@ def read_frf_group(group: h5py.Group) -> FrfSet:
     if version != FRF_SCHEMA_VERSION:
         raise FrfFileError(f"{group.name} has schema_version {raw_version}; this pelvislab "
                            f"reads {FRF_SCHEMA_VERSION}")
+    units = _scalar_attr(group.attrs.get("units", "m/N"))
+    if not isinstance(units, str) or units.replace(" ", "") not in ("m/N", "m.N^-1", "mN^-1"):
+        # every consumer takes H as receptance (design 4.1); a mobility or accelerance
+        # would be identified, fitted and diagnosed as a wrong receptance without a word
+        raise FrfFileError(f"{group.name} has units {units!r}; pelvislab reads receptance "
+                           "in m/N (design 4.2): convert the FRFs first")
     frequency = np.asarray(_dataset(group, "frequency_hz")[()], dtype=float).reshape(-1)
     H = _read_complex(_dataset(group, "H"))
     attrs = {k: group.attrs[k] for k in group.attrs if k not in ("schema", "schema_version")}
