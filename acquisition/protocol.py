@@ -393,9 +393,10 @@ class _Problems:
 
 
 def _unit_of(key: str) -> str:
-    for suffix, unit in (("_hz", "Hz"), ("_s", "s"), ("_vpp", "V pk-pk"), ("_v", "V"),
-                         ("_m_s", "m/s"), ("_db", "dB"), ("_ohm", "ohm"), ("_m", "m"),
-                         ("_mm", "mm"), ("_kg", "kg"), ("_years", "years")):
+    # longest suffix first: speed_of_sound_m_s is in m/s, not in s
+    for suffix, unit in (("_m_s", "m/s"), ("_hz", "Hz"), ("_s", "s"), ("_vpp", "V pk-pk"),
+                         ("_v", "V"), ("_db", "dB"), ("_ohm", "ohm"), ("_mm", "mm"),
+                         ("_m", "m"), ("_kg", "kg"), ("_years", "years")):
         if key.endswith(suffix):
             return unit
     return ""

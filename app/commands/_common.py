@@ -13,8 +13,12 @@ Handler = Callable[[argparse.Namespace], "int | None"]
 
 def comma_list(text: str) -> list[str]:
     """The names of a comma-separated option value (``"k_io, k_asa,"`` -> ``["k_io",
-    "k_asa"]``): blanks around names and empty items dropped."""
-    return [item.strip() for item in text.split(",") if item.strip()]
+    "k_asa"]``): blanks around names and empty items dropped; no name at all is an error
+    (``--effects ,`` is a typo, not "every effect" nor "none")."""
+    names = [item.strip() for item in text.split(",") if item.strip()]
+    if not names:
+        raise ValueError(f"{text!r}: expected comma-separated names, got none")
+    return names
 
 
 def not_implemented(command: str) -> Handler:

@@ -205,6 +205,9 @@ def run_ema(args: argparse.Namespace) -> int:
             updating_space(model, names)
         except KeyError as exc:
             raise ValueError(f"--update: {exc.args[0]}") from None
+    if args.frequencies is not None and not all(
+            math.isfinite(f) and f > 0 for f in args.frequencies):
+        raise ValueError(f"--frequencies {args.frequencies}: must be positive frequencies, Hz")
     frf = read_frf(Path(args.session))
     if args.max_order is not None and args.max_order < 1:
         raise ValueError(f"--max-order must be >= 1, got {args.max_order}")

@@ -143,6 +143,10 @@ def identify_file(path: str | Path, method: str = "frf", params: list[str] | Non
 
 
 def _identify(args: argparse.Namespace) -> int:
+    if args.starts is not None and args.starts < 1:
+        raise ValueError(f"--starts {args.starts}: must be >= 1")
+    if args.seed < 0:
+        raise ValueError(f"--seed {args.seed}: must be >= 0")
     out = check_new_output(args.json)
     free = comma_list(args.params) if args.params else None
     progress = _progress(sys.stderr.isatty() or args.verbose > 0)

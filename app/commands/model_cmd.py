@@ -35,9 +35,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                    "excitation points (force along the landmark direction); default: --points")
     f.add_argument("--landmarks", metavar="L.toml",
                    help="landmark catalogue; default: protocols/landmarks.toml")
-    f.add_argument("--start-hz", type=float, default=5.0)
-    f.add_argument("--stop-hz", type=float, default=300.0)
-    f.add_argument("--step-hz", type=float, default=2.5)
+    f.add_argument("--start-hz", type=float, default=5.0, help="first line, Hz (default 5)")
+    f.add_argument("--stop-hz", type=float, default=300.0, help="last line, Hz (default 300)")
+    f.add_argument("--step-hz", type=float, default=2.5, help="line spacing, Hz (default 2.5)")
     f.add_argument("--json", action="store_true", help="print JSON to stdout")
     f.add_argument("--out", metavar="F.h5", help="also write an FRF-only HDF5 file (/frf)")
     f.set_defaults(handler=_frf)
@@ -50,8 +50,16 @@ def _load(path: str | None):  # noqa: ANN202 - returns PelvisModel (import kept 
 
 
 def _modes(args: argparse.Namespace) -> int:
+    import numpy as np
+
     from pelvislab.model.modal import model_modes
 
+    # eq. 7.1-7.3: K (1 + f_k w / (4 w_max)) stays positive up to w_max for f_k > -4; the
+    # hysteretic term f_c C w_max / 4 is a damping only for f_c >= 0
+    for name, value, low in (("--f-k", args.f_k, -4.0), ("--f-c", args.f_c, 0.0)):
+        if value is not None and not (np.isfinite(value) and low <= value <= 100.0
+                                      and value != -4.0):
+            raise ValueError(f"{name} {value}: must be between {low:g} and 100 (eq. 7.1-7.3)")
     model = _load(args.model)
     if args.f_k is not None or args.f_c is not None:
         fd = model.frequency_dependence
@@ -104,8 +112,12 @@ def _frf(args: argparse.Namespace) -> int:
     if not args.points:
         raise ValueError("give --points NAMES (comma-separated landmark names from "
                          "protocols/landmarks.toml, e.g. sacrum_x,SIAS_R_x,SIAS_L_x)")
-    if not (0 < args.start_hz <= args.stop_hz) or args.step_hz <= 0:
-        raise ValueError("need 0 < --start-hz <= --stop-hz and --step-hz > 0")
+    values = (args.start_hz, args.stop_hz, args.step_hz)
+    if not (all(np.isfinite(values)) and 0 < args.start_hz <= args.stop_hz
+            and args.step_hz > 0):
+        raise ValueError("need finite 0 < --start-hz <= --stop-hz and --step-hz > 0")
+    if (args.stop_hz - args.start_hz) / args.step_hz > 1_000_000:
+        raise ValueError("more than a million frequency lines: choose a larger --step-hz")
     model = _load(args.model)
     catalogue = load_landmarks(args.landmarks)
     out_names = _names(args.points)

@@ -1,0 +1,42 @@
+"""Option values that mean nothing are refused with one line before any work."""
+
+from __future__ import annotations
+
+import h5py
+import numpy as np
+import pytest
+
+from pelvislab.acquisition.frfset import Channels, FrfFileError, FrfSet, read_frf, write_frf
+from pelvislab.app.cli import main
+
+
+@pytest.mark.parametrize(("argv", "message"), [
+    (["model", "modes", "--f-k", "-5"], "--f-k -5.0: must be between -4 and 100"),
+    (["model", "modes", "--f-c", "-1"], "--f-c -1.0: must be between 0 and 100"),
+    (["model", "frf", "--points", "sacrum_x", "--step-hz", "nan"], "finite"),
+    (["model", "frf", "--points", "sacrum_x", "--step-hz", "1e-9"], "a million"),
+    (["ema", "S.h5", "--json", "e.json", "--frequencies", "-5"], "positive frequencies"),
+    (["ema", "S.h5", "--json", "e.json", "--frequencies", "nan"], "positive frequencies"),
+    (["identify", "S.h5", "--json", "i.json", "--starts", "0"], "--starts 0"),
+    (["identify", "S.h5", "--json", "i.json", "--params", ","], "got none"),
+    (["gap", "diagnose", "S.h5", "--json", "g.json", "--effects", ","], "got none"),
+])
+def test_meaningless_values_are_refused(argv, message, tmp_path, monkeypatch, capsys):
+    # before: an argmax of an empty sequence, negative damping ratios, NaN-to-integer,
+    # a 2 TiB allocation, a pole picked for -5 Hz, "--starts 0" run as 1 start, "," read
+    # as "every parameter", min() of an empty sequence
+    monkeypatch.chdir(tmp_path)
+    assert main(argv) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and message in err[0], err
+
+
+def test_frf_in_other_units_is_refused(tmp_path):
+    point = Channels(["p"], ["sacrum"], np.zeros((1, 3)), np.array([[1.0, 0.0, 0.0]]))
+    frf = FrfSet(np.array([10.0, 20.0]), np.ones((2, 1, 1), complex), point, point)
+    path = tmp_path / "f.h5"
+    with h5py.File(path, "w") as f:
+        write_frf(f, frf)
+        f["frf"].attrs["units"] = "m/s/N"  # a mobility
+    with pytest.raises(FrfFileError, match="units 'm/s/N'.*receptance in m/N"):
+        read_frf(path)
