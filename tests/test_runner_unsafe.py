@@ -96,7 +96,7 @@ def test_an_interrupt_inside_a_safe_state_is_not_an_output_left_on():
     # every instrument was handled) was reported as "OUTPUTS NOT CONFIRMED OFF"
     import threading
 
-    from pelvislab.acquisition.runner import Runner, RunInterrupted
+    from pelvislab.acquisition.runner import RunInterrupted, Runner
 
     class Bench:
         calls = 0
