@@ -247,3 +247,18 @@ def test_sigterm_while_waiting_at_the_operator_prompt_ends_the_run(tmp_path):
     assert code == 130
     with SessionReader(out) as reader:
         assert reader.status[0] == "interrupted"
+
+
+def test_completed_run_exits_0_when_nobody_reads_stderr_any_more(tmp_path):
+    # pelvislab run ... 2>&1 | head -1: a complete session exited 1 (BrokenPipeError on
+    # the last line, turned into "error")
+    protocol = tmp_path / "p.toml"
+    protocol.write_text(PROTOCOL)
+    out = tmp_path / "s.h5"
+    proc = subprocess.Popen([sys.executable, "-m", "pelvislab.app", "run", str(protocol),
+                             "--out", str(out)], stderr=subprocess.PIPE)
+    proc.stderr.readline()
+    proc.stderr.close()
+    assert proc.wait(timeout=120) == 0
+    with SessionReader(out) as reader:
+        assert reader.status[0] == "completed"

@@ -167,20 +167,28 @@ def run_command(args: argparse.Namespace) -> int:
 
 
 def _report(args: argparse.Namespace, prepared: Any, final: Any, elapsed: float) -> int:
-    """The run's last line on stderr and its exit code."""
+    """The run's last line on stderr and its exit code (the code says how the run ended,
+    even when nobody reads stderr any more: ``pelvislab run ... 2>&1 | head -1``)."""
+
+    def say(text: str) -> None:
+        try:
+            sys.stderr.write(text + "\n")
+            sys.stderr.flush()
+        except (BrokenPipeError, ValueError):  # closed pipe or stream: the code still tells
+            pass
+
     where = f"{final.n_done} of {final.n_steps} steps in {args.out}"
     unsafe = prepared.unsafe
     if unsafe:
         # the one thing the operator must act on: an output the bench could not switch off
-        print(f"pelvislab run: {final.status}: {final.reason or 'done'}; OUTPUTS NOT "
-              f"CONFIRMED OFF ({'; '.join(unsafe)}): switch the shaker amplifier off by "
-              f"hand; {where}", file=sys.stderr)
+        say(f"pelvislab run: {final.status}: {final.reason or 'done'}; OUTPUTS NOT "
+            f"CONFIRMED OFF ({'; '.join(unsafe)}): switch the shaker amplifier off by "
+            f"hand; {where}")
         return EXIT_UNSAFE
     if final.status == "completed":
-        print(f"session complete: {where} ({elapsed:.1f} s)", file=sys.stderr)
+        say(f"session complete: {where} ({elapsed:.1f} s)")
         return 0
-    print(f"pelvislab run: {final.status}: {final.reason}; outputs off; {where}",
-          file=sys.stderr)
+    say(f"pelvislab run: {final.status}: {final.reason}; outputs off; {where}")
     return {"failed": EXIT_FAULT, "aborted": EXIT_ABORTED}.get(final.status, EXIT_INTERRUPTED)
 
 
