@@ -345,6 +345,7 @@ class SessionWriter:
         try:
             handle = h5py.File(tmp, "w", libver=("earliest", "v110"))
         except OSError as exc:
+            tmp.unlink(missing_ok=True)  # HDF5 may have left it empty (disk full)
             raise SessionFileError(f"cannot create {path}: {exc}") from None
         try:
             with handle:
