@@ -937,6 +937,9 @@ class PreparedSession:
     resumed: bool = False
     problems: list[str] = field(default_factory=list)
     """Damaged or incomplete step groups found when resuming (kept; measured again)."""
+    previous_run: tuple[str, str] | None = None
+    """When resuming: how the session's last run ended (status, reason); ``running``
+    means its process died without closing (killed, crashed, power lost)."""
     final: RunFinished | None = None
     _closed: bool = False
     _unsafe_at_close: list[str] | None = None
@@ -1027,6 +1030,7 @@ def prepare_session(protocol_path: Path | str, out_path: Path | str,
     protocol = load_protocol(protocol_path, BenchLimits.from_config(config))
     skip: list[tuple[str, float, int]] = []
     problems: list[str] = []
+    previous_run: tuple[str, str] | None = None
     if resume:
         if not out.is_file():
             raise FileNotFoundError(f"--resume: no session file {out} to continue")
@@ -1036,6 +1040,7 @@ def prepare_session(protocol_path: Path | str, out_path: Path | str,
                                  "with the protocol the session started with")
             skip = [s.key for s in reader.steps(with_echoes=False)]
             problems = reader.damaged + reader.incomplete
+            previous_run = reader.status
     elif out.exists():
         raise FileExistsError(f"{out} exists; not overwriting it (use --resume to continue "
                               "that session, or choose another --out)")
@@ -1080,7 +1085,8 @@ def prepare_session(protocol_path: Path | str, out_path: Path | str,
     except BaseException:
         bench.close()
         raise
-    return PreparedSession(runner, writer, bench, protocol, out, resume, problems)
+    return PreparedSession(runner, writer, bench, protocol, out, resume, problems,
+                           previous_run=previous_run)
 
 
 BENCH_KEYS_THAT_SHAPE_THE_DATA = ("simulated", "drive_newton_per_volt", "speed_of_sound_m_s")

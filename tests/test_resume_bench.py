@@ -29,3 +29,26 @@ def test_resume_on_a_bench_with_another_calibration_is_refused(tmp_path):
     with prepare_session(protocol, out, resume=True, bench=sim_bench.open_simulated_bench(
             generators="python")) as session:
         assert session.run().status == "completed"
+
+
+def test_resume_says_how_the_last_run_ended(tmp_path, capsys):
+    import argparse
+
+    from pelvislab.acquisition.session import SessionReader
+    from pelvislab.app.commands.run import run_command
+
+    protocol = tmp_path / "p.toml"
+    protocol.write_text(PROTOCOL)
+    out = tmp_path / "s.h5"
+    with prepare_session(protocol, out, bench=sim_bench.open_simulated_bench(
+            generators="python")) as session:
+        session.runner.abort("stopped for the test")
+        session.run()
+    with SessionReader(out) as reader:
+        assert reader.status[0] == "aborted"
+    args = argparse.Namespace(protocol=str(protocol), out=str(out), bench=None, resume=True,
+                              wait_prompts=False, subject_id=None, quiet=True)
+    assert run_command(args) == 0
+    err = capsys.readouterr().err
+    assert f"resuming {out}: its last run ended aborted (stopped for the test)" in err
+    assert "did not end normally" not in err

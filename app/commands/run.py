@@ -147,6 +147,15 @@ def run_command(args: argparse.Namespace) -> int:
     with prepared:
         for warning in prepared.protocol.warnings:
             print(f"warning: {warning}", file=sys.stderr)
+        if prepared.previous_run is not None:
+            status, reason = prepared.previous_run
+            print(f"resuming {args.out}: its last run ended {status}"
+                  + (f" ({reason})" if reason else ""), file=sys.stderr)
+            if status == "running":
+                # the process died without closing: nothing confirmed its outputs off
+                print("warning: that run did not end normally (killed, crashed or power "
+                      "lost): its outputs were never confirmed off; opening the bench for "
+                      "this run switched the generators' outputs off", file=sys.stderr)
         for problem in prepared.problems:
             print(f"warning: {args.out}: step {problem} (kept; measured again)",
                   file=sys.stderr)
