@@ -896,9 +896,16 @@ class SessionRecorder:
     bench: Any = None
     steps_written: int = 0
     statuses: list[str] = field(default_factory=list)
+    samples: int = 500  # samples per echo (the protocol's), for the space check
+    channels: tuple[int, ...] = ()
 
     def __call__(self, event: Event) -> None:
-        if isinstance(event, StepFinished):
+        if isinstance(event, StepStarted):
+            # before the shaker drives: raw echoes (1 byte per sample per channel) and the
+            # per-pulse arrays (trigger offsets, displacement), uncompressed
+            channels = len(self.channels) or 2
+            self.writer.check_space(event.step.n_pulses * channels * (self.samples + 16))
+        elif isinstance(event, StepFinished):
             ok = all(bool(c.quality.get("ok", False)) for c in event.data.channels)
             self.writer.log(f"step {event.step.index} setup {event.step.setup!r} "
                             f"{event.step.frequency_hz:g} Hz: "
@@ -1065,7 +1072,10 @@ def prepare_session(protocol_path: Path | str, out_path: Path | str,
             runner = Runner(protocol, bench, auto_continue=auto_continue,
                             tracking_options=tracking_options, skip=skip)
             runner.session_offset_s = writer.elapsed_s()
-            runner.subscribe(SessionRecorder(writer, bench), critical=True)
+            runner.subscribe(SessionRecorder(writer, bench,
+                                             samples=protocol.ultrasound.samples,
+                                             channels=tuple(protocol.channels)),
+                             critical=True)
             writer.start_run(description, software_version)
             writer.log(f"run started: protocol {protocol.name!r} ({protocol.source}), "
                        f"{'resumed, ' + str(len(skip)) + ' steps kept' if resume else 'new'}"

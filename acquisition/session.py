@@ -312,6 +312,7 @@ class SessionWriter:
         self.path = path
         self._t0 = started_monotonic
         self._offset_s = offset_s
+        self._largest_step_bytes = 0  # file growth of the largest step written, bytes
         self._frf_index: tuple[np.ndarray, list[str], list[str]] | None = None
         if "frf" in handle:
             g = handle["frf"]
@@ -459,8 +460,29 @@ class SessionWriter:
         if flush:
             self._h5.flush()
 
+    def check_space(self, step_bytes_estimate: int) -> None:
+        """Refuse (``OSError`` ENOSPC, before the step is acquired) when the disk cannot take
+        the next step with room to spare: three times the larger of ``step_bytes_estimate``
+        and the largest step written so far, plus 16 MB for the log and the run's end.
+
+        HDF5 has no way back from a failed write: at "No space left on device" the file
+        could not be flushed or closed any more, 140 lines of tracebacks followed and the
+        process died with a segmentation fault at exit. Stopped here, the run ends as a
+        fault with every complete step on disk, and ``--resume`` continues once space is
+        freed."""
+        import errno
+        import shutil
+
+        need = 3 * max(int(step_bytes_estimate), self._largest_step_bytes) + 16 * 2**20
+        free = shutil.disk_usage(self.path.parent).free
+        if free < need:
+            raise OSError(errno.ENOSPC, f"disk almost full: {free / 2**20:.1f} MB free in "
+                          f"{self.path.parent}, the next step needs about "
+                          f"{need / 2**20:.1f} MB; free space, then continue with --resume")
+
     def append_step(self, step: StepData) -> int:
         """Write ``step`` as the next ``/steps/<index>`` group, its /frf lines, flush."""
+        size_before = _file_size(self.path)
         index = self.next_index()
         g = self._h5["steps"].create_group(f"{index:06d}")
         step.index = index
@@ -501,6 +523,8 @@ class SessionWriter:
         if step.status == STATUS_COMPLETE:
             self._write_frf_lines(step)
             self._h5.flush()
+        self._largest_step_bytes = max(self._largest_step_bytes,
+                                       _file_size(self.path) - size_before)
         return index
 
     def repair_frf(self) -> int:
@@ -584,6 +608,13 @@ class SessionWriter:
 
     def __exit__(self, *exc: object) -> None:
         self.close()
+
+
+def _file_size(path: Path) -> int:
+    try:
+        return os.path.getsize(path)
+    except OSError:
+        return 0
 
 
 def _hdf5_library() -> Any:

@@ -2,7 +2,8 @@
 
 The drivers' safe state logs a failed ``OUTP OFF`` and does not raise (the other outputs
 must still go off), so the bench, the runner, the session file, the CLI and the GUI each
-have to look at what it logged. Checked against the simulator's own output state.
+have to look at what it logged. Checked against the simulator's own output state. Also:
+a disk that fills up ends the run as a fault before a write fails.
 """
 
 from __future__ import annotations
@@ -115,3 +116,28 @@ def test_an_interrupt_inside_a_safe_state_is_not_an_output_left_on():
     assert runner.unsafe == ("drive: OUTP OFF failed",)
     runner._safe_state()  # the last completed safe state decides
     assert runner.unsafe == ()
+
+
+def test_disk_almost_full_stops_the_run_cleanly_before_a_write_fails(tmp_path, monkeypatch):
+    # before: "No space left on device" inside an HDF5 write; the file could not be flushed
+    # or closed, 140 lines of tracebacks, a segmentation fault at exit
+    import shutil
+    from collections import namedtuple
+
+    usage = namedtuple("usage", "total used free")
+    free = {"bytes": 10**12}
+    monkeypatch.setattr(shutil, "disk_usage", lambda path: usage(0, 0, free["bytes"]))
+    protocol = tmp_path / "p.toml"
+    protocol.write_text(PROTOCOL)
+    bench = sim_bench.open_simulated_bench(generators="python")
+    with prepare_session(protocol, tmp_path / "s.h5", bench=bench) as session:
+        def shrink(event):
+            if type(event).__name__ == "StepFinished" and event.step.index == 1:
+                free["bytes"] = 5 * 2**20  # the disk fills up while we measure
+        session.runner.subscribe(shrink)
+        final = session.run()
+    assert final.status == "failed" and "disk almost full" in final.reason
+    assert final.unsafe == () and not bench.world.drive.output
+    with SessionReader(tmp_path / "s.h5") as reader:
+        assert reader.status[0] == "failed"
+        assert len(list(reader.steps())) == 2 and not reader.damaged
