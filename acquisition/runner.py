@@ -911,6 +911,8 @@ class SessionRecorder:
                             f"{event.step.frequency_hz:g} Hz: "
                             f"{'ok' if ok else 'quality warning'} "
                             f"({event.duration_s:.3f} s)", "DEBUG")
+            if self.bench is not None:  # the audit trail so far, flushed with the step
+                self.writer.append_command_logs(command_logs(self.bench))
             self.writer.append_step(event.data)  # flushes
             self.steps_written += 1
         elif isinstance(event, LogMessage):

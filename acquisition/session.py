@@ -84,6 +84,10 @@ variable-length strings they need no global heap, whose on-disk state a kill -9 
 behind the log's own chunks (measured: "bad heap index" when resuming such a file)."""
 
 
+COMMAND_BYTES = 200
+"""Instrument commands in ``/runs/<k>/command_logs`` are stored cut to this many bytes."""
+
+
 def create_log(group: h5py.Group, lines: Sequence[str] = ()) -> h5py.Dataset:
     """The ``/log`` dataset: resizable, fixed-length UTF-8 lines."""
     data = np.array([log_entry(line) for line in lines], dtype=f"S{LOG_LINE_BYTES}")
@@ -444,12 +448,35 @@ class SessionWriter:
             g.attrs["outputs_confirmed_off"] = not unsafe
             if unsafe:
                 g.attrs["safe_state_errors"] = "\n".join(unsafe)
-            for role, entries in (command_logs or {}).items():
-                lg = g.require_group("command_logs").create_group(role)
-                lg.create_dataset("time_s", data=np.array([t for t, _ in entries], dtype=float))
-                lg.create_dataset("text", data=np.array([s for _, s in entries], dtype=object),
-                                  dtype=h5py.string_dtype())
+            self.append_command_logs(command_logs or {})
         self._h5.flush()
+
+    def append_command_logs(self, command_logs: Mapping[str, Sequence[tuple[float, str]]]
+                            ) -> None:
+        """Append to ``/runs/<k>/command_logs/<role>/{time_s,text}`` the entries of each
+        instrument's command log not stored yet (the logs only grow). Called with every
+        step, so that a killed run keeps its audit trail up to its last step (before, the
+        logs were written only when the run ended: none after kill -9, a closed terminal or
+        a full disk). Fixed-length strings (:data:`COMMAND_BYTES`), like ``/log``: no
+        global heap that a kill could leave behind. Not flushed here: the step's flush
+        does it."""
+        if self.run_group is None:
+            return
+        for role, entries in command_logs.items():
+            lg = self.run_group.require_group("command_logs").require_group(role)
+            if "time_s" not in lg:
+                lg.create_dataset("time_s", shape=(0,), maxshape=(None,), chunks=(256,),
+                                  dtype=float)
+                lg.create_dataset("text", shape=(0,), maxshape=(None,), chunks=(256,),
+                                  dtype=f"S{COMMAND_BYTES}")
+            n = lg["time_s"].shape[0]
+            new = list(entries)[n:]
+            if not new:
+                continue
+            for name in ("time_s", "text"):
+                lg[name].resize((n + len(new),))
+            lg["time_s"][n:] = [t for t, _ in new]
+            lg["text"][n:] = [str(text).encode("utf-8")[:COMMAND_BYTES] for _, text in new]
 
     def log(self, message: str, level: str = "INFO", flush: bool = False) -> None:
         """Append one line to the session log (``/log``)."""

@@ -86,6 +86,9 @@ def check_consistent(path: Path, interrupted: set[str] | frozenset[str] = frozen
                 assert c.trigger_offset_s.shape == (250,)
                 assert c.displacement_m is not None and c.displacement_m.shape == (250,)
                 assert c.phasor_m is not None and np.isfinite(c.phasor_m)
+        if steps:  # the instruments' audit trail is stored with every step, not at the end
+            texts = [bytes(t) for t in reader.handle["runs/000/command_logs/drive/text"][()]]
+            assert b"OUTP ON" in texts, texts[-5:]
         # only the step being flushed when the kill came may be unreadable: the last group,
         # or after --resume the group an earlier kill interrupted (the resumed run redoes
         # that step in a new group and leaves the damaged one listed, never read)
