@@ -465,9 +465,9 @@ class SessionWriter:
         for role, entries in command_logs.items():
             lg = self.run_group.require_group("command_logs").require_group(role)
             if "time_s" not in lg:
-                lg.create_dataset("time_s", shape=(0,), maxshape=(None,), chunks=(256,),
+                lg.create_dataset("time_s", shape=(0,), maxshape=(None,), chunks=(64,),
                                   dtype=float)
-                lg.create_dataset("text", shape=(0,), maxshape=(None,), chunks=(256,),
+                lg.create_dataset("text", shape=(0,), maxshape=(None,), chunks=(64,),
                                   dtype=f"S{COMMAND_BYTES}")
             n = lg["time_s"].shape[0]
             new = list(entries)[n:]

@@ -9,10 +9,14 @@ an 8-step run: 7 of the first 253 kill points, all in the first step's flush). `
 and ``/runs`` are now sized when the file is created, with their links in their own object
 header, so that adding a step rewrites that header in place and a kill can cost at most the
 step being written.
+
+The kill-at-every-write test needs strace and ``PELVISLAB_CRASH_TESTS=1`` (about 2.5 min:
+outside the default suite's time budget).
 """
 
 from __future__ import annotations
 
+import os
 import shutil
 import subprocess
 import sys
@@ -81,23 +85,36 @@ def test_close_syncs_the_file_to_disk(tmp_path, protocol, monkeypatch):  # noqa:
     assert synced == [path]
 
 
-@pytest.mark.skipif(shutil.which("strace") is None or sys.platform != "linux",
-                    reason="needs strace's fault injection (Linux)")
-def test_kill_at_each_write_of_the_first_steps_leaves_every_earlier_step(tmp_path):
-    # SIGKILL delivered at the n-th pwrite64 of a simulated run, for every n through the
-    # first steps' flushes: the file must open and hold every step flushed before
+@pytest.mark.skipif(shutil.which("strace") is None or sys.platform != "linux"
+                    or not os.environ.get("PELVISLAB_CRASH_TESTS"),
+                    reason="needs strace's fault injection (Linux) and PELVISLAB_CRASH_TESTS=1 "
+                    "(20-40 s: kept out of the default suite's time budget)")
+def test_kill_at_each_write_of_the_first_steps_flush_leaves_a_readable_file(tmp_path):
+    # SIGKILL delivered at the n-th pwrite64 of a simulated run, for every write of the
+    # first step (found from a traced run: the pwrite64 calls between the child's marks
+    # "step 0" and "step 1"); before the fix, 7 of those kills left /steps unreadable
     script = ROOT / "tests" / "kill_session_child.py"
-    survived = []
-    for n in range(45, 54):  # the first step's flush (pwrite 46-52 failed before)
+    log = tmp_path / "trace.txt"
+    subprocess.run(["strace", "-f", "-qq", "-e", "trace=pwrite64,write", "-o", str(log),
+                    sys.executable, str(script), str(tmp_path / "traced.h5"), "--mark"],
+                   capture_output=True, timeout=120, check=True)
+    n_pwrite, window = 0, []
+    for line in log.read_text().splitlines():
+        if "pwrite64(" in line:
+            n_pwrite += 1
+            if len(window) == 1:
+                window.append(n_pwrite)
+        elif 'write(2, "step 0' in line or 'write(2, "step 1' in line:
+            window.append(n_pwrite + 1)
+    first, last = window[1], window[-1] - 1  # pwrites after "step 0", before "step 1"
+    assert 5 < last - first < 200, window
+    for n in range(first, last + 1):
         out = tmp_path / f"k{n}.h5"
         subprocess.run(["strace", "-f", "-qq", "-o", "/dev/null", "-e", "trace=pwrite64",
                         "-e", f"inject=pwrite64:signal=KILL:when={n}", sys.executable,
                         str(script), str(out)], capture_output=True, timeout=120)
-        if not out.exists():
-            continue
         try:
             with SessionReader(out) as r:
-                survived.append(len(list(r.steps())))
+                r.step_names()
         except SessionFileError as exc:
-            pytest.fail(f"killed at write {n}: {exc}")
-    assert survived and max(survived) >= 1, survived
+            pytest.fail(f"killed at write {n} ({first}-{last}: the first step): {exc}")
