@@ -431,6 +431,9 @@ class SessionWriter:
         g.attrs["reason"] = ""
         g.attrs["software_version"] = software_version
         _write_bench(g.create_group("bench"), bench)
+        # created now, with the run: its first entries, a step later, then add to it and
+        # not to the run's own group (a kill in that flush leaves the run's status readable)
+        g.create_group("command_logs")
         self.run_group = g
         self._h5.flush()
 
