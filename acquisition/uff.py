@@ -315,6 +315,13 @@ def read_uff(path: str | Path, points: dict[int, PointInfo] | None = None
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"no such file: {path}")
+    with open(path, "rb") as handle:  # every dataset ends with a line "    -1"
+        handle.seek(max(0, path.stat().st_size - 64))
+        tail = handle.read().rstrip(b" \t\r\n\x00")
+    if not (tail.endswith(b"-1") and (len(tail) == 2 or tail[-3:-2] in b" \t\r\n")):
+        # pyuff silently drops a dataset cut short: the import would lose FRFs unseen
+        raise ValueError(f"{path} ends inside a dataset (no closing '-1' line): truncated? "
+                         "Not importing part of it")
     try:
         uff = pyuff.UFF(str(path))
         types = list(uff.get_set_types())

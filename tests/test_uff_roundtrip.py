@@ -73,6 +73,20 @@ def test_refuses_overwrite_and_bad_geometry(tmp_path):
     assert not (tmp_path / "y.uff").exists()
 
 
+@pytest.mark.parametrize("binary", [True, False])
+def test_truncated_file_is_refused_not_imported_in_part(tmp_path, binary):
+    # pyuff drops a dataset cut short without a word: 1 of 8 FRFs was "imported"
+    path = tmp_path / "s.uff"
+    write_uff(path, sample_frfset(), binary=binary)
+    data = path.read_bytes()
+    cut = tmp_path / "cut.uff"
+    cut.write_bytes(data[: int(len(data) * 0.6)])
+    with pytest.raises(ValueError, match="ends inside a dataset"):
+        read_uff(cut)
+    frf, _notes = read_uff(path)  # the whole file still reads
+    assert np.isfinite(frf.H).any()
+
+
 def test_direction_codes():
     assert direction_code(np.array([0.0, 0.0, -1.0])) == -3
     assert direction_code(np.array([1.0, 0.0, 0.0])) == 1
