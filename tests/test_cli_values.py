@@ -40,3 +40,24 @@ def test_frf_in_other_units_is_refused(tmp_path):
         f["frf"].attrs["units"] = "m/s/N"  # a mobility
     with pytest.raises(FrfFileError, match="units 'm/s/N'.*receptance in m/N"):
         read_frf(path)
+
+
+def test_analysis_of_an_interrupted_session_warns(tmp_path, capsys):
+    # before: ema on 148 of 308 steps (one excitation missing entirely) said nothing
+    from pelvislab.acquisition.runner import prepare_session
+    from pelvislab.sim_instruments.bench import open_simulated_bench
+    from pelvislab.tests.test_runner_kill import PROTOCOL
+
+    protocol = tmp_path / "p.toml"
+    protocol.write_text(PROTOCOL)
+    out = tmp_path / "s.h5"
+    with prepare_session(protocol, out, bench=open_simulated_bench(generators="python")) as s:
+        def stop_after_four(event):
+            if type(event).__name__ == "StepFinished" and event.step.index == 3:
+                s.runner.abort("stopped for the test")
+        s.runner.subscribe(stop_after_four)
+        s.run()
+    main(["export-uff", str(out), str(tmp_path / "o.uff")])
+    err = capsys.readouterr().err
+    assert "its last run ended 'aborted', not completed" in err
+    assert "2 of the 4 planned FRFs hold data" in err  # setup b never ran

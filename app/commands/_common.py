@@ -21,6 +21,34 @@ def comma_list(text: str) -> list[str]:
     return names
 
 
+def incomplete_session_warning(path: str | Path) -> str | None:
+    """A one-line warning when ``path`` is a session whose last run did not complete
+    (interrupted, failed, killed): its /frf then lacks lines, whole excitations even, and
+    every analysis of it says less than the protocol planned. None for a complete session
+    or an FRF-only file (it has no runs)."""
+    import h5py
+    import numpy as np
+
+    try:
+        with h5py.File(path, "r") as handle:
+            runs = handle.get("runs")
+            if handle.attrs.get("schema") not in ("pelvislab-session", b"pelvislab-session") \
+                    or runs is None or not len(runs):
+                return None
+            status = runs[sorted(runs)[-1]].attrs.get("status", "unknown")
+            status = status.decode() if isinstance(status, bytes) else str(status)
+            if status == "completed":
+                return None
+            H = handle["frf/H"][()]
+    except Exception:  # unreadable files get their own error from the command's reader
+        return None
+    measured = np.isfinite(H).reshape(H.shape[0], -1).any(axis=0)
+    planned = H.shape[1] * H.shape[2]
+    return (f"{path}: its last run ended {status!r}, not completed: the analysis uses the "
+            f"lines measured so far ({int(measured.sum())} of the {planned} planned FRFs "
+            "hold data; --resume the run to complete it)")
+
+
 def not_implemented(command: str) -> Handler:
     """A handler for a registered command whose feature is not built yet (exit code 2)."""
 

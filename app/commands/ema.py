@@ -15,7 +15,7 @@ import math
 import sys
 from pathlib import Path
 
-from pelvislab.app.commands._common import comma_list
+from pelvislab.app.commands._common import comma_list, incomplete_session_warning
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -208,6 +208,9 @@ def run_ema(args: argparse.Namespace) -> int:
     if args.frequencies is not None and not all(
             math.isfinite(f) and f > 0 for f in args.frequencies):
         raise ValueError(f"--frequencies {args.frequencies}: must be positive frequencies, Hz")
+    warning = incomplete_session_warning(args.session)
+    if warning:
+        print(f"warning: {warning}", file=sys.stderr)
     frf = read_frf(Path(args.session))
     if args.max_order is not None and args.max_order < 1:
         raise ValueError(f"--max-order must be >= 1, got {args.max_order}")

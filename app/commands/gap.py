@@ -24,6 +24,7 @@ from typing import Any
 from pelvislab.app.commands._common import (
     check_new_output,
     comma_list,
+    incomplete_session_warning,
     keep_freed_memory_for_reuse,
     write_json,
 )
@@ -211,6 +212,9 @@ def _diagnose(args: argparse.Namespace) -> int:
     effects = None
     if args.effects:
         effects = tuple(comma_list(args.effects))
+    warning = incomplete_session_warning(args.session)
+    if warning:
+        print(f"warning: {warning}", file=sys.stderr)
     report = diagnose_file(args.session, args.model, _progress(args.verbose_progress), effects,
                            args.updating_range, args.damping_max, args.jobs)
     plots: list[str] = []

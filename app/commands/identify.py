@@ -9,7 +9,12 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from pelvislab.app.commands._common import check_new_output, comma_list, write_json
+from pelvislab.app.commands._common import (
+    check_new_output,
+    comma_list,
+    incomplete_session_warning,
+    write_json,
+)
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -149,6 +154,9 @@ def _identify(args: argparse.Namespace) -> int:
         raise ValueError(f"--seed {args.seed}: must be >= 0")
     out = check_new_output(args.json)
     free = comma_list(args.params) if args.params else None
+    warning = incomplete_session_warning(args.session)
+    if warning:
+        print(f"warning: {warning}", file=sys.stderr)
     progress = _progress(sys.stderr.isatty() or args.verbose > 0)
     report = identify_file(
         args.session, args.method, free, args.model, progress, symmetric=args.symmetric,

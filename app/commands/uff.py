@@ -7,6 +7,8 @@ import json
 import sys
 from pathlib import Path
 
+from pelvislab.app.commands._common import incomplete_session_warning
+
 
 def register(subparsers: argparse._SubParsersAction) -> None:
     """Add ``export-uff`` and ``import-uff`` to the CLI."""
@@ -70,6 +72,9 @@ def run_export(args: argparse.Namespace) -> int:
     from pelvislab.acquisition.frfset import read_frf
     from pelvislab.acquisition.uff import UffModes, write_uff
 
+    warning = incomplete_session_warning(args.session)
+    if warning:
+        print(f"warning: {warning}", file=sys.stderr)
     frf = read_frf(Path(args.session))
     out = Path(args.out)
     if out.exists():
