@@ -287,6 +287,8 @@ def read_frf_group(group: h5py.Group) -> FrfSet:
 def read_frf(path: str | Path, name: str = "frf") -> FrfSet:
     """Read the FRF set of a session or FRF-only file; clear errors for anything else."""
     path = Path(path)
+    if path.is_dir():
+        raise IsADirectoryError(f"{path} is a folder, not a session or FRF file")
     if not path.is_file():
         raise FileNotFoundError(f"no such file: {path}")
     try:
@@ -298,4 +300,7 @@ def read_frf(path: str | Path, name: str = "frf") -> FrfSet:
             raise FrfFileError(f"{path} holds no /{name} group (no FRFs measured yet?)")
         if not isinstance(handle[name], h5py.Group):
             raise FrfFileError(f"{path}: /{name} is a dataset, expected the group of design 4.2")
-        return read_frf_group(handle[name])
+        try:
+            return read_frf_group(handle[name])
+        except FrfFileError as exc:  # say which file: the group's own messages cannot
+            raise FrfFileError(f"{path}: {exc}") from None

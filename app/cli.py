@@ -79,7 +79,11 @@ def main(argv: Sequence[str] | None = None) -> int:
             log.exception("command failed")
         reason = str(exc) or exc.__class__.__name__
         reason = " ".join(reason.split())  # one line, whatever the exception carried
-        print(f"pelvislab {args.command}: error: {reason}", file=sys.stderr)
+        # the full command ("gap diagnose", "protocol check"), as the docs show it
+        action = next((getattr(args, k) for k in vars(args)
+                       if k.endswith("_command") and isinstance(getattr(args, k), str)), None)
+        command = f"{args.command} {action}" if action else args.command
+        print(f"pelvislab {command}: error: {reason}", file=sys.stderr)
         return EXIT_FAILURE
     return EXIT_OK if code is None else int(code)
 

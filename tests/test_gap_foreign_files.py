@@ -76,7 +76,7 @@ def test_bad_file_exits_1_with_one_line_reason(tmp_path, capsys, variant):
     err = capsys.readouterr().err.strip()
     assert code == 1
     assert len(err.splitlines()) == 1 and "Traceback" not in err
-    assert err.startswith("pelvislab gap: error:")
+    assert err.startswith("pelvislab gap diagnose: error:")
     assert not (tmp_path / "o.json").exists()
 
 
