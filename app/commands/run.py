@@ -76,6 +76,7 @@ class ConsoleProgress:
         self.wait_prompts = wait_prompts
         self.quiet = quiet
         self._bar = False
+        self._tenth = 0  # without a terminal: the last tenth of the plan reported
 
     def _line(self, text: str) -> None:
         if self._bar:
@@ -123,6 +124,14 @@ class ConsoleProgress:
                               f"{event.elapsed_s:5.1f} s, ETA {event.eta_s:5.1f} s ")
             self.stream.flush()
             self._bar = True
+        elif isinstance(event, r.Progress):
+            # a log file (nohup, a service) gets a line at every tenth of the plan
+            tenth = int(10 * event.fraction)
+            if tenth > self._tenth and event.n_done < event.n_steps:
+                self._tenth = tenth
+                self._line(f"progress: {event.n_done}/{event.n_steps} steps "
+                           f"({100 * event.fraction:.0f} %), {event.elapsed_s:.0f} s, "
+                           f"ETA {event.eta_s:.0f} s")
         elif isinstance(event, r.SetupStarted) and not self.tty:
             self._line(f"setup {event.setup_index + 1}/{event.n_setups} {event.setup!r}")
         elif isinstance(event, r.Quality) and not event.ok:
