@@ -20,11 +20,14 @@ from pelvislab.app.cli import main
     (["identify", "S.h5", "--json", "i.json", "--starts", "0"], "--starts 0"),
     (["identify", "S.h5", "--json", "i.json", "--params", ","], "got none"),
     (["gap", "diagnose", "S.h5", "--json", "g.json", "--effects", ","], "got none"),
+    (["identify", "S.h5", "--json", "-"], "standard output"),
+    (["gap", "benchmark", "--json", "b.json", "--kinds", "none,nope"], "unknown nope"),
 ])
 def test_meaningless_values_are_refused(argv, message, tmp_path, monkeypatch, capsys):
     # before: an argmax of an empty sequence, negative damping ratios, NaN-to-integer,
     # a 2 TiB allocation, a pole picked for -5 Hz, "--starts 0" run as 1 start, "," read
-    # as "every parameter", min() of an empty sequence
+    # as "every parameter", min() of an empty sequence, a file named "-", a benchmark
+    # whose unknown kind was found only at the end
     monkeypatch.chdir(tmp_path)
     assert main(argv) == 1
     err = capsys.readouterr().err.strip().splitlines()

@@ -109,6 +109,8 @@ def check_new_output(path: str | Path) -> Path:
     like sessions) or whose folder does not."""
     import tempfile
 
+    if str(path) == "-":  # not a file called "-"; this command writes files only
+        raise ValueError("'-' (standard output) is not supported here; give a file name")
     target = Path(path)
     if target.is_dir():
         raise IsADirectoryError(f"{target} is a folder; give a file name for the output")

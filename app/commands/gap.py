@@ -399,7 +399,13 @@ def _benchmark(args: argparse.Namespace) -> int:
                      f"on a {args.chain_step_hz:g} Hz grid)")
     kinds = None
     if args.kinds:
+        from pelvislab.model.gap_effects import EFFECT_NAMES
+
         kinds = comma_list(args.kinds)
+        unknown = sorted(set(kinds) - {"none", *EFFECT_NAMES})
+        if unknown:  # before the benchmark's minutes
+            raise ValueError(f"--kinds: unknown {', '.join(unknown)}; choose from none, "
+                             f"{', '.join(EFFECT_NAMES)}")
     result = run_benchmark(generator, kinds=kinds, cases_per_kind=args.cases,
                            progress=_progress(args.verbose_progress),
                            chain_generator=chain, chain_cases_per_kind=chain_cases,
