@@ -31,6 +31,31 @@ from pelvislab.app.gui_plots import (
 log = logging.getLogger(__name__)
 
 
+class _FrfOnlyFile:
+    """An FRF-only file (``/frf`` alone, design 4.2) seen through the few parts of
+    :class:`~pelvislab.acquisition.session.SessionReader` the replay uses: no steps."""
+
+    def __init__(self, path: Path) -> None:
+        from pelvislab.acquisition.frfset import read_frf
+
+        self.path = path
+        self._frf = read_frf(path)  # checked now: a bad file is refused when opened
+        self.status = ("FRF-only file", "")
+        self.damaged: list[str] = []
+
+    def steps(self, include_incomplete: bool = False, with_echoes: bool = True) -> list[Any]:
+        return []
+
+    def frf(self) -> Any:
+        return self._frf
+
+    def read_step(self, name: str, with_echoes: bool = True) -> None:
+        return None
+
+    def close(self) -> None:
+        pass
+
+
 class ReplayView(QtWidgets.QWidget):
     """Browse a session file; re-track a step with other settings; show analysis results."""
 
@@ -171,10 +196,16 @@ class ReplayView(QtWidgets.QWidget):
             alert(self, "Cannot open session", str(exc))
 
     def open_session(self, path: Path) -> None:
-        """Open ``path`` (raises with a one-line reason for a bad file)."""
-        from pelvislab.acquisition.session import SessionReader
+        """Open ``path``, a session or an FRF-only file (design 4.2; its FRFs and the
+        analyses, no steps); raises with a one-line reason for a bad file."""
+        from pelvislab.acquisition.session import SessionFileError, SessionReader
 
-        reader = SessionReader(path)
+        try:
+            reader: Any = SessionReader(path)
+        except SessionFileError as exc:
+            if "schema 'pelvislab-frf'" not in str(exc):
+                raise
+            reader = _FrfOnlyFile(Path(path))  # identify, ema and gap read these too
         try:
             steps = list(reader.steps(include_incomplete=True, with_echoes=False))
         except Exception:
@@ -184,6 +215,8 @@ class ReplayView(QtWidgets.QWidget):
         self.reader, self.path, self.steps = reader, Path(path), steps
         status, reason = reader.status
         text = f"{Path(path).name}: {len(steps)} steps, run {status}"
+        if isinstance(reader, _FrfOnlyFile):
+            text = f"{Path(path).name}: FRF-only file (no steps to replay)"
         if reason:
             text += f" ({reason})"
         if reader.damaged:
@@ -197,6 +230,8 @@ class ReplayView(QtWidgets.QWidget):
         self._show_frf()
         if steps:
             self.step_list.setCurrentRow(0)
+        else:
+            self.tabs.setCurrentWidget(self.frf)
 
     def close_session(self) -> None:
         """Close the open file, if any."""

@@ -49,3 +49,18 @@ def test_screenshot_command_writes_a_png(tmp_path):
     )
     assert proc.returncode == 0, proc.stderr
     assert out.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def test_frf_only_file_replays_its_frfs(operator_window, tmp_path):
+    # before: "has schema 'pelvislab-frf', expected 'pelvislab-session'", although
+    # identify, ema and gap read such files
+    from pelvislab.app.cli import main
+
+    path = tmp_path / "f.h5"
+    assert main(["model", "frf", "--points", "sacrum_x,SIAS_R_x", "--out", str(path)]) == 0
+    window = operator_window()
+    assert window.open_replay(path) is True
+    replay = window.replay
+    assert "FRF-only file" in replay.file_label.text()
+    assert replay.tabs.currentWidget() is replay.frf and replay.steps == []
+    assert replay.current_step() is None
