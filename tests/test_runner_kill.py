@@ -87,7 +87,11 @@ def check_consistent(path: Path, interrupted: set[str] | frozenset[str] = frozen
                 assert c.displacement_m is not None and c.displacement_m.shape == (250,)
                 assert c.phasor_m is not None and np.isfinite(c.phasor_m)
         if steps:  # the instruments' audit trail is stored with every step, not at the end
-            texts = [bytes(t) for t in reader.handle["runs/000/command_logs/drive/text"][()]]
+            # (in the run that measured them: after a resume, not necessarily run 000)
+            runs = reader.handle["runs"]
+            texts = [bytes(t) for name in runs
+                     if "drive" in runs[name].get("command_logs", {})
+                     for t in runs[name]["command_logs/drive/text"][()]]
             assert b"OUTP ON" in texts, texts[-5:]
         # only the step being flushed when the kill came may be unreadable: the last group,
         # or after --resume the group an earlier kill interrupted (the resumed run redoes
