@@ -75,7 +75,7 @@ def run() -> list[Result]:
         wall, estimate, steps, mb = _demo_run(folder)
         created, consistent, tried, resumed = _kill_survival(folder)
     return [
-        Result("demo protocol run (112 steps, fast sim): wall time", wall, "s",
+        Result(f"demo protocol run ({steps} steps, fast sim): wall time", wall, "s",
                baseline=estimate, baseline_name="real-bench settle+record time",
                target="< 120 s (make demo, issue 7)"),
         Result("demo protocol run: time per step", wall / max(steps, 1) * 1e3, "ms"),
