@@ -83,7 +83,10 @@ def main(argv: Sequence[str] | None = None) -> int:
         action = next((getattr(args, k) for k in vars(args)
                        if k.endswith("_command") and isinstance(getattr(args, k), str)), None)
         command = f"{args.command} {action}" if action else args.command
-        print(f"pelvislab {command}: error: {reason}", file=sys.stderr)
+        try:
+            print(f"pelvislab {command}: error: {reason}", file=sys.stderr)
+        except (OSError, ValueError):  # stderr gone (terminal closed): the code still tells
+            pass
         return EXIT_FAILURE
     return EXIT_OK if code is None else int(code)
 

@@ -79,3 +79,43 @@ def test_closed_terminal_or_ctrl_backslash_aborts_like_ctrl_c(name):
     aborts = [c for c in prepared.runner.calls if c[0] == "abort"]
     assert aborts and aborts[0][3] == "interrupted" and name in aborts[0][2]
     assert signal.getsignal(signum) is before
+
+
+@pytest.mark.skipif(not hasattr(signal, "SIGHUP"), reason="POSIX signal")
+def test_nohup_keeps_the_run_going_when_the_terminal_closes():
+    # nohup sets SIGHUP to "ignore": the run must outlive the terminal, not abort on it
+    before = signal.signal(signal.SIGHUP, signal.SIG_IGN)
+    try:
+        prepared = _Prepared(_calibrated_iterations(0.05), signal.SIGHUP)
+        assert _run_with_signals(prepared) == "final"
+        assert prepared.runner.calls == []
+        assert signal.getsignal(signal.SIGHUP) is signal.SIG_IGN
+    finally:
+        signal.signal(signal.SIGHUP, before)
+
+
+def test_exit_code_survives_a_terminal_that_hung_up(monkeypatch):
+    # writing to a hung-up tty raises EIO (not EPIPE): the summary line is lost, the
+    # exit code must still say how the run ended
+    import argparse
+    import errno
+    import sys
+
+    from pelvislab.app.commands.run import EXIT_INTERRUPTED, _report
+
+    class HungUp:
+        def write(self, text):
+            raise OSError(errno.EIO, "Input/output error")
+
+        def flush(self):
+            raise OSError(errno.EIO, "Input/output error")
+
+    class Final:
+        status, reason, n_done, n_steps = "interrupted", "SIGHUP", 3, 8
+
+    class Prepared:
+        unsafe = ()
+
+    monkeypatch.setattr(sys, "stderr", HungUp())
+    args = argparse.Namespace(out="s.h5")
+    assert _report(args, Prepared(), Final(), 1.0) == EXIT_INTERRUPTED

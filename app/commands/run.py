@@ -192,8 +192,8 @@ def _report(args: argparse.Namespace, prepared: Any, final: Any, elapsed: float)
         try:
             sys.stderr.write(text + "\n")
             sys.stderr.flush()
-        except (BrokenPipeError, ValueError):  # closed pipe or stream: the code still tells
-            pass
+        except (OSError, ValueError):  # a closed pipe (EPIPE), a hung-up terminal (EIO) or
+            pass  # a closed stream: the exit code still tells
 
     where = f"{final.n_done} of {final.n_steps} steps in {args.out}"
     unsafe = prepared.unsafe
@@ -240,10 +240,12 @@ def _run_with_signals(prepared: Any, close: bool = False,
     previous = {}
     for sig in names:
         try:
+            if signal.getsignal(sig) is signal.SIG_IGN:
+                continue  # nohup ignores SIGHUP so that the run outlives the terminal
             previous[sig] = signal.signal(sig, on_signal)
         except ValueError:  # not the main thread: leave signals alone
             pass
-    watcher = _SignalWatcher(runner, set(names), reason) if previous else None
+    watcher = _SignalWatcher(runner, set(previous), reason) if previous else None
     try:
         return prepared.run()
     finally:
