@@ -991,7 +991,15 @@ class PreparedSession:
                 if self.final is None and self.writer.run_group is not None:
                     # run() never ran or died without an end event: record that honestly
                     self.writer.finish_run("aborted", "session closed before the run ended",
-                                           command_logs(self.bench))
+                                           command_logs(self.bench),
+                                           unsafe=self._unsafe_at_close or ())
+                elif self._unsafe_at_close is not None and self.writer.run_group is not None:
+                    # the close's safe state is the last one: the file says what it found
+                    # (as the exit code does), not what the run's end found before it
+                    attrs = self.writer.run_group.attrs
+                    attrs["outputs_confirmed_off"] = not self._unsafe_at_close
+                    if self._unsafe_at_close:
+                        attrs["safe_state_errors"] = "\n".join(self._unsafe_at_close)
             except Exception as exc:
                 log.error("recording the end of the run: %s", exc)
             finally:
@@ -1114,11 +1122,17 @@ def bench_differences(recorded: dict[str, Any], current: dict[str, Any]) -> list
             value = value.item()
         return complex(value) if isinstance(value, complex) else value
 
+    def value(bench: dict[str, Any], key: str) -> Any:
+        # a channel without its own speed of sound uses the bench's
+        if key.startswith("speed_of_sound_m_s_ch") and key not in bench:
+            return norm(bench.get("speed_of_sound_m_s"))
+        return norm(bench.get(key))
+
     keys = list(BENCH_KEYS_THAT_SHAPE_THE_DATA)
     keys += sorted(k for k in {*recorded, *current} if k.startswith("speed_of_sound_m_s_ch"))
     out = []
     for key in keys:
-        a, b = norm(recorded.get(key)), norm(current.get(key))
+        a, b = value(recorded, key), value(current, key)
         if a is None:  # not recorded (an older file): nothing to compare with
             continue
         same = (a == b if not isinstance(a, (float, complex)) or b is None

@@ -764,7 +764,7 @@ class SessionReader:
             self._h5 = h5py.File(self.path, "r")
         except OSError as exc:
             reason = " ".join(str(exc).split())[:160]
-            if "lock" in reason.lower():  # HDF5's file lock: a writer has it open
+            if "unable to lock file" in reason.lower():  # HDF5's lock: a writer has it open
                 raise SessionFileError(f"{self.path} is in use by another process (a run in "
                                        f"progress?); try again when it has finished: "
                                        f"{reason}") from None

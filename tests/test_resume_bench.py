@@ -52,3 +52,13 @@ def test_resume_says_how_the_last_run_ended(tmp_path, capsys):
     err = capsys.readouterr().err
     assert f"resuming {out}: its last run ended aborted (stopped for the test)" in err
     assert "did not end normally" not in err
+
+
+def test_a_channel_speed_of_sound_added_or_removed_is_a_difference():
+    from pelvislab.acquisition.runner import bench_differences
+
+    plain = {"simulated": True, "drive_newton_per_volt": 1.0, "speed_of_sound_m_s": 1540.0}
+    with_ch1 = dict(plain, speed_of_sound_m_s_ch1=1480.0)
+    assert bench_differences(plain, with_ch1) and bench_differences(with_ch1, plain)
+    same_as_default = dict(plain, speed_of_sound_m_s_ch1=1540.0)
+    assert bench_differences(plain, same_as_default) == []
