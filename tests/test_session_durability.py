@@ -118,3 +118,21 @@ def test_kill_at_each_write_of_the_first_steps_flush_leaves_a_readable_file(tmp_
                 r.step_names()
         except SessionFileError as exc:
             pytest.fail(f"killed at write {n} ({first}-{last}: the first step): {exc}")
+
+
+def test_a_plan_larger_than_the_header_goes_dense_without_stalling(tmp_path):
+    # a header sized for thousands of links stalled HDF5 for minutes (GIL held, shaker on)
+    # when one link more arrived; the header holds at most MAX_COMPACT_LINKS
+    import time
+
+    from pelvislab.acquisition.session import MAX_COMPACT_LINKS, _presized_group
+
+    with h5py.File(tmp_path / "g.h5", "w", libver=("earliest", "v110")) as f:
+        group = _presized_group(f, "steps", 2 * 1071 + 64)  # face_up: 1071 steps
+        assert h5py.h5o.get_info(group.id).hdr.space.total < 64 * 1024
+        started = time.perf_counter()
+        for k in range(MAX_COMPACT_LINKS + 50):
+            group.create_group(f"{k:06d}")
+        assert time.perf_counter() - started < 30.0  # ~0.1 s measured
+    with h5py.File(tmp_path / "g.h5", "r") as f:
+        assert len(f["steps"]) == MAX_COMPACT_LINKS + 50
