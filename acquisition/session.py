@@ -662,11 +662,19 @@ def _hdf5_library() -> Any:
             paths = {line.split()[-1] for line in maps if "libhdf5" in line}
     except OSError:
         return None
-    for path in sorted(paths):
+    # h5py's own copy first (another package may have loaded another HDF5), and only one
+    # whose version is h5py's: its property-list identifiers mean the same there
+    for path in sorted(paths, key=lambda p: "h5py" not in p):
         name = Path(path).name
         if name.startswith("libhdf5") and not name.startswith("libhdf5_hl"):
             try:
                 lib = ctypes.CDLL(path)
+                major, minor, release = (ctypes.c_uint() for _ in range(3))
+                if lib.H5get_libversion(ctypes.byref(major), ctypes.byref(minor),
+                                        ctypes.byref(release)) < 0 or (
+                        major.value, minor.value, release.value
+                        ) != tuple(h5py.version.hdf5_version_tuple[:3]):
+                    continue
                 for fn in (lib.H5Pset_link_phase_change, lib.H5Pset_est_link_info):
                     fn.argtypes = [ctypes.c_int64, ctypes.c_uint, ctypes.c_uint]
                     fn.restype = ctypes.c_int
@@ -697,12 +705,16 @@ def _presized_group(parent: h5py.Group, name: str, n_links: int) -> h5py.Group:
     n = int(min(max(n_links, 8), MAX_COMPACT_LINKS))
     if lib is None:
         return parent.create_group(name)
+    from h5py._objects import phil  # h5py's lock around every HDF5 call
+
     gcpl = h5py.h5p.create(h5py.h5p.GROUP_CREATE)
     # tracking the creation order is what makes HDF5 store the links in the header (the
     # "new-style" group) in a file whose format bound is "earliest"
     gcpl.set_link_creation_order(h5py.h5p.CRT_ORDER_TRACKED)
-    if (lib.H5Pset_link_phase_change(gcpl.id, n, max(n - 1, 1)) < 0
-            or lib.H5Pset_est_link_info(gcpl.id, n, 8) < 0):
+    with phil:  # the bundled HDF5 is not thread-safe: no other thread in it meanwhile
+        failed = (lib.H5Pset_link_phase_change(gcpl.id, n, max(n - 1, 1)) < 0
+                  or lib.H5Pset_est_link_info(gcpl.id, n, 8) < 0)
+    if failed:
         return parent.create_group(name)
     return h5py.Group(h5py.h5g.create(parent.id, name.encode(), gcpl=gcpl))
 
