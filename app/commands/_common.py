@@ -129,33 +129,29 @@ def check_new_output(path: str | Path) -> Path:
 
 def write_json(path: str | Path, document: object) -> Path:
     """Write a result document as strict JSON, atomically (a crash never leaves a
-    half-written file) and only if no file of that name exists."""
+    half-written file) and only if no file of that name exists. The file gets the
+    permissions any file of the user gets (0666 less the umask)."""
     import json
     import os
-    import tempfile
+    import secrets
 
     target = check_new_output(path)
     text = json.dumps(json_safe(document), indent=2, allow_nan=False) + "\n"
-    fd, tmp = tempfile.mkstemp(prefix=f".{target.name}.", suffix=".tmp", dir=target.parent)
+    # not mkstemp: its files are private (0600), and changing the umask to undo that
+    # would race with other threads
+    tmp = target.parent / f".{target.name}.{os.getpid()}.{secrets.token_hex(4)}.tmp"
+    exclusive = os.O_WRONLY | os.O_CREAT | os.O_EXCL
+    fd = os.open(tmp, exclusive, 0o666)
     try:
-        # mkstemp makes the file private (0600); a result is as readable as any other
-        # file the user writes (the umask decides)
-        umask = os.umask(0)
-        os.umask(umask)
-        if hasattr(os, "fchmod"):
-            os.fchmod(fd, 0o666 & ~umask)
         with os.fdopen(fd, "w") as handle:
             handle.write(text)
         try:
             os.link(tmp, target)  # fails if the name appeared meanwhile: never overwrite
-            Path(tmp).unlink()
         except FileExistsError:
-            raise
-        except OSError:  # no hard links (FAT/exFAT, some SMB shares): keep the result
-            if target.exists():
-                raise FileExistsError(f"{target} exists; not overwriting it") from None
-            os.replace(tmp, target)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
+            raise FileExistsError(f"{target} exists; not overwriting it") from None
+        except OSError:  # no hard links (FAT/exFAT, some SMB shares): create it exclusively
+            with os.fdopen(os.open(target, exclusive, 0o666), "w") as handle:
+                handle.write(text)
+    finally:
+        tmp.unlink(missing_ok=True)
     return target
