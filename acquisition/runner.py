@@ -873,15 +873,19 @@ class Runner:
 
 
 # --------------------------------------------------------------------------- recorder
-def command_logs(bench: Any) -> dict[str, list[tuple[float, str]]]:
-    """Every instrument's command log (``command_log`` attribute), by role."""
+def command_logs(bench: Any, copy: bool = True) -> dict[str, Sequence[tuple[float, str]]]:
+    """Every instrument's command log (``command_log`` attribute), by role; with
+    ``copy=False`` the instruments' own growing lists (the session writer appends only
+    their new tail with each step: copying every log at every step grew with the square
+    of the run's length)."""
     roles = [("trigger", bench.trigger), ("drive", bench.drive), ("digitizer", bench.digitizer)]
     roles += [(f"pulser{i + 1}", p) for i, p in enumerate(bench.pulsers)]
-    out: dict[str, list[tuple[float, str]]] = {}
+    out: dict[str, Sequence[tuple[float, str]]] = {}
     for role, inst in roles:
         entries = getattr(inst, "command_log", None)
         if entries is not None:
-            out[role] = [(float(t), str(s)) for t, s in list(entries)]
+            out[role] = ([(float(t), str(s)) for t, s in list(entries)] if copy
+                         else entries)
     return out
 
 
@@ -901,8 +905,9 @@ class SessionRecorder:
 
     def __call__(self, event: Event) -> None:
         if isinstance(event, StepStarted):
-            # before the shaker drives: raw echoes (1 byte per sample per channel) and the
-            # per-pulse arrays (trigger offsets, displacement), uncompressed
+            # before the step is acquired (the drive may already be on for the setup; a
+            # fault here switches it off): raw echoes (1 byte per sample per channel) and
+            # the per-pulse arrays (trigger offsets, displacement), uncompressed
             channels = len(self.channels) or 2
             self.writer.check_space(event.step.n_pulses * channels * (self.samples + 16))
         elif isinstance(event, StepFinished):
@@ -912,7 +917,7 @@ class SessionRecorder:
                             f"{'ok' if ok else 'quality warning'} "
                             f"({event.duration_s:.3f} s)", "DEBUG")
             if self.bench is not None:  # the audit trail so far, flushed with the step
-                self.writer.append_command_logs(command_logs(self.bench))
+                self.writer.append_command_logs(command_logs(self.bench, copy=False))
             self.writer.append_step(event.data)  # flushes
             self.steps_written += 1
         elif isinstance(event, LogMessage):

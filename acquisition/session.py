@@ -97,7 +97,12 @@ def create_log(group: h5py.Group, lines: Sequence[str] = ()) -> h5py.Dataset:
 
 def log_entry(line: str) -> np.bytes_:
     """``line`` as UTF-8, cut to :data:`LOG_LINE_BYTES` on a character boundary."""
-    raw = str(line).encode("utf-8")[:LOG_LINE_BYTES]
+    return _utf8_cut(line, LOG_LINE_BYTES)
+
+
+def _utf8_cut(text: object, n_bytes: int) -> np.bytes_:
+    """``text`` as UTF-8, cut to ``n_bytes`` on a character boundary."""
+    raw = str(text).encode("utf-8")[:n_bytes]
     return np.bytes_(raw.decode("utf-8", "ignore").encode("utf-8"))
 
 
@@ -473,13 +478,14 @@ class SessionWriter:
                 lg.create_dataset("text", shape=(0,), maxshape=(None,), chunks=(64,),
                                   dtype=f"S{COMMAND_BYTES}")
             n = lg["time_s"].shape[0]
-            new = list(entries)[n:]
+            # only the tail is copied (a list slice: atomic under the GIL)
+            new = entries[n:] if isinstance(entries, (list, tuple)) else list(entries)[n:]
             if not new:
                 continue
             for name in ("time_s", "text"):
                 lg[name].resize((n + len(new),))
-            lg["time_s"][n:] = [t for t, _ in new]
-            lg["text"][n:] = [str(text).encode("utf-8")[:COMMAND_BYTES] for _, text in new]
+            lg["time_s"][n:] = [float(t) for t, _ in new]
+            lg["text"][n:] = [_utf8_cut(text, COMMAND_BYTES) for _, text in new]
 
     def log(self, message: str, level: str = "INFO", flush: bool = False) -> None:
         """Append one line to the session log (``/log``)."""
@@ -974,9 +980,22 @@ def _read_point(attrs: h5py.AttributeManager, prefix: str) -> Point:
 
 
 def fsync_path(path: Path | str) -> None:
-    """fsync a closed file (used after closing a session at the end of a run)."""
-    fd = os.open(path, os.O_RDONLY)
+    """fsync a closed file (after creating a session and after closing it), and on POSIX
+    its folder, so that the name reaches the disk too (a new file's directory entry).
+    Windows needs write access to flush a file; its folders cannot be opened."""
+    fd = os.open(path, os.O_RDWR if os.name == "nt" else os.O_RDONLY)
     try:
         os.fsync(fd)
     finally:
         os.close(fd)
+    if os.name != "nt":
+        try:
+            folder = os.open(Path(path).parent, os.O_RDONLY)
+        except OSError:
+            return
+        try:
+            os.fsync(folder)
+        except OSError:  # some file systems refuse fsync on a folder: the file is synced
+            pass
+        finally:
+            os.close(folder)

@@ -32,7 +32,7 @@ def run(args: argparse.Namespace) -> int:
         raise FileNotFoundError(f"no such session file: {session}")
     if args.analyse and session is None:
         raise ValueError("--analyse needs a session file (pelvislab gui S.h5 --analyse …)")
-    if not 0 <= args.after < 3600:  # inf or NaN would never render
+    if not 0 <= args.after <= 3600:  # inf or NaN would never render
         raise ValueError("--after must be within 0-3600 seconds")
     start = Path(args.start) if args.start else None
     if start is not None and not start.is_file():

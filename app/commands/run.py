@@ -153,6 +153,15 @@ def run_command(args: argparse.Namespace) -> int:
                                auto_continue=not args.wait_prompts,
                                software_version=package_version(),
                                subject_id=args.subject_id)
+    restore: dict[int, Any] = {}  # signal handlers to put back once the summary is out
+    try:
+        return _run_and_report(args, prepared, restore)
+    finally:  # also when closing the session raised
+        for sig, handler in restore.items():
+            signal.signal(sig, handler)
+
+
+def _run_and_report(args: argparse.Namespace, prepared: Any, restore: dict[int, Any]) -> int:
     with prepared:
         for warning in prepared.protocol.warnings:
             print(f"warning: {warning}", file=sys.stderr)
@@ -174,14 +183,9 @@ def run_command(args: argparse.Namespace) -> int:
         # closed (outputs off, file closed) while the handlers still turn signals into an
         # abort: repeated Ctrl-C during the close raised KeyboardInterrupt in it; then the
         # signals are ignored until the summary is out (the run has ended, outputs off)
-        restore: dict[int, Any] = {}
         final = _run_with_signals(prepared, close=True, then_ignore=restore)
         elapsed = time.perf_counter() - started
-    try:
-        return _report(args, prepared, final, elapsed)
-    finally:
-        for sig, handler in restore.items():
-            signal.signal(sig, handler)
+    return _report(args, prepared, final, elapsed)
 
 
 def _report(args: argparse.Namespace, prepared: Any, final: Any, elapsed: float) -> int:
