@@ -564,8 +564,22 @@ def run_gui(session_file: Path | None = None, screenshot: Path | None = None,
     if screenshot is not None:
         os.environ.setdefault("QT_QPA_PLATFORM", "offscreen")
     set_headless(screenshot is not None)  # nobody can answer a dialog offscreen
+    # Ctrl-C in the terminal closes the window like its close button (a running session
+    # ends safely first); installed now, so that one pressed while the window opens is
+    # not a KeyboardInterrupt in the middle of it
+    closing: dict[str, Any] = {"asked": False, "window": None, "app": None}
+
+    def on_sigint(*_: object) -> None:
+        closing["asked"] = True
+        if closing["window"] is not None:
+            closing["window"].close()  # its closeEvent stops a running session first
+            closing["app"].quit()
+
+    previous_sigint = (signal.signal(signal.SIGINT, on_sigint) if screenshot is None
+                       else None)
     app = QtWidgets.QApplication.instance() or QtWidgets.QApplication(["pelvislab"])
     window = OperatorWindow(session_file, bench_path=bench_path)
+    closing["window"], closing["app"] = window, app
     window.resize(*size)
     window.show()
     if start_protocol is not None:
@@ -584,22 +598,18 @@ def run_gui(session_file: Path | None = None, screenshot: Path | None = None,
         {"identify": window.replay.run_identification,
          "gap": window.replay.run_gap}[analyse]()
     if screenshot is None:
-        # Ctrl-C in the terminal closes the window like its close button (a running session
-        # ends safely); Python runs signal handlers only between bytecodes, so a timer
-        # wakes the interpreter while Qt's loop waits
-        def on_sigint(*_: object) -> None:
-            window.close()  # its closeEvent stops a running session safely first
-            app.quit()
-
-        previous = signal.signal(signal.SIGINT, on_sigint)
+        # Python runs signal handlers only between bytecodes: a timer wakes the interpreter
+        # while Qt's loop waits
         wake = QtCore.QTimer()
         wake.timeout.connect(lambda: None)
         wake.start(200)
+        if closing["asked"]:  # Ctrl-C while the window opened
+            QtCore.QTimer.singleShot(0, lambda: on_sigint())
         try:
             code = app.exec()
         finally:
             wake.stop()
-            signal.signal(signal.SIGINT, previous)
+            signal.signal(signal.SIGINT, previous_sigint)
         _dispose(app, window)
         return code
     deadline = time.monotonic() + max(0.0, after_s)

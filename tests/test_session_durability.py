@@ -88,7 +88,7 @@ def test_close_syncs_the_file_to_disk(tmp_path, protocol, monkeypatch):  # noqa:
 @pytest.mark.skipif(shutil.which("strace") is None or sys.platform != "linux"
                     or not os.environ.get("PELVISLAB_CRASH_TESTS"),
                     reason="needs strace's fault injection (Linux) and PELVISLAB_CRASH_TESTS=1 "
-                    "(20-40 s: kept out of the default suite's time budget)")
+                    "(about 2.5 min: kept out of the default suite's time budget)")
 def test_kill_at_each_write_of_the_first_steps_flush_leaves_a_readable_file(tmp_path):
     # SIGKILL delivered at the n-th pwrite64 of a simulated run, for every write of the
     # first step (found from a traced run: the pwrite64 calls between the child's marks
