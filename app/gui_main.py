@@ -575,8 +575,14 @@ def run_gui(session_file: Path | None = None, screenshot: Path | None = None,
             closing["window"].close()  # its closeEvent stops a running session first
             closing["app"].quit()
 
-    previous_sigint = (signal.signal(signal.SIGINT, on_sigint) if screenshot is None
-                       else None)
+    # SIGTERM (shutdown, kill) and SIGHUP (terminal closed) too: their default action
+    # ended the process with a run's outputs on; a signal already ignored stays so (nohup)
+    previous_handlers: dict[int, Any] = {}
+    if screenshot is None:
+        for name in ("SIGINT", "SIGTERM", "SIGHUP"):
+            sig = getattr(signal, name, None)
+            if sig is not None and signal.getsignal(sig) is not signal.SIG_IGN:
+                previous_handlers[sig] = signal.signal(sig, on_sigint)
     app = QtWidgets.QApplication.instance() or QtWidgets.QApplication(["pelvislab"])
     window = OperatorWindow(session_file, bench_path=bench_path)
     closing["window"], closing["app"] = window, app
@@ -609,7 +615,8 @@ def run_gui(session_file: Path | None = None, screenshot: Path | None = None,
             code = app.exec()
         finally:
             wake.stop()
-            signal.signal(signal.SIGINT, previous_sigint)
+            for sig, handler in previous_handlers.items():
+                signal.signal(sig, handler)
         _dispose(app, window)
         return code
     deadline = time.monotonic() + max(0.0, after_s)
