@@ -576,13 +576,14 @@ def run_gui(session_file: Path | None = None, screenshot: Path | None = None,
             closing["app"].quit()
 
     # SIGTERM (shutdown, kill) and SIGHUP (terminal closed) too: their default action
-    # ended the process with a run's outputs on; a signal already ignored stays so (nohup)
+    # ended the process with a run's outputs on; an ignored SIGHUP stays so (nohup)
     previous_handlers: dict[int, Any] = {}
     if screenshot is None:
         for name in ("SIGINT", "SIGTERM", "SIGHUP"):
             sig = getattr(signal, name, None)
-            if sig is not None and signal.getsignal(sig) is not signal.SIG_IGN:
-                previous_handlers[sig] = signal.signal(sig, on_sigint)
+            if sig is None or (name == "SIGHUP" and signal.getsignal(sig) is signal.SIG_IGN):
+                continue
+            previous_handlers[sig] = signal.signal(sig, on_sigint)
     app = QtWidgets.QApplication.instance() or QtWidgets.QApplication(["pelvislab"])
     window = OperatorWindow(session_file, bench_path=bench_path)
     closing["window"], closing["app"] = window, app

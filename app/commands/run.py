@@ -244,8 +244,11 @@ def _run_with_signals(prepared: Any, close: bool = False,
     previous = {}
     for sig in names:
         try:
-            if signal.getsignal(sig) is signal.SIG_IGN:
+            if sig == getattr(signal, "SIGHUP", None) and \
+                    signal.getsignal(sig) is signal.SIG_IGN:
                 continue  # nohup ignores SIGHUP so that the run outlives the terminal
+            # (SIGINT is ignored in background jobs of a non-interactive shell and in
+            # pytest-xdist workers: an explicit kill -INT still aborts, as it always did)
             previous[sig] = signal.signal(sig, on_signal)
         except ValueError:  # not the main thread: leave signals alone
             pass
