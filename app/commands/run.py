@@ -162,6 +162,8 @@ def run_command(args: argparse.Namespace) -> int:
 
 
 def _run_and_report(args: argparse.Namespace, prepared: Any, restore: dict[int, Any]) -> int:
+    """Run ``prepared`` under the signal handlers, close it, print the summary; returns the
+    exit code. ``restore`` receives the handlers that ``run_command`` puts back."""
     with prepared:
         for warning in prepared.protocol.warnings:
             print(f"warning: {warning}", file=sys.stderr)
