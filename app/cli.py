@@ -58,7 +58,23 @@ def build_parser() -> argparse.ArgumentParser:
     subparsers.required = True
     for module in COMMAND_MODULES:
         module.register(subparsers)
+    _verbose_anywhere(parser)
     return parser
+
+
+def _verbose_anywhere(parser: argparse.ArgumentParser) -> None:
+    """Accept ``-v`` after the (sub)command too (``pelvislab identify S.h5 --json o -v``,
+    as docs/identification.md writes it): every subcommand parser gets the option (its
+    default left unset, so that one given only before the command stays; given on both
+    sides, argparse keeps the count after the command)."""
+    for action in parser._actions:  # argparse keeps subparsers only there
+        if isinstance(action, argparse._SubParsersAction):
+            for sub in set(action.choices.values()):
+                if not any("-v" in a.option_strings for a in sub._actions):
+                    sub.add_argument("-v", "--verbose", action="count",
+                                     default=argparse.SUPPRESS,
+                                     help="as pelvislab -v (may also come here)")
+                _verbose_anywhere(sub)
 
 
 def main(argv: Sequence[str] | None = None) -> int:

@@ -64,3 +64,11 @@ def test_analysis_of_an_interrupted_session_warns(tmp_path, capsys):
     err = capsys.readouterr().err
     assert "its last run ended 'aborted', not completed" in err
     assert "2 of the 4 planned FRFs hold data" in err  # setup b never ran
+
+
+def test_verbose_may_follow_the_command(tmp_path, capsys):
+    # docs/identification.md writes "pelvislab identify S.h5 --json OUT -v"; argparse
+    # refused it ("unrecognized arguments: -v", exit 2)
+    code = main(["identify", str(tmp_path / "missing.h5"), "--json", str(tmp_path / "o.json"),
+                 "-v"])
+    assert code == 1 and "no such file" in capsys.readouterr().err
