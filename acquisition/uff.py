@@ -354,7 +354,8 @@ def read_uff(path: str | Path, points: dict[int, PointInfo] | None = None
             else:
                 notes.append(f"skipped a dataset 58 of function type {func} (not an FRF)")
     if not records:
-        raise ValueError(f"{path} holds no dataset 58 FRF (set types: {sorted(set(types))})")
+        raise ValueError(f"{path} holds no dataset 58 FRF (set types: "
+                         f"{sorted({int(t) for t in types})})")
     for n in coords:
         coords[n] = coords[n] / length_factor
     points = points or {}

@@ -79,6 +79,10 @@ def run_export(args: argparse.Namespace) -> int:
     out = Path(args.out)
     if out.exists():
         raise FileExistsError(f"{out} exists; not overwriting")
+    import numpy as np
+
+    if not np.isfinite(frf.H).any():  # a file of geometry only, which import-uff refuses
+        raise ValueError(f"{args.session} holds no measured FRF line yet: nothing to export")
     modes = None
     if args.modes:
         modes = _modes_from_json(Path(args.modes), frf)
