@@ -604,10 +604,12 @@ class Runner:
             self._log(f"prompt auto-continued (headless): {message}")
             return
         self.state = "waiting"
+        t_wait = self._clock()
         while not self._confirm.is_set():
             self._check()
             self._wake.wait(0.05)
             self._wake.clear()
+        self._waited_s += self._clock() - t_wait
         self.state = "running"
         self._log(f"operator confirmed setup {setup.name!r}")
 
@@ -634,10 +636,12 @@ class Runner:
         self.state = "paused"
         self._emit(Paused(self._t(), "paused by the operator"))
         self._log("paused; outputs off")
+        t_wait = self._clock()
         while self._pause.is_set():
             self._check()
             self._wake.wait(0.05)
             self._wake.clear()
+        self._waited_s += self._clock() - t_wait
         self.state = "running"
         self._emit(Resumed(self._t()))
         self._log("resumed")
@@ -713,6 +717,7 @@ class Runner:
         return final
 
     _n_new = 0
+    _waited_s = 0.0
 
     def _run_plan(self, todo: list[PlannedStep], n_done: int, n_total: int) -> int:
         proto = self.protocol
@@ -735,6 +740,7 @@ class Runner:
         n_setups = len(proto.setups)
         configured: tuple[int, tuple[int, ...]] = (-1, ())
         t_run = self._clock()
+        self._waited_s = 0.0  # at operator prompts and in pauses: not bench time
         for si, setup in enumerate(proto.setups):
             steps = [s for s in todo if s.setup_index == si]
             if not steps:
@@ -784,7 +790,10 @@ class Runner:
                 est_done += remaining_est.pop(0)
                 elapsed = self._clock() - t_run
                 left = sum(remaining_est)
-                eta = left * (elapsed / est_done) if est_done > 0 else left
+                # the pace of the bench alone: a prompt answered after 6 s made the ETA
+                # jump from 15 to 32 s; the prompts still to come are not counted either
+                measuring = max(elapsed - self._waited_s, 0.0)
+                eta = left * (measuring / est_done) if est_done > 0 else left
                 self._emit(Progress(self._t(), n_done, n_total, elapsed, eta))
             self._generators(False)
             self._emit(SetupFinished(self._t(), si, setup.name))

@@ -15,6 +15,7 @@ import random
 import signal
 import subprocess
 import sys
+import threading
 import time
 from pathlib import Path
 
@@ -269,3 +270,31 @@ def test_completed_run_exits_0_when_nobody_reads_stderr_any_more(tmp_path):
     assert proc.wait(timeout=120) == 0
     with SessionReader(out) as reader:
         assert reader.status[0] == "completed"
+
+
+def test_eta_leaves_out_the_time_at_an_operator_prompt(tmp_path):
+    # before: a prompt answered after 6 s made the ETA jump from 15 to 32 s
+    from pelvislab.acquisition.protocol import load_protocol
+
+    protocol = tmp_path / "p.toml"
+    protocol.write_text(PROTOCOL)
+    plan = load_protocol(protocol).steps()
+    estimate = [load_protocol(protocol).step_duration_s(s.frequency_hz) for s in plan]
+    bench = sim_bench.open_simulated_bench(generators="python")
+    rates = {}
+    with prepare_session(protocol, tmp_path / "s.h5", bench=bench,
+                         auto_continue=False) as session:
+        runner = session.runner
+
+        def listen(event):
+            name = type(event).__name__
+            if name == "OperatorPrompt":
+                delay = 0.0 if event.setup_index == 0 else 3.0
+                threading.Timer(delay, runner.confirm).start()
+            elif name == "Progress" and event.n_done in (4, 5):
+                left = sum(estimate[event.n_done:])
+                rates[event.n_done] = event.eta_s / left  # measured s per planned s
+        runner.subscribe(listen)
+        assert session.run().status == "completed"
+    # the same pace before and after the 3 s wait (the ETA scales the planned time left)
+    assert rates[5] < 1.6 * rates[4], rates
