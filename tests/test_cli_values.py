@@ -72,3 +72,9 @@ def test_verbose_may_follow_the_command(tmp_path, capsys):
     code = main(["identify", str(tmp_path / "missing.h5"), "--json", str(tmp_path / "o.json"),
                  "-v"])
     assert code == 1 and "no such file" in capsys.readouterr().err
+
+
+def test_gap_benchmark_makes_no_folder_for_options_it_refuses(tmp_path, capsys):
+    out = tmp_path / "new_folder" / "b.json"
+    assert main(["gap", "benchmark", "--json", str(out), "--kinds", "nope"]) == 1
+    assert not out.parent.exists()

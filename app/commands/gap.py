@@ -372,16 +372,26 @@ def _benchmark(args: argparse.Namespace) -> int:
     from pelvislab.model.gap import GapOptions
     from pelvislab.model.gap_benchmark import format_summary, run_benchmark
 
+    # every option checked before anything is made or run (the benchmark takes minutes)
     if args.cases < 1:
         raise ValueError("--cases must be >= 1")
-    out = Path(args.json)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    check_new_output(out)  # before the benchmark's minutes, not after
     _check_jobs(args.jobs)
     if args.chain_cases < 0:
         raise ValueError("--chain-cases must be >= 0")
     if not 0.5 <= args.chain_step_hz <= 50:
         raise ValueError("--chain-step-hz must be within 0.5-50 Hz")
+    kinds = None
+    if args.kinds:
+        from pelvislab.model.gap_effects import EFFECT_NAMES
+
+        kinds = comma_list(args.kinds)
+        unknown = sorted(set(kinds) - {"none", *EFFECT_NAMES})
+        if unknown:
+            raise ValueError(f"--kinds: unknown {', '.join(unknown)}; choose from none, "
+                             f"{', '.join(EFFECT_NAMES)}")
+    out = Path(args.json)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    check_new_output(out)
     keep_freed_memory_for_reuse()
     # test-side generators (may use the simulator); see the module docstring for why
     from pelvislab.tests.benchmarks.bench_gap import make_chain_generator, make_generator
@@ -397,15 +407,6 @@ def _benchmark(args: argparse.Namespace) -> int:
         chain = make_chain_generator(seed=args.seed, step_hz=args.chain_step_hz)
         names.append(f"full simulated chain (open_simulated_bench + prepare_session, face_up "
                      f"on a {args.chain_step_hz:g} Hz grid)")
-    kinds = None
-    if args.kinds:
-        from pelvislab.model.gap_effects import EFFECT_NAMES
-
-        kinds = comma_list(args.kinds)
-        unknown = sorted(set(kinds) - {"none", *EFFECT_NAMES})
-        if unknown:  # before the benchmark's minutes
-            raise ValueError(f"--kinds: unknown {', '.join(unknown)}; choose from none, "
-                             f"{', '.join(EFFECT_NAMES)}")
     result = run_benchmark(generator, kinds=kinds, cases_per_kind=args.cases,
                            progress=_progress(args.verbose_progress),
                            chain_generator=chain, chain_cases_per_kind=chain_cases,
