@@ -13,8 +13,8 @@ from pelvislab.tests.test_runner_unsafe import PROTOCOL
 sim_bench = pytest.importorskip("pelvislab.sim_instruments.bench")
 
 
-def test_resume_on_a_bench_with_another_calibration_is_refused(tmp_path):
-    # before, the resumed steps of one setup mixed 0.1 N and 0.5 N forces at the same drive
+def _aborted_session(tmp_path):
+    """(protocol, session file) of a run aborted before its first step."""
     protocol = tmp_path / "p.toml"
     protocol.write_text(PROTOCOL)
     out = tmp_path / "s.h5"
@@ -22,6 +22,12 @@ def test_resume_on_a_bench_with_another_calibration_is_refused(tmp_path):
             generators="python")) as session:
         session.runner.abort("stopped for the test")
         session.run()
+    return protocol, out
+
+
+def test_resume_on_a_bench_with_another_calibration_is_refused(tmp_path):
+    # before, the resumed steps of one setup mixed 0.1 N and 0.5 N forces at the same drive
+    protocol, out = _aborted_session(tmp_path)
     other = dataclasses.replace(BenchConfig.default(), drive_newton_per_volt=5.0)
     with pytest.raises(ValueError, match="another bench.*drive_newton_per_volt"):
         prepare_session(protocol, out, resume=True,
@@ -37,13 +43,7 @@ def test_resume_says_how_the_last_run_ended(tmp_path, capsys):
     from pelvislab.acquisition.session import SessionReader
     from pelvislab.app.commands.run import run_command
 
-    protocol = tmp_path / "p.toml"
-    protocol.write_text(PROTOCOL)
-    out = tmp_path / "s.h5"
-    with prepare_session(protocol, out, bench=sim_bench.open_simulated_bench(
-            generators="python")) as session:
-        session.runner.abort("stopped for the test")
-        session.run()
+    protocol, out = _aborted_session(tmp_path)
     with SessionReader(out) as reader:
         assert reader.status[0] == "aborted"
     args = argparse.Namespace(protocol=str(protocol), out=str(out), bench=None, resume=True,

@@ -19,34 +19,27 @@ from pelvislab.acquisition.session import SessionReader
 sim_bench = pytest.importorskip("pelvislab.sim_instruments.bench")
 faults = pytest.importorskip("pelvislab.sim_instruments.faults")
 
-PROTOCOL = """
-schema = "pelvislab-protocol"
-schema_version = 1
-name = "unsafe-test"
-[sweep]
-frequencies_hz = [40.0, 100.0, 160.0]
-drive_vpp = 0.2
-settle_s = 0.05
-[ultrasound]
-pulses = 250
-samples = 500
-[[setups]]
-name = "a"
-excitation = "SIAS_R_x"
-transducers = { ch1 = "SIAS_R_x", ch2 = "sacrum_x" }
-"""
+# the kill tests' two-setup, 8-step protocol (drive command 22 comes after OUTP ON)
+from pelvislab.tests.test_runner_kill import PROTOCOL  # noqa: E402
 
 
 def _bench(fault):
     return sim_bench.open_simulated_bench(generators="python", faults=[fault])
 
 
-def test_lost_drive_is_reported_as_not_off_in_event_file_and_log(tmp_path):
+def _run_with(tmp_path, fault):
+    """(final event, prepared session, bench) of the protocol run with ``fault``."""
     protocol = tmp_path / "p.toml"
     protocol.write_text(PROTOCOL)
-    bench = _bench(faults.LostConnection(instrument="drive", at_command=22))
+    bench = _bench(fault)
     with prepare_session(protocol, tmp_path / "s.h5", bench=bench) as session:
         final = session.run()
+    return final, session, bench
+
+
+def test_lost_drive_is_reported_as_not_off_in_event_file_and_log(tmp_path):
+    final, session, bench = _run_with(
+        tmp_path, faults.LostConnection(instrument="drive", at_command=22))
     assert final.status == "failed"
     assert bench.world.drive.output  # the simulator's drive really is still on
     assert final.unsafe and all("drive" in m for m in final.unsafe), final.unsafe
@@ -60,11 +53,8 @@ def test_lost_drive_is_reported_as_not_off_in_event_file_and_log(tmp_path):
 
 
 def test_run_that_switched_everything_off_says_so(tmp_path):
-    protocol = tmp_path / "p.toml"
-    protocol.write_text(PROTOCOL)
-    bench = _bench(faults.ScpiError(instrument="drive", at_command=22))
-    with prepare_session(protocol, tmp_path / "s.h5", bench=bench) as session:
-        final = session.run()
+    final, session, bench = _run_with(
+        tmp_path, faults.ScpiError(instrument="drive", at_command=22))
     assert final.status == "failed" and final.unsafe == () and session.unsafe == ()
     assert not bench.world.drive.output
     with SessionReader(tmp_path / "s.h5") as reader:
