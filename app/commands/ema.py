@@ -34,8 +34,10 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                    help="manual pole selection: the stable poles nearest these frequencies (Hz)")
     p.add_argument("--max-order", type=int, metavar="N",
                    help="highest model order of the stabilisation diagram (default: automatic)")
-    p.add_argument("--refine", action="store_true",
-                   help="polish the selected poles by a bounded nonlinear pole/residue fit")
+    p.add_argument("--refine", action=argparse.BooleanOptionalAction, default=None,
+                   help="polish the poles by a bounded nonlinear pole/residue fit to the FRFs, "
+                   "which also gives their uncertainties (default: with the automatic "
+                   "selection, not with --frequencies)")
     p.add_argument("--no-diagram", action="store_true",
                    help="leave the stabilisation diagram out of the JSON")
     p.add_argument("--update", metavar="NAMES",
@@ -68,10 +70,19 @@ def _clean(value: object) -> object:
     return value
 
 
+def _finite_or_none(values: object, index: int) -> float | None:
+    """``values[index]`` as a float, or None when absent or not finite (JSON has no NaN)."""
+    if index >= len(values):
+        return None
+    v = float(values[index])
+    return v if math.isfinite(v) else None
+
+
 def result_to_json(frf: object, result: object, diagram: bool = True) -> dict:
     """The JSON document of an :class:`~pelvislab.model.ema.EmaResult` on an FRF set."""
     import numpy as np
 
+    from pelvislab.model.ema import pole_frequency_damping
     from pelvislab.model.rigid_body import filter_bones, filter_global
 
     outputs = frf.outputs
@@ -91,6 +102,8 @@ def result_to_json(frf: object, result: object, diagram: bool = True) -> dict:
         modes.append({
             "frequency_hz": float(result.frequency_hz[r]),
             "damping_ratio": float(result.damping_ratio[r]),
+            "frequency_std_hz": _finite_or_none(result.frequency_std_hz, r),
+            "damping_ratio_std": _finite_or_none(result.damping_ratio_std, r),
             "complexity": float(result.complexity[r]),
             "mpc": float(result.mpc[r]),
             "mpd_deg": float(result.mpd_deg[r]),
@@ -112,7 +125,12 @@ def result_to_json(frf: object, result: object, diagram: bool = True) -> dict:
         "selection": result.selection,
         "fit_error": result.fit_error(),
         "notes": list(result.notes),
-        "method": "p-LSCF (z-domain) poles, LSFD residues with lower/upper residuals",
+        "residual_modes": [{"frequency_hz": float(fr), "damping_ratio": float(zr)}
+                           for fr, zr in zip(*pole_frequency_damping(result.residual_poles),
+                                             strict=True)],
+        "method": "p-LSCF (z-domain) poles, LSFD residues with lower/upper residuals"
+                  + (", poles refined by a pole/residue fit"
+                     if np.any(np.isfinite(result.damping_ratio_std)) else ""),
     }
     if checks is not None:
         doc["channel_check"] = checks
@@ -229,8 +247,11 @@ def run_ema(args: argparse.Namespace) -> int:
         with out.open("x", encoding="utf-8") as fh:  # "x": still never overwrite
             fh.write(text + "\n")
     for m in doc["modes"]:
-        print(f"{m['frequency_hz']:10.3f} Hz  zeta {m['damping_ratio']:.4f}  "
-              f"complexity {m['complexity']:.3f}", file=sys.stderr)
+        zeta_sd = m["damping_ratio_std"]
+        zeta = (f"zeta {m['damping_ratio']:.4f}" if zeta_sd is None
+                else f"zeta {m['damping_ratio']:.4f} +/- {zeta_sd:.4f}")
+        print(f"{m['frequency_hz']:10.3f} Hz  {zeta}  complexity {m['complexity']:.3f}",
+              file=sys.stderr)
     for note in doc["notes"]:
         print(f"note: {note}", file=sys.stderr)
     for c in doc.get("channel_check") or []:
