@@ -25,6 +25,7 @@ FRF was measured (UFF readers turn NaN into 0, so unmeasured lines are left out 
 
 from __future__ import annotations
 
+import re
 import tomllib
 from dataclasses import dataclass
 from pathlib import Path
@@ -34,6 +35,10 @@ import numpy as np
 from pelvislab.acquisition.frfset import BONES, Channels, FrfSet
 
 MARKER = "pelvislab FRF receptance m/N"
+# dataset 151 (header) description of our exports: how many records the file holds, so that
+# a file cut between two datasets, which UFF itself cannot tell from a shorter one, is refused
+HEADER_PREFIX = "pelvislab export:"
+HEADER_PATTERN = re.compile(r"pelvislab export: (\d+) FRF records?, (\d+) modes?")
 FUNC_GENERAL = 0
 FUNC_FRF = 4
 # dataset 58 "specific data type" codes (UFF 58 record 8-11)
@@ -162,9 +167,14 @@ def uff_datasets(frf: FrfSet, modes: UffModes | None = None, binary: bool = True
     in_nodes = [node_of(frf.inputs, i) for i in range(len(frf.inputs))]
     xyz = np.array(coords, dtype=float).reshape(-1, 3)
     n = xyz.shape[0]
-    sets: list[dict] = [pyuff.prepare_164(
+    n_records = int(np.isfinite(frf.H).any(axis=0).sum())
+    n_modes = 0 if modes is None else len(modes.frequency_hz)
+    sets: list[dict] = [pyuff.prepare_151(
+        model_name="pelvislab", db_app="pelvislab", program="pelvislab",
+        description=f"{HEADER_PREFIX} {n_records} FRF records, {n_modes} modes")]
+    sets.append(pyuff.prepare_164(
         units_code=1, units_description="SI: meter (newton)", temp_mode=1,
-        length=1.0, force=1.0, temp=1.0, temp_offset=273.15)]
+        length=1.0, force=1.0, temp=1.0, temp_offset=273.15))
     prepare_geometry = pyuff.prepare_2411 if geometry == 2411 else pyuff.prepare_15
     sets.append(prepare_geometry(
         node_nums=np.arange(1, n + 1), def_cs=np.zeros(n, dtype=int),
@@ -304,6 +314,23 @@ def to_receptance(frequency_hz: np.ndarray, values: np.ndarray, quantity: int) -
     return np.where(w > 0, out, np.nan + 0j)
 
 
+def _delimiter_count(path: Path) -> int:
+    """Number of dataset delimiter lines ``    -1`` in the file, found as pyuff finds them.
+
+    Every dataset opens and closes with one, so an odd count is a file cut right after a
+    dataset's opening line, which the check of the file's last line lets pass.
+    """
+    data = path.read_bytes()
+    count, at = 0, data.find(b"    -1")
+    while at != -1:
+        after = at + 6
+        if after == len(data) or data[after] in (10, 13) or \
+                data[after:at + 80] == b" " * 74:
+            count += 1
+        at = data.find(b"    -1", at + 1)
+    return count
+
+
 def read_uff(path: str | Path, points: dict[int, PointInfo] | None = None
              ) -> tuple[FrfSet, list[str]]:
     """Read the FRFs of a UFF file as a receptance :class:`FrfSet`; also returns notes.
@@ -318,7 +345,8 @@ def read_uff(path: str | Path, points: dict[int, PointInfo] | None = None
     with open(path, "rb") as handle:  # every dataset ends with a line "    -1"
         handle.seek(max(0, path.stat().st_size - 64))
         tail = handle.read().rstrip(b" \t\r\n\x00")
-    if not (tail.endswith(b"-1") and (len(tail) == 2 or tail[-3:-2] in b" \t\r\n")):
+    if not (tail.endswith(b"-1") and (len(tail) == 2 or tail[-3:-2] in b" \t\r\n")) \
+            or _delimiter_count(path) % 2:
         # pyuff silently drops a dataset cut short: the import would lose FRFs unseen
         raise ValueError(f"{path} ends inside a dataset (no closing '-1' line): truncated? "
                          "Not importing part of it")
@@ -334,9 +362,17 @@ def read_uff(path: str | Path, points: dict[int, PointInfo] | None = None
     length_factor = force_factor = 1.0
     coords: dict[int, np.ndarray] = {}
     records = []
+    header: tuple[int, int] | None = None
+    n_mode_sets = 0
     for dset in sets:
         kind = int(dset.get("type", -1))
-        if kind == 164:
+        if kind == 151:
+            found = HEADER_PATTERN.fullmatch(str(dset.get("description", "")).strip())
+            if found:
+                header = (int(found.group(1)), int(found.group(2)))
+        elif kind == 55:
+            n_mode_sets += 1
+        elif kind == 164:
             length_factor = float(dset.get("length", 1.0)) or 1.0
             force_factor = float(dset.get("force", 1.0)) or 1.0
             if (length_factor, force_factor) != (1.0, 1.0):
@@ -353,6 +389,11 @@ def read_uff(path: str | Path, points: dict[int, PointInfo] | None = None
                 records.append(dset)
             else:
                 notes.append(f"skipped a dataset 58 of function type {func} (not an FRF)")
+    if header is not None and (len(records), n_mode_sets) != header:
+        raise ValueError(
+            f"{path} holds {len(records)} FRF records and {n_mode_sets} modes, but its "
+            f"pelvislab header says {header[0]} and {header[1]}: truncated? Not importing "
+            "part of it")
     if not records:
         raise ValueError(f"{path} holds no dataset 58 FRF (set types: "
                          f"{sorted({int(t) for t in types})})")

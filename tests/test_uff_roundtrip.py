@@ -87,6 +87,30 @@ def test_truncated_file_is_refused_not_imported_in_part(tmp_path, binary):
     assert np.isfinite(frf.H).any()
 
 
+@pytest.mark.parametrize("binary", [True, False])
+def test_file_cut_at_any_dataset_boundary_is_refused(tmp_path, binary):
+    """Cuts right after a delimiter line: after a dataset's closing line (UFF cannot tell that
+    from a shorter file; our header dataset 151 counts the records) or after the next one's
+    opening line (an odd number of delimiters). Both imported part of the file before."""
+    from pelvislab.acquisition.uff import UffModes
+
+    frf = sample_frfset()
+    modes = UffModes(np.array([50.0, 80.0]), np.array([0.01, 0.02]),
+                     np.ones((len(frf.outputs), 2), dtype=complex))
+    path = tmp_path / "s.uff"
+    write_uff(path, frf, modes, binary=binary)
+    data = path.read_bytes()
+    ends = [k + 7 for k in range(len(data)) if data.startswith(b"    -1\n", k)]
+    assert len(ends) >= 2 * 8 and ends[-1] == len(data)
+    for end in ends[:-1]:
+        for cut in (end - 1, end):
+            (tmp_path / "cut.uff").write_bytes(data[:cut])
+            with pytest.raises(ValueError, match="truncated"):
+                read_uff(tmp_path / "cut.uff")
+    back, _ = read_uff(path)
+    assert np.isfinite(back.H).sum() == np.isfinite(frf.H).sum()
+
+
 def test_direction_codes():
     assert direction_code(np.array([0.0, 0.0, -1.0])) == -3
     assert direction_code(np.array([1.0, 0.0, 0.0])) == 1
