@@ -725,6 +725,35 @@ def _presized_group(parent: h5py.Group, name: str, n_links: int) -> h5py.Group:
     return h5py.Group(h5py.h5g.create(parent.id, name.encode(), gcpl=gcpl))
 
 
+def _rename_noreplace(tmp: Path, path: Path) -> bool:
+    """Rename ``tmp`` to ``path`` atomically unless ``path`` exists (Linux ``renameat2`` with
+    ``RENAME_NOREPLACE``). False when the call is not available here (other systems, old
+    glibc, a file system that does not support the flag); raises FileExistsError."""
+    import ctypes
+    import errno
+    import sys
+
+    if not sys.platform.startswith("linux"):
+        return False
+    try:
+        libc = ctypes.CDLL(None, use_errno=True)
+        renameat2 = libc.renameat2
+    except (OSError, AttributeError):
+        return False
+    at_fdcwd, rename_noreplace = -100, 1
+    renameat2.argtypes = [ctypes.c_int, ctypes.c_char_p, ctypes.c_int, ctypes.c_char_p,
+                          ctypes.c_uint]
+    if renameat2(at_fdcwd, os.fsencode(tmp), at_fdcwd, os.fsencode(path),
+                 rename_noreplace) == 0:
+        return True
+    code = ctypes.get_errno()
+    if code == errno.EEXIST:
+        raise FileExistsError(f"{path} exists; not overwriting it")
+    if code in (errno.EINVAL, errno.ENOSYS, errno.EOPNOTSUPP):
+        return False
+    raise OSError(code, f"cannot rename {tmp} to {path}: {os.strerror(code)}")
+
+
 def _publish(tmp: Path, path: Path) -> None:
     """Give the finished file ``tmp`` the name ``path``, never replacing an existing file."""
     fsync_path(tmp)
@@ -733,6 +762,10 @@ def _publish(tmp: Path, path: Path) -> None:
     except FileExistsError:
         raise FileExistsError(f"{path} exists; not overwriting it") from None
     except OSError:  # a file system without hard links
+        if _rename_noreplace(tmp, path):
+            return
+        # last resort (no atomic no-replace rename here): a file that appears between
+        # the check and the rename would be replaced
         if path.exists():
             raise FileExistsError(f"{path} exists; not overwriting it") from None
         os.rename(tmp, path)

@@ -6,6 +6,8 @@ from __future__ import annotations
 import subprocess
 import sys
 
+import pytest
+
 from pelvislab.acquisition.session import SessionReader, SessionWriter, remove_stale_partials
 from tests.test_session_format import BENCH, protocol  # noqa: F401  (fixture)
 
@@ -38,3 +40,36 @@ def test_stale_partial_of_a_dead_process_removed_live_one_kept(tmp_path, protoco
     assert any("WARNING" in line and dead.name in line for line in lines), lines
     # the live process is gone now: the next call removes its file too
     assert remove_stale_partials(path) == [live.name]
+
+
+def test_publish_without_hard_links_never_replaces_a_file_that_appears(tmp_path, monkeypatch):
+    """On a file system without hard links the finished file is renamed into place. A file
+    that appears under the target name after the check (another run finishing at that
+    moment) must not be replaced: renameat2(RENAME_NOREPLACE) refuses atomically. Before,
+    an exists-then-rename fallback replaced it."""
+    import errno
+    import sys
+
+    from pelvislab.acquisition import session as session_mod
+
+    if not sys.platform.startswith("linux"):
+        pytest.skip("renameat2 is Linux-only")
+    tmp, target = tmp_path / "s.h5.partial", tmp_path / "s.h5"
+    tmp.write_bytes(b"new")
+
+    calls = []
+
+    def no_link(src, dst):
+        if not calls:  # the first time another file appears in the window no check closes
+            target.write_bytes(b"theirs")
+        calls.append(dst)
+        raise OSError(errno.EPERM, "hard links not supported")
+
+    monkeypatch.setattr(session_mod.os, "link", no_link)
+    monkeypatch.setattr(session_mod.Path, "exists", lambda self: False)
+    with pytest.raises(FileExistsError, match="not overwriting"):
+        session_mod._publish(tmp, target)
+    assert target.read_bytes() == b"theirs" and tmp.read_bytes() == b"new"
+    target.unlink()
+    session_mod._publish(tmp, target)  # and with the name free it is renamed into place
+    assert target.read_bytes() == b"new" and not tmp.exists()
