@@ -345,11 +345,15 @@ def read_uff(path: str | Path, points: dict[int, PointInfo] | None = None
     with open(path, "rb") as handle:  # every dataset ends with a line "    -1"
         handle.seek(max(0, path.stat().st_size - 64))
         tail = handle.read().rstrip(b" \t\r\n\x00")
-    if not (tail.endswith(b"-1") and (len(tail) == 2 or tail[-3:-2] in b" \t\r\n")) \
-            or _delimiter_count(path) % 2:
+    if not (tail.endswith(b"-1") and (len(tail) == 2 or tail[-3:-2] in b" \t\r\n")):
         # pyuff silently drops a dataset cut short: the import would lose FRFs unseen
         raise ValueError(f"{path} ends inside a dataset (no closing '-1' line): truncated? "
                          "Not importing part of it")
+    if _delimiter_count(path) % 2:
+        raise ValueError(f"{path} has an odd number of dataset delimiter lines ('    -1'): "
+                         "truncated right after a dataset's opening line, or a delimiter "
+                         "inside binary data that UFF readers would split wrongly. Not "
+                         "importing part of it")
     try:
         uff = pyuff.UFF(str(path))
         types = list(uff.get_set_types())
@@ -389,11 +393,15 @@ def read_uff(path: str | Path, points: dict[int, PointInfo] | None = None
                 records.append(dset)
             else:
                 notes.append(f"skipped a dataset 58 of function type {func} (not an FRF)")
-    if header is not None and (len(records), n_mode_sets) != header:
+    if header is not None and (len(records) < header[0] or n_mode_sets < header[1]):
         raise ValueError(
             f"{path} holds {len(records)} FRF records and {n_mode_sets} modes, but its "
             f"pelvislab header says {header[0]} and {header[1]}: truncated? Not importing "
             "part of it")
+    if header is not None and (len(records), n_mode_sets) != header:
+        notes.append(f"{len(records)} FRF records and {n_mode_sets} modes, more than the "
+                     f"pelvislab header's {header[0]} and {header[1]}: datasets were added "
+                     "after the export (all imported)")
     if not records:
         raise ValueError(f"{path} holds no dataset 58 FRF (set types: "
                          f"{sorted({int(t) for t in types})})")

@@ -618,7 +618,10 @@ def _lsfd_leverage(
     the (n_f, n_out, n_in) lines); 0 where a line is not used.
     """
     omega = 2 * np.pi * np.asarray(frequency_hz, dtype=float)
-    basis = _lsfd_basis(omega, poles, lower_residual, upper_residual)
+    used = ok.any(axis=(1, 2))  # ok is False at 0 Hz (and the basis undefined there)
+    basis = np.zeros((omega.size, 2 * poles.size + int(lower_residual) + int(upper_residual)),
+                     dtype=complex)
+    basis[used] = _lsfd_basis(omega[used], poles, lower_residual, upper_residual)
     lev = np.zeros(ok.shape + (2,))
     for o in range(ok.shape[1]):
         for i in range(ok.shape[2]):
@@ -664,9 +667,31 @@ def refine_poles(
     With ``return_std`` also returns the standard uncertainties of the undamped frequencies
     (Hz) and damping ratios, from the reduced problem's Jacobian ``J`` and residuals ``r`` at
     the optimum: ``(J^T J)^-1 J^T diag(r_i^2 / (1 - h_i)^2) J (J^T J)^-1`` (HC3, ``h_i`` the
-    leverage of residues and poles); NaN for a pole at a bound of the refinement or when the
-    start was kept.
+    leverage of residues and poles, ``1 - h_i`` floored at 0.05); NaN for a pole at a bound
+    of the refinement or when the start was kept. The formula takes the noise of different
+    lines and FRFs as independent: noise shared by the FRFs of one line (a force-channel
+    error common to every output) is not in it, and the std then reads too small.
     """
+    from pelvislab.model.identification import single_blas_thread
+
+    # ~80 small least-squares solves per evaluation: a multi-threaded OpenBLAS on a loaded
+    # 2-core machine made the refinement 50-100x slower (measured by session 32's review)
+    with single_blas_thread():
+        return _refine_poles(frequency_hz, H, poles, H_std, lower_residual, upper_residual,
+                             return_std, max_damping_ratio)
+
+
+def _refine_poles(
+    frequency_hz: np.ndarray,
+    H: np.ndarray,
+    poles: np.ndarray,
+    H_std: np.ndarray | None,
+    lower_residual: bool,
+    upper_residual: bool,
+    return_std: bool,
+    max_damping_ratio: float,
+) -> np.ndarray | tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """:func:`refine_poles` without the BLAS thread control."""
     import scipy.optimize
 
     poles = np.asarray(poles, dtype=complex).reshape(-1)
@@ -705,7 +730,7 @@ def refine_poles(
     dof = 2 * int(ok.sum()) - linear - 2 * poles.size
     J = np.asarray(sol.jac)
     if dof > 0 and np.all(np.isfinite(J)):
-        # sandwich (heteroscedasticity-consistent, HC1; White, Econometrica 48, 1980): the
+        # sandwich (heteroscedasticity-consistent; White, Econometrica 48, 1980): the
         # weights are 1/H_std only when it is given, and noise proportional to |H| makes the
         # residual variance differ by orders of magnitude between a peak and the rest
         bread = np.linalg.pinv(J.T @ J)
@@ -714,6 +739,7 @@ def refine_poles(
         # plus that of the poles; plain HC0/HC1 read 1.5-2x too small on the pelvis model
         lever = _lsfd_leverage(f, ok, w, refined, H_std, lower_residual, upper_residual)
         lever = lever + np.einsum("ij,jk,ik->i", J, bread, J)
+        # (a leverage near 1 would inflate one residual without bound: capped at 20x)
         r = np.asarray(sol.fun) / np.maximum(1.0 - lever, 0.05)
         meat = (J * (r**2)[:, None]).T @ J
         cov = bread @ meat @ bread
@@ -819,6 +845,9 @@ def mode_significance(
     """
     f = np.asarray(frequency_hz, dtype=float)
     ok = np.isfinite(H)
+    if H_std is not None:  # lines lsfd leaves out (H_std zero or NaN) are not fitted: skip
+        std = np.asarray(H_std, dtype=float)
+        ok &= np.isfinite(std) & (std > 0)
     out = np.ones(poles.size)
     step = _line_spacing_hz(f)
     for r in range(poles.size):
@@ -878,6 +907,29 @@ def ema(
     near the edge, together with the modes (:func:`edge_poles`; ``EmaResult.residual_poles``).
     Returns an :class:`EmaResult` (modes sorted by frequency, shapes, complexity, fit).
     """
+    from pelvislab.model.identification import single_blas_thread
+
+    # thousands of small BLAS/LAPACK calls: a multi-threaded OpenBLAS on a loaded 2-core
+    # machine made the whole analysis 5-100x slower (measured in session 32)
+    with single_blas_thread():
+        return _ema(frequency_hz, H, band_hz, H_std, max_order, frequencies_hz, criteria,
+                    lower_residual, upper_residual, refine, residual_poles)
+
+
+def _ema(
+    frequency_hz: np.ndarray,
+    H: np.ndarray,
+    band_hz: tuple[float, float] | None,
+    H_std: np.ndarray | None,
+    max_order: int | None,
+    frequencies_hz: list[float] | np.ndarray | None,
+    criteria: StabilityCriteria | None,
+    lower_residual: bool,
+    upper_residual: bool,
+    refine: bool | None,
+    residual_poles: bool,
+) -> EmaResult:
+    """:func:`ema` without the BLAS thread control."""
     f, Hc = _frf_arrays(frequency_hz, H)
     std = None if H_std is None else np.asarray(H_std, dtype=float).reshape(Hc.shape)
     sel = f > 0

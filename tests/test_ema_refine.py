@@ -138,3 +138,23 @@ def test_manual_pick_is_refined_only_on_request(pelvis, refine):  # noqa: F811
     result = ema(f, H, frequencies_hz=[174.9, 231.9], refine=refine)
     assert result.selection == "manual"
     assert np.all(np.isnan(result.damping_ratio_std)) == (refine is None)
+
+
+def test_an_frf_with_zero_h_std_does_not_cost_a_real_mode():
+    """H_std of 0 (or NaN) for a whole FRF: LSFD leaves it out, so the significance check
+    must too. It scored the misfit of that unfitted FRF, dropped the 90 Hz mode (found by
+    session 32's review), and the refinement then fitted two poles to three modes."""
+    rng = np.random.default_rng(2)
+    f = np.arange(10.0, 110.0, 0.5)
+    poles = poles_from_modal(np.array([30.0, 62.0, 90.0]), np.array([0.02, 0.01, 0.03]))
+    phi, part = rng.normal(size=(3, 3)), rng.normal(size=(2, 3))
+    s = 2j * np.pi * f[:, None, None]
+    H0 = np.zeros((f.size, 3, 2), dtype=complex)
+    for r, p in enumerate(poles):
+        R = np.outer(phi[:, r], part[:, r]) / (2j * p.imag)
+        H0 += R / (s - p) + R.conj() / (s - p.conjugate())
+    H = _noisy(H0, 1)
+    std = 0.01 * np.abs(H0)
+    std[:, 1, 1] = 0.0
+    result = ema(f, H, H_std=std)
+    np.testing.assert_allclose(result.frequency_hz, [30.0, 62.0, 90.0], rtol=2e-3)

@@ -111,6 +111,22 @@ def test_file_cut_at_any_dataset_boundary_is_refused(tmp_path, binary):
     assert np.isfinite(back.H).sum() == np.isfinite(frf.H).sum()
 
 
+def test_datasets_appended_after_our_export_are_imported_with_a_note(tmp_path):
+    path = tmp_path / "s.uff"
+    write_uff(path, sample_frfset())
+    pyuff.UFF(str(path)).write_sets(pyuff.prepare_58(
+        binary=0, id1="other tool", func_type=4, rsp_ent_name="other", ref_ent_name="other",
+        rsp_node=1, rsp_dir=1, ref_node=1, ref_dir=1, abscissa_spacing=0,
+        abscissa_spec_data_type=18, ordinate_spec_data_type=8, orddenom_spec_data_type=13,
+        abscissa_axis_units_lab="Hz", ordinate_axis_units_lab="m", orddenom_axis_units_lab="N",
+        x=np.array([10.0, 20.0, 30.0]), data=np.array([1 + 1j, 2 + 2j, 3 + 3j]) * 1e-6),
+        mode="add")
+    frf, notes = read_uff(path)
+    assert np.isfinite(frf.H).any(axis=0).sum() == np.isfinite(sample_frfset().H).any(
+        axis=0).sum() + 1
+    assert any("more than the pelvislab header" in n for n in notes), notes
+
+
 def test_direction_codes():
     assert direction_code(np.array([0.0, 0.0, -1.0])) == -3
     assert direction_code(np.array([1.0, 0.0, 0.0])) == 1

@@ -36,8 +36,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                    help="highest model order of the stabilisation diagram (default: automatic)")
     p.add_argument("--refine", action=argparse.BooleanOptionalAction, default=None,
                    help="polish the poles by a bounded nonlinear pole/residue fit to the FRFs, "
-                   "which also gives their uncertainties (default: with the automatic "
-                   "selection, not with --frequencies)")
+                   "which also gives their uncertainties, for noise independent between lines "
+                   "and FRFs (default: with the automatic selection, not with --frequencies)")
     p.add_argument("--no-diagram", action="store_true",
                    help="leave the stabilisation diagram out of the JSON")
     p.add_argument("--update", metavar="NAMES",
@@ -249,7 +249,7 @@ def run_ema(args: argparse.Namespace) -> int:
     for m in doc["modes"]:
         zeta_sd = m["damping_ratio_std"]
         zeta = (f"zeta {m['damping_ratio']:.4f}" if zeta_sd is None
-                else f"zeta {m['damping_ratio']:.4f} +/- {zeta_sd:.4f}")
+                else f"zeta {m['damping_ratio']:.4g} +/- {zeta_sd:.2g}")
         print(f"{m['frequency_hz']:10.3f} Hz  {zeta}  complexity {m['complexity']:.3f}",
               file=sys.stderr)
     for note in doc["notes"]:

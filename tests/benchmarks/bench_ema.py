@@ -91,7 +91,10 @@ def _damping_in_std(result, fn, zn) -> float:
     for r in range(fn.size):
         j = int(np.argmin(np.abs(result.frequency_hz - fn[r])))
         if abs(result.frequency_hz[j] / fn[r] - 1) < 0.05:
-            worst = max(worst, abs(result.damping_ratio[j] - zn[r]) / result.damping_ratio_std[j])
+            ratio = abs(result.damping_ratio[j] - zn[r]) / result.damping_ratio_std[j]
+            if not np.isfinite(ratio):
+                return float("nan")  # a mode without an uncertainty: say so, not 0
+            worst = max(worst, ratio)
     return worst
 
 
