@@ -762,13 +762,13 @@ def _publish(tmp: Path, path: Path) -> None:
     except FileExistsError:
         raise FileExistsError(f"{path} exists; not overwriting it") from None
     except OSError:  # a file system without hard links
-        if _rename_noreplace(tmp, path):
-            return
-        # last resort (no atomic no-replace rename here): a file that appears between
-        # the check and the rename would be replaced
-        if path.exists():
-            raise FileExistsError(f"{path} exists; not overwriting it") from None
-        os.rename(tmp, path)
+        if not _rename_noreplace(tmp, path):
+            # last resort (no atomic no-replace rename here): a file that appears between
+            # the check and the rename would be replaced
+            if path.exists():
+                raise FileExistsError(f"{path} exists; not overwriting it") from None
+            os.rename(tmp, path)
+    fsync_path(path)  # the new name's folder entry, which the sync of tmp did not cover
 
 
 def _channels_like(group: h5py.Group, names: list[str]) -> Channels:

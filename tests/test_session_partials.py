@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import subprocess
 import sys
+from pathlib import Path
 
 import pytest
 
@@ -73,3 +74,17 @@ def test_publish_without_hard_links_never_replaces_a_file_that_appears(tmp_path,
     target.unlink()
     session_mod._publish(tmp, target)  # and with the name free it is renamed into place
     assert target.read_bytes() == b"new" and not tmp.exists()
+
+
+def test_publish_syncs_the_new_name(tmp_path, monkeypatch):
+    """The finished file is synced before it gets its name, and the name's folder entry
+    after: a power cut must not leave the file without its name (reprocess output had no
+    sync after the link)."""
+    from pelvislab.acquisition import session as session_mod
+
+    synced = []
+    monkeypatch.setattr(session_mod, "fsync_path", lambda p: synced.append(Path(p)))
+    tmp, target = tmp_path / "s.h5.partial", tmp_path / "s.h5"
+    tmp.write_bytes(b"new")
+    session_mod._publish(tmp, target)
+    assert synced == [tmp, target]
