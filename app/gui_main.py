@@ -556,7 +556,8 @@ def run_gui(session_file: Path | None = None, screenshot: Path | None = None,
 
     ``start_protocol``: start that protocol at once (subject ID ``SCREENSHOT`` unless set,
     operator prompts confirmed automatically), e.g. to show the live view in a screenshot.
-    ``analyse``: ``identify`` or ``gap`` on the replayed session; a screenshot waits for it.
+    ``analyse``: ``identify``, ``gap`` or ``ema`` on the replayed session; a screenshot waits
+    for it.
     """
     import os
     import signal
@@ -603,7 +604,7 @@ def run_gui(session_file: Path | None = None, screenshot: Path | None = None,
         if session_file is None:
             raise ValueError("--analyse needs a session file to replay")
         {"identify": window.replay.run_identification,
-         "gap": window.replay.run_gap}[analyse]()
+         "gap": window.replay.run_gap, "ema": window.replay.run_ema}[analyse]()
     if screenshot is None:
         # Python runs signal handlers only between bytecodes: a timer wakes the interpreter
         # while Qt's loop waits

@@ -1,7 +1,7 @@
 """Replay of a recorded session (``pelvislab gui S.h5``): steps, echoes, traces, re-tracking,
-identification and gap diagnosis results.
+identification, gap diagnosis and modal analysis results.
 
-Views only: tracking, identification and the gap diagnosis are the acquisition/model
+Views only: tracking, identification, the gap diagnosis and the EMA are the acquisition/model
 packages' functions, run in a worker thread so the window stays responsive.
 """
 
@@ -117,8 +117,11 @@ class ReplayView(QtWidgets.QWidget):
         self.identify_button.clicked.connect(self.run_identification)
         self.gap_button = QtWidgets.QPushButton("Diagnose sim-to-real gap")
         self.gap_button.clicked.connect(self.run_gap)
+        self.ema_button = QtWidgets.QPushButton("Modal analysis (EMA)")
+        self.ema_button.clicked.connect(self.run_ema)
         analysis_layout.addWidget(self.identify_button)
         analysis_layout.addWidget(self.gap_button)
+        analysis_layout.addWidget(self.ema_button)
         self.analysis_status = QtWidgets.QLabel("")
         self.analysis_status.setWordWrap(True)
         analysis_layout.addWidget(self.analysis_status)
@@ -183,6 +186,40 @@ class ReplayView(QtWidgets.QWidget):
         self.candidate_table.verticalHeader().setVisible(False)
         gap_layout.addWidget(self.candidate_table, 1)
         self.tabs.addTab(gap_page, "Gap diagnosis")
+        self._build_modes_page()
+
+    def _build_modes_page(self) -> None:
+        """EMA results: summed FRF over the stabilisation diagram, and the modes table."""
+        page = QtWidgets.QWidget()
+        layout = QtWidgets.QVBoxLayout(page)
+        self.ema_summary = QtWidgets.QLabel("run the modal analysis to see the modes")
+        self.ema_summary.setWordWrap(True)
+        layout.addWidget(self.ema_summary)
+        self.ema_sum_plot = pg.PlotWidget(title="Sum of |H| over the FRFs")
+        # in dB: pyqtgraph's log axis labels its minor ticks, which overlap over the one or
+        # two decades a summed FRF spans
+        self.ema_sum_plot.setLabel("left", "Σ|H| (dB re 1 m/N)")
+        self.ema_sum_plot.showGrid(x=True, y=True, alpha=0.3)
+        self.stab_plot = pg.PlotWidget(
+            title="Stabilisation diagram (grey new, blue stable frequency, green + damping, "
+            "red all)")
+        self.stab_plot.setLabel("bottom", "frequency", units="Hz")
+        self.stab_plot.setLabel("left", "model order")
+        self.stab_plot.setXLink(self.ema_sum_plot)
+        layout.addWidget(self.ema_sum_plot, 3)
+        layout.addWidget(self.stab_plot, 4)
+        self.mode_table = QtWidgets.QTableWidget(0, 6)
+        self.mode_table.setHorizontalHeaderLabels(
+            ("mode", "frequency (Hz)", "± std (Hz)", "damping ratio (%)", "± std (%)",
+             "complexity"))
+        self.mode_table.horizontalHeader().setStretchLastSection(True)
+        self.mode_table.horizontalHeader().setSectionResizeMode(
+            QtWidgets.QHeaderView.ResizeMode.ResizeToContents)
+        self.mode_table.verticalHeader().setVisible(False)
+        self.mode_table.setMaximumHeight(150)
+        layout.addWidget(self.mode_table)
+        self.modes_page = page
+        self.tabs.addTab(page, "Modes")
 
     # ------------------------------------------------------------------ file
     def _browse(self) -> None:
@@ -431,6 +468,81 @@ class ReplayView(QtWidgets.QWidget):
             for c, text in enumerate(values):
                 self.candidate_table.setItem(r, c, QtWidgets.QTableWidgetItem(str(text)))
         self.tabs.setCurrentIndex(3)
+
+    def run_ema(self) -> None:
+        """Experimental modal analysis of the session's /frf (worker thread), as
+        ``pelvislab ema`` does it with its defaults."""
+        if self.path is None:
+            return
+        path = self.path
+
+        def work() -> Any:
+            from pelvislab.app.commands.ema import ema_file
+
+            return ema_file(path)
+
+        self.submit(work, self.show_ema, "modal analysis", self.ema_button)
+
+    def show_ema(self, outcome: Any) -> None:
+        """Modes (frequency and damping with their uncertainties), the stabilisation diagram
+        over the summed FRF, a line at each mode."""
+        from pelvislab.model.ema import pole_frequency_damping
+
+        frf, result = outcome
+        self.ema_sum_plot.clear()
+        self.stab_plot.clear()
+        f = np.asarray(result.fit_frequency_hz, dtype=float)
+        total = np.nansum(np.abs(np.asarray(result.H_measured)), axis=(1, 2))
+        keep = total > 0  # dB
+        self.ema_sum_plot.plot(f[keep], 20 * np.log10(total[keep]), pen=None, symbol="o",
+                               symbolSize=4, symbolBrush=(120, 120, 120))
+        fit = np.nansum(np.abs(np.asarray(result.H_fit)), axis=(1, 2))
+        keep_fit = fit > 0
+        self.ema_sum_plot.plot(f[keep_fit], 20 * np.log10(fit[keep_fit]),
+                               pen=pg.mkPen((200, 60, 60), width=1))
+        diagram = result.diagram
+        if diagram is not None:
+            colours = {0: (170, 170, 170), 1: (60, 110, 220), 2: (40, 170, 80), 3: (220, 40, 40)}
+            for status, colour in colours.items():
+                xs, ys = [], []
+                for k, order in enumerate(diagram.orders):
+                    fk = diagram.frequency_hz(k)
+                    pick = np.asarray(diagram.status[k]) == status
+                    pick &= (fk >= f.min()) & (fk <= f.max())
+                    xs.extend(fk[pick])
+                    ys.extend([int(order)] * int(pick.sum()))
+                if xs:
+                    self.stab_plot.plot(xs, ys, pen=None, symbol="o",
+                                        symbolSize=4 if status < 3 else 6,
+                                        symbolBrush=colour, symbolPen=None)
+        for fn in result.frequency_hz:
+            for plot in (self.ema_sum_plot, self.stab_plot):
+                plot.addItem(pg.InfiniteLine(float(fn), angle=90,
+                                             pen=pg.mkPen((0, 0, 0), width=1,
+                                                          style=QtCore.Qt.PenStyle.DashLine)))
+        rows = [(str(r + 1), result.frequency_hz[r], result.frequency_std_hz[r],
+                 result.damping_ratio[r], result.damping_ratio_std[r], result.complexity[r])
+                for r in range(result.frequency_hz.size)]
+        f_res, z_res = pole_frequency_damping(result.residual_poles)
+        rows += [("residual", fr, np.nan, zr, np.nan, np.nan)
+                 for fr, zr in zip(f_res, z_res, strict=True)]
+
+        def text(value: float, fmt: str) -> str:
+            return format(value, fmt) if np.isfinite(value) else "—"
+
+        self.mode_table.setRowCount(len(rows))
+        for r, (name, fr, f_sd, zr, z_sd, complexity) in enumerate(rows):
+            values = (name, text(fr, ".3f"), text(f_sd, ".2g"), text(100 * zr, ".4g"),
+                      text(100 * z_sd, ".2g"), text(complexity, ".3f"))
+            for c, value in enumerate(values):
+                self.mode_table.setItem(r, c, QtWidgets.QTableWidgetItem(value))
+        notes = "; ".join(html.escape(n) for n in result.notes)
+        self.ema_summary.setText(
+            f"<b>{result.frequency_hz.size} mode(s)</b> in {f.min():g}–{f.max():g} Hz "
+            f"({f.size} lines, {len(frf.outputs)} x {len(frf.inputs)} FRFs), relative fit "
+            f"error {result.fit_error():.3g}. Uncertainties assume noise independent "
+            "between lines and FRFs." + (f"<br><small>{notes}</small>" if notes else ""))
+        self.tabs.setCurrentWidget(self.modes_page)
 
     # ------------------------------------------------------------------ worker plumbing
     def submit(self, work: Callable[[], Any], done: Callable[[Any], None], what: str,

@@ -152,3 +152,26 @@ def test_replay_gap_diagnosis_shows_verdict_map_and_candidates(operator_window, 
     image = replay.residual_image.image
     assert image is not None and image.shape[1] >= 2  # frequency x measured pairs
     assert replay.tabs.currentIndex() == 3
+
+
+def test_replay_modal_analysis_shows_modes_with_uncertainties_and_diagram(
+        operator_window, qtbot, demo_session):
+    """The replay's EMA (as `pelvislab ema` with its defaults): the demo session's two
+    zoomed modes (174.9 and 231.9 Hz, docs/ema.md) with their std, the stabilisation
+    diagram over the summed FRF, and the residual mode above the band."""
+    window = operator_window()
+    assert window.open_replay(demo_session)
+    replay = window.replay
+    qtbot.mouseClick(replay.ema_button, QtCore.Qt.MouseButton.LeftButton)
+    qtbot.waitUntil(lambda: replay.mode_table.rowCount() > 0, timeout=60_000)
+    assert replay.tabs.currentWidget() is replay.modes_page
+    cells = [[replay.mode_table.item(r, c).text() for c in range(6)]
+             for r in range(replay.mode_table.rowCount())]
+    modes = [row for row in cells if row[0] != "residual"]
+    frequencies = sorted(float(row[1]) for row in modes)
+    assert len(frequencies) == 2, cells
+    assert abs(frequencies[0] - 174.9) < 0.5 and abs(frequencies[1] - 231.9) < 0.5
+    assert all(row[2] != "—" and float(row[4]) > 0 for row in modes)  # uncertainties shown
+    assert "2 mode(s)" in replay.ema_summary.text()
+    assert len(replay.stab_plot.getPlotItem().listDataItems()) >= 2  # diagram drawn
+    assert replay.analysis_status.text() == "modal analysis done"

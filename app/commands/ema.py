@@ -14,6 +14,7 @@ import json
 import math
 import sys
 from pathlib import Path
+from typing import Any
 
 from pelvislab.app.commands._common import comma_list, incomplete_session_warning
 
@@ -197,11 +198,23 @@ def mac_updating(frf: object, result: object, model: object, names: list[str],
     return {**head, **updated.as_dict()}
 
 
-def run_ema(args: argparse.Namespace) -> int:
-    """Handler of ``pelvislab ema``."""
+def ema_file(path: Path, band_hz: tuple[float, float] | None = None,
+             frequencies_hz: list[float] | None = None, max_order: int | None = None,
+             refine: bool | None = None) -> tuple[Any, Any]:
+    """Read ``/frf`` of a session or FRF-only file and run the EMA on it (with its
+    ``H_std``): the step shared by ``pelvislab ema`` and the GUI's replay view.
+    Returns ``(FrfSet, EmaResult)``."""
     from pelvislab.acquisition.frfset import read_frf
     from pelvislab.model.ema import ema
 
+    frf = read_frf(Path(path))
+    result = ema(frf.frequency_hz, frf.H, band_hz=band_hz, H_std=frf.H_std,
+                 max_order=max_order, frequencies_hz=frequencies_hz, refine=refine)
+    return frf, result
+
+
+def run_ema(args: argparse.Namespace) -> int:
+    """Handler of ``pelvislab ema``."""
     out = None if args.json == "-" else Path(args.json)
     if out is not None:  # before the fit: a finished result is never written over, nor lost
         if out.exists():
@@ -229,12 +242,10 @@ def run_ema(args: argparse.Namespace) -> int:
     warning = incomplete_session_warning(args.session)
     if warning:
         print(f"warning: {warning}", file=sys.stderr)
-    frf = read_frf(Path(args.session))
     if args.max_order is not None and args.max_order < 1:
         raise ValueError(f"--max-order must be >= 1, got {args.max_order}")
-    result = ema(frf.frequency_hz, frf.H, band_hz=tuple(args.band) if args.band else None,
-                 H_std=frf.H_std, max_order=args.max_order, frequencies_hz=args.frequencies,
-                 refine=args.refine)
+    frf, result = ema_file(Path(args.session), tuple(args.band) if args.band else None,
+                           args.frequencies, args.max_order, args.refine)
     doc = result_to_json(frf, result, diagram=not args.no_diagram)
     if args.update:
         doc["model_updating"] = _clean(mac_updating(

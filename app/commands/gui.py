@@ -20,8 +20,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--start", metavar="PROTOCOL.toml",
                    help="start this protocol at once (prompts auto-confirmed with --screenshot)")
     p.add_argument("--out", metavar="S.h5", help="with --start: the session file to write")
-    p.add_argument("--analyse", choices=("identify", "gap"),
-                   help="with a session: run the identification or the gap diagnosis at once")
+    p.add_argument("--analyse", choices=("identify", "gap", "ema"),
+                   help="with a session: run the identification, the gap diagnosis or the "
+                   "modal analysis at once")
     p.set_defaults(handler=run)
 
 
