@@ -158,3 +158,19 @@ def test_an_frf_with_zero_h_std_does_not_cost_a_real_mode():
     std[:, 1, 1] = 0.0
     result = ema(f, H, H_std=std)
     np.testing.assert_allclose(result.frequency_hz, [30.0, 62.0, 90.0], rtol=2e-3)
+
+
+def test_a_mode_in_a_gap_of_a_random_grid_is_kept_and_a_pulled_pole_is_flagged():
+    """A random grid left no line within the significance window (1.5 Hz) of a clear
+    37.5 Hz mode: the check saw no line, scored 1 and dropped the mode; the refinement then
+    pushed the other pole to its bounds (29.40 Hz, damping doubled). Now the 2 nearest lines
+    on each side count. A pole that a left-out mode pulls to the bounds is named in the
+    notes and gets no std (found by the property test, tests/test_ema_properties.py)."""
+    from pelvislab.tests.test_ema_properties import _frf
+
+    f, H, _ = _frf(np.array([30.0, 37.5]), np.array([0.03125, 0.03125]), 1, 1, 588, "random")
+    result = ema(f, H)
+    np.testing.assert_allclose(result.frequency_hz, [30.0, 37.5], rtol=2e-3)
+    pulled = ema(f, H, frequencies_hz=[30.0], refine=True)  # the 37.5 Hz mode left out
+    assert any("to its bounds" in n for n in pulled.notes), pulled.notes
+    assert np.all(np.isnan(pulled.damping_ratio_std))
