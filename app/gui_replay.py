@@ -217,7 +217,28 @@ class ReplayView(QtWidgets.QWidget):
             QtWidgets.QHeaderView.ResizeMode.ResizeToContents)
         self.mode_table.verticalHeader().setVisible(False)
         self.mode_table.setMaximumHeight(150)
+        # manual selection, as in the stabilisation diagrams of ME'scope or SDT: click the
+        # stable poles of a column, then fit those (pelvislab ema --frequencies)
+        picks = QtWidgets.QHBoxLayout()
+        self.pick_label = QtWidgets.QLabel("click poles in the diagram to pick modes by hand")
+        self.fit_picks_button = QtWidgets.QPushButton("Fit picked poles")
+        self.fit_picks_button.clicked.connect(self.fit_picked_poles)
+        self.fit_picks_button.setEnabled(False)
+        self.clear_picks_button = QtWidgets.QPushButton("Clear picks")
+        self.clear_picks_button.clicked.connect(self.clear_picks)
+        self.refine_picks = QtWidgets.QCheckBox("refine (all modes picked)")
+        self.refine_picks.setToolTip(
+            "polish the picked poles by the pole/residue fit, which also gives their "
+            "uncertainties; only when every mode of the band is picked (the others would "
+            "pull the fitted poles)")
+        picks.addWidget(self.pick_label, 1)
+        picks.addWidget(self.refine_picks)
+        picks.addWidget(self.fit_picks_button)
+        picks.addWidget(self.clear_picks_button)
+        layout.addLayout(picks)
         layout.addWidget(self.mode_table)
+        self.picked_hz: list[float] = []
+        self._pick_lines: list[Any] = []
         self.modes_page = page
         self.tabs.addTab(page, "Modes")
 
@@ -265,6 +286,7 @@ class ReplayView(QtWidgets.QWidget):
             self.step_list.addItem(
                 f"{step.index:4d}  {step.setup}  {step.frequency_hz:g} Hz{flag}")
         self._show_frf()
+        self.clear_picks()  # picks belong to the previous file's diagram
         if steps:
             self.step_list.setCurrentRow(0)
         else:
@@ -501,6 +523,8 @@ class ReplayView(QtWidgets.QWidget):
         self.ema_sum_plot.plot(f[keep_fit], 20 * np.log10(fit[keep_fit]),
                                pen=pg.mkPen((200, 60, 60), width=1))
         diagram = result.diagram
+        self._pick_lines = []  # the plots were cleared
+        self._show_picks()
         if diagram is not None:
             colours = {0: (170, 170, 170), 1: (60, 110, 220), 2: (40, 170, 80), 3: (220, 40, 40)}
             for status, colour in colours.items():
@@ -512,9 +536,11 @@ class ReplayView(QtWidgets.QWidget):
                     xs.extend(fk[pick])
                     ys.extend([int(order)] * int(pick.sum()))
                 if xs:
-                    self.stab_plot.plot(xs, ys, pen=None, symbol="o",
-                                        symbolSize=4 if status < 3 else 6,
-                                        symbolBrush=colour, symbolPen=None)
+                    item = self.stab_plot.plot(xs, ys, pen=None, symbol="o",
+                                               symbolSize=4 if status < 3 else 6,
+                                               symbolBrush=colour, symbolPen=None)
+                    if status >= 1:  # poles stable at least in frequency can be picked
+                        item.sigPointsClicked.connect(self._pole_clicked)
         for fn in result.frequency_hz:
             for plot in (self.ema_sum_plot, self.stab_plot):
                 plot.addItem(pg.InfiniteLine(float(fn), angle=90,
@@ -543,6 +569,56 @@ class ReplayView(QtWidgets.QWidget):
             f"error {result.fit_error():.3g}. Uncertainties assume noise independent "
             "between lines and FRFs." + (f"<br><small>{notes}</small>" if notes else ""))
         self.tabs.setCurrentWidget(self.modes_page)
+
+    def _pole_clicked(self, _item: Any, points: Any, *_: Any) -> None:
+        if len(points):
+            self.pick_pole(float(points[0].pos().x()))
+
+    def pick_pole(self, frequency_hz: float) -> None:
+        """Add a mode at ``frequency_hz`` to the manual selection, or remove the pick within
+        1 % of it (a second click on the same column)."""
+        for k, f in enumerate(self.picked_hz):
+            if abs(f / frequency_hz - 1) < 0.01:
+                del self.picked_hz[k]
+                break
+        else:
+            self.picked_hz.append(frequency_hz)
+            self.picked_hz.sort()
+        self._show_picks()
+
+    def clear_picks(self) -> None:
+        """Forget the manual selection."""
+        self.picked_hz = []
+        self._show_picks()
+
+    def _show_picks(self) -> None:
+        for line in self._pick_lines:
+            self.stab_plot.removeItem(line)
+        self._pick_lines = []
+        for f in self.picked_hz:
+            line = pg.InfiniteLine(f, angle=90, pen=pg.mkPen((40, 170, 80), width=2))
+            self.stab_plot.addItem(line)
+            self._pick_lines.append(line)
+        self.fit_picks_button.setEnabled(bool(self.picked_hz) and self.path is not None)
+        self.pick_label.setText(
+            "picked: " + ", ".join(f"{f:.4g} Hz" for f in self.picked_hz) if self.picked_hz
+            else "click poles in the diagram to pick modes by hand")
+
+    def fit_picked_poles(self) -> None:
+        """The EMA with the picked modes (``pelvislab ema --frequencies``; refined only when
+        the box says every mode is picked)."""
+        if self.path is None or not self.picked_hz:
+            return
+        path, picked = self.path, list(self.picked_hz)
+        refine = True if self.refine_picks.isChecked() else None
+
+        def work() -> Any:
+            from pelvislab.app.commands.ema import ema_file
+
+            return ema_file(path, frequencies_hz=picked, refine=refine)
+
+        self.submit(work, self.show_ema, "modal analysis (picked poles)",
+                    self.fit_picks_button)
 
     # ------------------------------------------------------------------ worker plumbing
     def submit(self, work: Callable[[], Any], done: Callable[[Any], None], what: str,

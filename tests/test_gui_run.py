@@ -175,3 +175,38 @@ def test_replay_modal_analysis_shows_modes_with_uncertainties_and_diagram(
     assert "2 mode(s)" in replay.ema_summary.text()
     assert len(replay.stab_plot.getPlotItem().listDataItems()) >= 2  # diagram drawn
     assert replay.analysis_status.text() == "modal analysis done"
+
+
+def test_replay_modal_analysis_fits_poles_picked_in_the_diagram(operator_window, qtbot,
+                                                              demo_session):
+    """Manual selection as in ME'scope/SDT: pick poles (a second pick on the same column
+    removes it), fit them (as ema --frequencies), not refined unless asked."""
+    window = operator_window()
+    assert window.open_replay(demo_session)
+    replay = window.replay
+    qtbot.mouseClick(replay.ema_button, QtCore.Qt.MouseButton.LeftButton)
+    qtbot.waitUntil(lambda: replay.mode_table.rowCount() > 0, timeout=60_000)
+    assert not replay.fit_picks_button.isEnabled()
+    for f in (231.9, 174.9, 100.0, 100.5):  # 100.5 Hz is a second click on 100 Hz
+        replay.pick_pole(f)
+    assert replay.picked_hz == [174.9, 231.9] and "174.9 Hz" in replay.pick_label.text()
+    assert len(replay._pick_lines) == 2
+    qtbot.mouseClick(replay.fit_picks_button, QtCore.Qt.MouseButton.LeftButton)
+    qtbot.waitUntil(lambda: "picked poles) done" in replay.analysis_status.text(),
+                    timeout=60_000)
+    modes = [[replay.mode_table.item(r, c).text() for c in range(6)]
+             for r in range(replay.mode_table.rowCount())]
+    modes = [row for row in modes if row[0] != "residual"]
+    assert len(modes) == 2 and all(row[2] == "—" for row in modes)  # a pick: not refined
+    assert len(replay._pick_lines) == 2  # the picks stay drawn on the new diagram
+    replay.refine_picks.setChecked(True)
+    qtbot.mouseClick(replay.fit_picks_button, QtCore.Qt.MouseButton.LeftButton)
+    qtbot.waitUntil(lambda: replay.fit_picks_button.isEnabled() and replay.mode_table.item(
+        0, 2).text() != "—", timeout=60_000)
+    replay.clear_picks()
+    assert replay.picked_hz == [] and not replay.fit_picks_button.isEnabled()
+    # a click on a drawn pole (the signal pyqtgraph emits for it) picks its frequency
+    red = replay.stab_plot.getPlotItem().listDataItems()[-1]  # the fully stable poles
+    spot = red.scatter.points()[0]
+    red.sigPointsClicked.emit(red, [spot], None)
+    assert replay.picked_hz == [float(spot.pos().x())]
