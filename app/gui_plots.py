@@ -263,3 +263,49 @@ def draw_step(ascan: AScanPanel, displacement: DisplacementPanel, quality: Quali
                                     ch.displacement_m)
         rows.append(quality_row(ch))
     return quality.show_quality(rows)
+
+
+# stabilisation-diagram colours by pole status (model.ema NEW, STABLE_FREQUENCY,
+# STABLE_DAMPING, STABLE_ALL), as the plots' titles name them
+STATUS_COLOURS = {0: (170, 170, 170), 1: (60, 110, 220), 2: (40, 170, 80), 3: (220, 40, 40)}
+
+
+def draw_ema(sum_plot: pg.PlotItem, stab_plot: pg.PlotItem, result: Any) -> list[Any]:
+    """An :class:`~pelvislab.model.ema.EmaResult` in two plots: the sum of |H| over the
+    FRFs in dB re 1 m/N (dots measured, line the fitted modal model) and the stabilisation
+    diagram (model order over frequency, coloured by status), a dashed line at each mode.
+    Returns the diagram's items of poles stable at least in frequency (the ones a user
+    may pick)."""
+    f = np.asarray(result.fit_frequency_hz, dtype=float)
+    # in dB: pyqtgraph's log axis labels its minor ticks, which overlap over the one or
+    # two decades a summed FRF spans
+    for values, style in ((result.H_measured, {"pen": None, "symbol": "o", "symbolSize": 4,
+                                               "symbolBrush": (120, 120, 120)}),
+                          (result.H_fit, {"pen": pg.mkPen((200, 60, 60), width=1)})):
+        total = np.nansum(np.abs(np.asarray(values)), axis=(1, 2))
+        keep = total > 0
+        sum_plot.plot(f[keep], 20 * np.log10(total[keep]), **style)
+    pickable = []
+    diagram = result.diagram
+    if diagram is not None and f.size:
+        for status, colour in STATUS_COLOURS.items():
+            xs: list[float] = []
+            ys: list[int] = []
+            for k, order in enumerate(diagram.orders):
+                fk = diagram.frequency_hz(k)
+                chosen = (np.asarray(diagram.status[k]) == status) & (fk >= f.min()) & (
+                    fk <= f.max())
+                xs.extend(fk[chosen])
+                ys.extend([int(order)] * int(chosen.sum()))
+            if xs:
+                item = stab_plot.plot(xs, ys, pen=None, symbol="o",
+                                      symbolSize=4 if status < 3 else 6,
+                                      symbolBrush=colour, symbolPen=None)
+                if status >= 1:
+                    pickable.append(item)
+    for fn in result.frequency_hz:
+        for plot in (sum_plot, stab_plot):
+            plot.addItem(pg.InfiniteLine(float(fn), angle=90, pen=pg.mkPen(
+                (0, 0, 0), width=1, style=QtCore.Qt.PenStyle.DashLine)))
+    return pickable
+

@@ -24,6 +24,7 @@ from pelvislab.app.gui_plots import (
     DisplacementPanel,
     FrfPanel,
     QualityTable,
+    draw_ema,
     draw_step,
     echo_trace,
 )
@@ -514,38 +515,11 @@ class ReplayView(QtWidgets.QWidget):
         self.ema_sum_plot.clear()
         self.stab_plot.clear()
         f = np.asarray(result.fit_frequency_hz, dtype=float)
-        total = np.nansum(np.abs(np.asarray(result.H_measured)), axis=(1, 2))
-        keep = total > 0  # dB
-        self.ema_sum_plot.plot(f[keep], 20 * np.log10(total[keep]), pen=None, symbol="o",
-                               symbolSize=4, symbolBrush=(120, 120, 120))
-        fit = np.nansum(np.abs(np.asarray(result.H_fit)), axis=(1, 2))
-        keep_fit = fit > 0
-        self.ema_sum_plot.plot(f[keep_fit], 20 * np.log10(fit[keep_fit]),
-                               pen=pg.mkPen((200, 60, 60), width=1))
-        diagram = result.diagram
         self._pick_lines = []  # the plots were cleared
         self._show_picks()
-        if diagram is not None:
-            colours = {0: (170, 170, 170), 1: (60, 110, 220), 2: (40, 170, 80), 3: (220, 40, 40)}
-            for status, colour in colours.items():
-                xs, ys = [], []
-                for k, order in enumerate(diagram.orders):
-                    fk = diagram.frequency_hz(k)
-                    pick = np.asarray(diagram.status[k]) == status
-                    pick &= (fk >= f.min()) & (fk <= f.max())
-                    xs.extend(fk[pick])
-                    ys.extend([int(order)] * int(pick.sum()))
-                if xs:
-                    item = self.stab_plot.plot(xs, ys, pen=None, symbol="o",
-                                               symbolSize=4 if status < 3 else 6,
-                                               symbolBrush=colour, symbolPen=None)
-                    if status >= 1:  # poles stable at least in frequency can be picked
-                        item.sigPointsClicked.connect(self._pole_clicked)
-        for fn in result.frequency_hz:
-            for plot in (self.ema_sum_plot, self.stab_plot):
-                plot.addItem(pg.InfiniteLine(float(fn), angle=90,
-                                             pen=pg.mkPen((0, 0, 0), width=1,
-                                                          style=QtCore.Qt.PenStyle.DashLine)))
+        for item in draw_ema(self.ema_sum_plot.getPlotItem(), self.stab_plot.getPlotItem(),
+                             result):
+            item.sigPointsClicked.connect(self._pole_clicked)
         rows = [(str(r + 1), result.frequency_hz[r], result.frequency_std_hz[r],
                  result.damping_ratio[r], result.damping_ratio_std[r], result.complexity[r])
                 for r in range(result.frequency_hz.size)]

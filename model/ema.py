@@ -1015,8 +1015,9 @@ def _ema(
         residues, LR, UR, H_fit, significance, _ = fit(poles, edges)
     if edges.size:
         fe, ze = pole_frequency_damping(edges)
-        notes.append("residual mode(s) just outside the lines fitted with the modes (not "
-                     "reported as modes): " + ", ".join(
+        notes.append("residual mode(s) at the edge of the lines (fewer than "
+                     f"{crit.edge_lines} lines on one side), fitted with the modes but not "
+                     "reported as modes: " + ", ".join(
                          f"{x:.4g} Hz (zeta {z:.2%})" for x, z in zip(fe, ze, strict=True)))
     shapes, part = shapes_from_residues(residues, np.isfinite(Hc).any(axis=0))
     mpc, mpd = modal_phase_collinearity(shapes)

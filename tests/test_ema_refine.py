@@ -124,7 +124,18 @@ def test_cli_reports_uncertainties_and_residual_modes(pelvis, tmp_path, capsys):
     assert 300 < doc["residual_modes"][0]["frequency_hz"] < 305
     assert "+/-" in capsys.readouterr().err
     assert main(["ema", str(tmp_path / "s.h5"), "--no-refine", "--json",
-                 str(tmp_path / "b.json")]) == 0
+                 str(tmp_path / "b.json"), "--plot"]) == 0
+    png = tmp_path / "b_stabilisation.png"
+    assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    assert main(["ema", str(tmp_path / "s.h5"), "--json", str(tmp_path / "c.json"),
+                 "--plot"]) == 0
+    # refused before the analysis: an existing plot, or a plot with the JSON on stdout
+    (tmp_path / "d_stabilisation.png").write_bytes(b"keep")
+    assert main(["ema", str(tmp_path / "s.h5"), "--json", str(tmp_path / "d.json"),
+                 "--plot"]) == 1
+    assert not (tmp_path / "d.json").exists()
+    assert (tmp_path / "d_stabilisation.png").read_bytes() == b"keep"
+    assert main(["ema", str(tmp_path / "s.h5"), "--json", "-", "--plot"]) == 1
     doc = json.loads((tmp_path / "b.json").read_text())
     assert all(m["damping_ratio_std"] is None for m in doc["modes"])
     assert "refined" not in doc["method"]

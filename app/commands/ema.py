@@ -16,7 +16,11 @@ import sys
 from pathlib import Path
 from typing import Any
 
-from pelvislab.app.commands._common import comma_list, incomplete_session_warning
+from pelvislab.app.commands._common import (
+    check_new_output,
+    comma_list,
+    incomplete_session_warning,
+)
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -39,6 +43,10 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                    help="polish the poles by a bounded nonlinear pole/residue fit to the FRFs, "
                    "which also gives their uncertainties, for noise independent between lines "
                    "and FRFs (default: with the automatic selection, not with --frequencies)")
+    p.add_argument("--plot", action="store_true",
+                   help="also write OUT_stabilisation.png (OUT without its suffix): the "
+                   "stabilisation diagram under the summed FRF, as the GUI's Modes tab shows "
+                   "it (needs --json to a file)")
     p.add_argument("--no-diagram", action="store_true",
                    help="leave the stabilisation diagram out of the JSON")
     p.add_argument("--update", metavar="NAMES",
@@ -198,6 +206,39 @@ def mac_updating(frf: object, result: object, model: object, names: list[str],
     return {**head, **updated.as_dict()}
 
 
+def stability_plot_path(out: Path) -> Path:
+    """The PNG ``ema --json OUT --plot`` writes next to its JSON."""
+    return Path(f"{Path(out).with_suffix('')}_stabilisation.png")
+
+
+def _plot(result: Any, path: Path) -> None:
+    """The summed FRF over the stabilisation diagram as a PNG (pyqtgraph, offscreen)."""
+    import os
+
+    os.environ.setdefault("QT_QPA_PLATFORM", "offscreen")
+    import pyqtgraph as pg
+    from pyqtgraph.exporters import ImageExporter
+
+    from pelvislab.app.gui_plots import draw_ema
+
+    pg.mkQApp()
+    layout = pg.GraphicsLayoutWidget()
+    layout.resize(1000, 700)
+    top = layout.addPlot(row=0, col=0, title="Sum of |H| over the FRFs (dB re 1 m/N)")
+    bottom = layout.addPlot(row=1, col=0, title="Stabilisation diagram (grey new, blue "
+                            "stable frequency, green + damping, red all); dashed: modes")
+    bottom.setXLink(top)
+    bottom.setLabel("bottom", "frequency", units="Hz")
+    bottom.setLabel("left", "model order")
+    draw_ema(top, bottom, result)
+    layout.ci.setGeometry(0, 0, 1000, 700)  # the widget is never shown: size its layout
+    exporter = ImageExporter(layout.ci)
+    exporter.parameters()["width"] = 1000
+    exporter.export(str(path))
+    if not path.is_file():  # the exporter does not say when it could not write
+        raise OSError(f"{path} could not be written")
+
+
 def ema_file(path: Path, band_hz: tuple[float, float] | None = None,
              frequencies_hz: list[float] | None = None, max_order: int | None = None,
              refine: bool | None = None) -> tuple[Any, Any]:
@@ -221,6 +262,11 @@ def run_ema(args: argparse.Namespace) -> int:
             raise FileExistsError(f"{out} exists; not overwriting it")
         if not out.parent.is_dir():
             raise FileNotFoundError(f"output folder {out.parent} does not exist")
+    plot_path = None
+    if args.plot:
+        if out is None:
+            raise ValueError("--plot needs --json to a file (the PNG goes next to it)")
+        plot_path = check_new_output(stability_plot_path(out))
     if (args.model or args.no_rigid_filter or args.with_damping) and not args.update:
         raise ValueError("--model, --no-rigid-filter and --with-damping go with --update")
     model, names = None, []
@@ -257,6 +303,9 @@ def run_ema(args: argparse.Namespace) -> int:
     else:
         with out.open("x", encoding="utf-8") as fh:  # "x": still never overwrite
             fh.write(text + "\n")
+    if plot_path is not None:
+        _plot(result, plot_path)
+        print(f"plot: {plot_path}", file=sys.stderr)
     for m in doc["modes"]:
         zeta_sd = m["damping_ratio_std"]
         zeta = (f"zeta {m['damping_ratio']:.4f}" if zeta_sd is None
