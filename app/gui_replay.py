@@ -66,8 +66,9 @@ class ReplayView(QtWidgets.QWidget):
         self.path: Path | None = None
         self.steps: list[Any] = []
         self._executor = ThreadPoolExecutor(max_workers=1, thread_name_prefix="pelvislab-replay")
+        # (job, done, what, button, the file it works on)
         self._pending: list[tuple[Future, Callable[[Any], None], str,
-                                  QtWidgets.QPushButton | None]] = []
+                                  QtWidgets.QPushButton | None, Path | None]] = []
         # the running job's latest progress line, set from the worker thread and shown
         # by the poll timer (a str assignment: no lock needed)
         self._progress_note = ""
@@ -227,11 +228,11 @@ class ReplayView(QtWidgets.QWidget):
         self.fit_picks_button.setEnabled(False)
         self.clear_picks_button = QtWidgets.QPushButton("Clear picks")
         self.clear_picks_button.clicked.connect(self.clear_picks)
-        self.refine_picks = QtWidgets.QCheckBox("refine (all modes picked)")
+        self.refine_picks = QtWidgets.QCheckBox("refine poles (every mode selected)")
         self.refine_picks.setToolTip(
-            "polish the picked poles by the pole/residue fit, which also gives their "
-            "uncertainties; only when every mode of the band is picked (the others would "
-            "pull the fitted poles)")
+            "polish the poles (automatic or picked) by the pole/residue fit, which removes "
+            "p-LSCF's damping bias and gives their uncertainties; only when every mode of "
+            "the band is selected (a mode left out pulls the refined poles)")
         picks.addWidget(self.pick_label, 1)
         picks.addWidget(self.refine_picks)
         picks.addWidget(self.fit_picks_button)
@@ -287,11 +288,25 @@ class ReplayView(QtWidgets.QWidget):
             self.step_list.addItem(
                 f"{step.index:4d}  {step.setup}  {step.frequency_hz:g} Hz{flag}")
         self._show_frf()
+        self._clear_results()  # the analyses shown were the previous file's
         self.clear_picks()  # picks belong to the previous file's diagram
         if steps:
             self.step_list.setCurrentRow(0)
         else:
             self.tabs.setCurrentWidget(self.frf)
+
+    def _clear_results(self) -> None:
+        """Empty the identification, gap and modes panes."""
+        self.param_table.setRowCount(0)
+        self.ident_frf.clear_curves()
+        self.gap_summary.setText("run the diagnosis to see where model and data differ")
+        self.residual_image.clear()
+        self.candidate_table.setRowCount(0)
+        self.ema_summary.setText("run the modal analysis to see the modes")
+        self.ema_sum_plot.clear()
+        self.stab_plot.clear()
+        self._pick_lines = []
+        self.mode_table.setRowCount(0)
 
     def close_session(self) -> None:
         """Close the open file, if any."""
@@ -494,15 +509,17 @@ class ReplayView(QtWidgets.QWidget):
 
     def run_ema(self) -> None:
         """Experimental modal analysis of the session's /frf (worker thread), as
-        ``pelvislab ema`` does it with its defaults."""
+        ``pelvislab ema`` does it (``--refine`` when the box is ticked)."""
         if self.path is None:
             return
         path = self.path
 
+        refine = self.refine_picks.isChecked()
+
         def work() -> Any:
             from pelvislab.app.commands.ema import ema_file
 
-            return ema_file(path)
+            return ema_file(path, refine=refine)
 
         self.submit(work, self.show_ema, "modal analysis", self.ema_button)
 
@@ -540,8 +557,12 @@ class ReplayView(QtWidgets.QWidget):
         self.ema_summary.setText(
             f"<b>{result.frequency_hz.size} mode(s)</b> in {f.min():g}–{f.max():g} Hz "
             f"({f.size} lines, {len(frf.outputs)} x {len(frf.inputs)} FRFs), relative fit "
-            f"error {result.fit_error():.3g}. Uncertainties assume noise independent "
-            "between lines and FRFs." + (f"<br><small>{notes}</small>" if notes else ""))
+            f"error {result.fit_error():.3g}."
+            + (" Poles refined; their uncertainties assume noise independent between lines "
+               "and FRFs." if np.isfinite(result.damping_ratio_std).any() else
+               " Poles from p-LSCF (tick <i>refine poles</i> for the pole/residue fit and "
+               "uncertainties).")
+            + (f"<br><small>{notes}</small>" if notes else ""))
         self.tabs.setCurrentWidget(self.modes_page)
 
     def _pole_clicked(self, _item: Any, points: Any, *_: Any) -> None:
@@ -550,9 +571,10 @@ class ReplayView(QtWidgets.QWidget):
 
     def pick_pole(self, frequency_hz: float) -> None:
         """Add a mode at ``frequency_hz`` to the manual selection, or remove the pick within
-        1 % of it (a second click on the same column)."""
+        0.2 % of it (a second click on the same column; the poles of one column lie closer,
+        while two modes 0.5 % apart must both be pickable)."""
         for k, f in enumerate(self.picked_hz):
-            if abs(f / frequency_hz - 1) < 0.01:
+            if abs(f / frequency_hz - 1) < 0.002:
                 del self.picked_hz[k]
                 break
         else:
@@ -580,11 +602,11 @@ class ReplayView(QtWidgets.QWidget):
 
     def fit_picked_poles(self) -> None:
         """The EMA with the picked modes (``pelvislab ema --frequencies``; refined only when
-        the box says every mode is picked)."""
+        the box says every mode is selected)."""
         if self.path is None or not self.picked_hz:
             return
         path, picked = self.path, list(self.picked_hz)
-        refine = True if self.refine_picks.isChecked() else None
+        refine = self.refine_picks.isChecked()
 
         def work() -> Any:
             from pelvislab.app.commands.ema import ema_file
@@ -602,7 +624,7 @@ class ReplayView(QtWidgets.QWidget):
         second click does not queue the same minute-long job again."""
         self._progress_note = ""
         future = self._executor.submit(work)
-        self._pending.append((future, done, what, button))
+        self._pending.append((future, done, what, button, self.path))
         if button is not None:
             button.setEnabled(False)
         self.file_label.setToolTip(f"{what} running…")
@@ -611,7 +633,7 @@ class ReplayView(QtWidgets.QWidget):
 
     def _collect(self) -> None:
         for item in list(self._pending):
-            future, done, what, button = item
+            future, done, what, button, path = item
             if not future.done():
                 if self._progress_note:
                     self.analysis_status.setText(self._progress_note)
@@ -620,6 +642,11 @@ class ReplayView(QtWidgets.QWidget):
             if button is not None:
                 button.setEnabled(True)
             self.analysis_status.setText("" if self._pending else f"{what} done")
+            if path != self.path:  # another file was opened meanwhile: not its result
+                self.analysis_status.setText(
+                    f"{what} of {path.name if path else 'the previous file'} discarded: "
+                    "another file is open")
+                continue
             try:
                 result = future.result()
             except Exception as exc:

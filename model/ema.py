@@ -898,7 +898,7 @@ def ema(
     criteria: StabilityCriteria | None = None,
     lower_residual: bool = True,
     upper_residual: bool = True,
-    refine: bool | None = None,
+    refine: bool = False,
     residual_poles: bool = True,
 ) -> EmaResult:
     """Experimental modal analysis of receptance FRFs (p-LSCF poles, then LSFD residues).
@@ -906,9 +906,11 @@ def ema(
     ``frequency_hz`` (n_f,) Hz, any spacing; ``H`` (n_f, n_out, n_in) m/N, NaN where not
     measured; ``band_hz`` restricts the analysis (default: all lines above 0 Hz);
     ``frequencies_hz`` replaces the automatic selection by the poles nearest those frequencies;
-    ``refine`` polishes the selected poles by a nonlinear pole/residue fit (:func:`refine_poles`;
-    ``None``: with the automatic selection only, since a manual pick of some of the modes
-    leaves the others to pull the fitted poles: 2 % on the analytic chain);
+    ``refine`` polishes the selected poles by a nonlinear pole/residue fit (:func:`refine_poles`)
+    and gives their uncertainties. Off by default: it removes p-LSCF's damping bias when the
+    selection holds every mode of the band, but a mode left out (two close modes merged, a
+    heavily damped one missed, a partial manual pick) pulls the refined poles (measured in
+    docs/ema.md);
     ``residual_poles`` fits a stable pole just outside the lines, when one explains the lines
     near the edge, together with the modes (:func:`edge_poles`; ``EmaResult.residual_poles``).
     Returns an :class:`EmaResult` (modes sorted by frequency, shapes, complexity, fit).
@@ -932,7 +934,7 @@ def _ema(
     criteria: StabilityCriteria | None,
     lower_residual: bool,
     upper_residual: bool,
-    refine: bool | None,
+    refine: bool,
     residual_poles: bool,
 ) -> EmaResult:
     """:func:`ema` without the BLAS thread control."""
@@ -994,8 +996,6 @@ def _ema(
     # and every extra pole costs the nonlinear fit two parameters
     f_std = np.full(poles.size, np.nan)
     z_std = np.full(poles.size, np.nan)
-    if refine is None:
-        refine = selection == "auto"
     if refine and poles.size:
         both, f_sd, z_sd, at_bound = _refine_poles(
             f, Hc, np.concatenate([poles, edges]), std, lower_residual, upper_residual,

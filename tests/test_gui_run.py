@@ -162,6 +162,7 @@ def test_replay_modal_analysis_shows_modes_with_uncertainties_and_diagram(
     window = operator_window()
     assert window.open_replay(demo_session)
     replay = window.replay
+    replay.refine_picks.setChecked(True)  # the refinement gives the uncertainties
     qtbot.mouseClick(replay.ema_button, QtCore.Qt.MouseButton.LeftButton)
     qtbot.waitUntil(lambda: replay.mode_table.rowCount() > 0, timeout=60_000)
     assert replay.tabs.currentWidget() is replay.modes_page
@@ -187,9 +188,12 @@ def test_replay_modal_analysis_fits_poles_picked_in_the_diagram(operator_window,
     qtbot.mouseClick(replay.ema_button, QtCore.Qt.MouseButton.LeftButton)
     qtbot.waitUntil(lambda: replay.mode_table.rowCount() > 0, timeout=60_000)
     assert not replay.fit_picks_button.isEnabled()
-    for f in (231.9, 174.9, 100.0, 100.5):  # 100.5 Hz is a second click on 100 Hz
+    for f in (231.9, 174.9, 100.0, 100.1):  # 100.1 Hz is a second click on 100 Hz
         replay.pick_pole(f)
     assert replay.picked_hz == [174.9, 231.9] and "174.9 Hz" in replay.pick_label.text()
+    replay.pick_pole(175.6)  # a close mode (0.4 %) is a pick of its own...
+    assert replay.picked_hz == [174.9, 175.6, 231.9]
+    replay.pick_pole(175.6)  # ...and a second click on it drops only it
     assert len(replay._pick_lines) == 2
     qtbot.mouseClick(replay.fit_picks_button, QtCore.Qt.MouseButton.LeftButton)
     qtbot.waitUntil(lambda: "picked poles) done" in replay.analysis_status.text(),
@@ -210,3 +214,27 @@ def test_replay_modal_analysis_fits_poles_picked_in_the_diagram(operator_window,
     spot = red.scatter.points()[0]
     red.sigPointsClicked.emit(red, [spot], None)
     assert replay.picked_hz == [float(spot.pos().x())]
+
+
+def test_replay_result_of_a_file_no_longer_open_is_discarded(operator_window, qtbot,
+                                                             demo_session, tmp_path):
+    """An analysis that ends after another file was opened is not shown under that file's
+    name (it was: the demo's modes under an FRF-only file's title); opening a file empties
+    the result panes."""
+    from pelvislab.app.cli import main
+
+    other = tmp_path / "f.h5"
+    assert main(["model", "frf", "--points", "sacrum_x,SIAS_R_x", "--out", str(other)]) == 0
+    window = operator_window()
+    assert window.open_replay(demo_session)
+    replay = window.replay
+    replay.run_ema()
+    qtbot.waitUntil(lambda: replay.mode_table.rowCount() > 0, timeout=60_000)
+    replay.run_ema()  # a second run, still pending when the other file opens
+    assert window.open_replay(other)
+    assert replay.mode_table.rowCount() == 0 and "run the modal analysis" in (
+        replay.ema_summary.text())
+    qtbot.waitUntil(lambda: not replay.busy(), timeout=60_000)
+    assert "discarded" in replay.analysis_status.text()
+    assert replay.mode_table.rowCount() == 0
+

@@ -39,10 +39,11 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                    help="manual pole selection: the stable poles nearest these frequencies (Hz)")
     p.add_argument("--max-order", type=int, metavar="N",
                    help="highest model order of the stabilisation diagram (default: automatic)")
-    p.add_argument("--refine", action=argparse.BooleanOptionalAction, default=None,
+    p.add_argument("--refine", action="store_true",
                    help="polish the poles by a bounded nonlinear pole/residue fit to the FRFs, "
-                   "which also gives their uncertainties, for noise independent between lines "
-                   "and FRFs (default: with the automatic selection, not with --frequencies)")
+                   "which removes p-LSCF's damping bias and gives the uncertainties (for noise "
+                   "independent between lines and FRFs); only when every mode of the band is "
+                   "selected: a mode left out pulls the refined poles")
     p.add_argument("--plot", action="store_true",
                    help="also write OUT_stabilisation.png (OUT without its suffix): the "
                    "stabilisation diagram under the summed FRF, as the GUI's Modes tab shows "
@@ -241,7 +242,7 @@ def _plot(result: Any, path: Path) -> None:
 
 def ema_file(path: Path, band_hz: tuple[float, float] | None = None,
              frequencies_hz: list[float] | None = None, max_order: int | None = None,
-             refine: bool | None = None) -> tuple[Any, Any]:
+             refine: bool = False) -> tuple[Any, Any]:
     """Read ``/frf`` of a session or FRF-only file and run the EMA on it (with its
     ``H_std``): the step shared by ``pelvislab ema`` and the GUI's replay view.
     Returns ``(FrfSet, EmaResult)``."""
