@@ -273,7 +273,8 @@ STATUS_COLOURS = {0: (170, 170, 170), 1: (60, 110, 220), 2: (40, 170, 80), 3: (2
 def draw_ema(sum_plot: pg.PlotItem, stab_plot: pg.PlotItem, result: Any) -> list[Any]:
     """An :class:`~pelvislab.model.ema.EmaResult` in two plots: the sum of |H| over the
     FRFs in dB re 1 m/N (dots measured, line the fitted modal model) and the stabilisation
-    diagram (model order over frequency, coloured by status), a dashed line at each mode.
+    diagram (model order over frequency, coloured by status), a dashed line at each mode
+    and a dotted grey one at each residual mode within the lines.
     Returns the diagram's items of poles stable at least in frequency (the ones a user
     may pick)."""
     f = np.asarray(result.fit_frequency_hz, dtype=float)
@@ -307,5 +308,10 @@ def draw_ema(sum_plot: pg.PlotItem, stab_plot: pg.PlotItem, result: Any) -> list
         for plot in (sum_plot, stab_plot):
             plot.addItem(pg.InfiniteLine(float(fn), angle=90, pen=pg.mkPen(
                 (0, 0, 0), width=1, style=QtCore.Qt.PenStyle.DashLine)))
+    residual = np.abs(np.asarray(result.residual_poles)) / (2 * np.pi)
+    for fr in residual[(residual >= f.min()) & (residual <= f.max())] if f.size else []:
+        for plot in (sum_plot, stab_plot):  # residual modes inside the lines: dotted, grey
+            plot.addItem(pg.InfiniteLine(float(fr), angle=90, pen=pg.mkPen(
+                (140, 140, 140), width=1, style=QtCore.Qt.PenStyle.DotLine)))
     return pickable
 

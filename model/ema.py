@@ -962,7 +962,16 @@ def _ema(
         poles = select_poles(diagram, band, crit)
         selection = "auto"
         if poles.size == 0:
-            notes.append("no stable pole found in the band" + _spacing_hint(f))
+            top_order = int(diagram.orders[-1]) if len(diagram.orders) else 0
+            if top_order < 2 * crit.min_count:
+                # the selection needs min_count fully stable orders: with few lines the
+                # diagram stops at n/3 and cannot show them, whatever the grid resolves
+                notes.append(f"no stable pole found in the band: {f.size} lines give a "
+                             f"stabilisation diagram up to order {top_order} only; a mode "
+                             f"needs {crit.min_count} stable orders (try --max-order "
+                             f"{2 * crit.min_count}, or measure more lines)")
+            else:
+                notes.append("no stable pole found in the band" + _spacing_hint(f))
     edges = edge_poles(diagram, crit) if residual_poles else np.zeros(0, dtype=complex)
     if edges.size and poles.size:  # a manual pick may name a pole at the edge itself
         fe, _ = pole_frequency_damping(edges)

@@ -190,3 +190,28 @@ def test_a_mode_in_a_gap_of_a_random_grid_is_kept_and_a_pulled_pole_is_flagged()
     pulled = ema(f, H, frequencies_hz=[30.0], refine=True)  # the 37.5 Hz mode left out
     assert any("to its bounds" in n for n in pulled.notes), pulled.notes
     assert np.all(np.isnan(pulled.damping_ratio_std))
+
+
+def test_cli_ignores_an_all_zero_h_std_and_says_why_few_lines_find_no_mode(tmp_path, capsys):
+    """H_std written as zeros (another tool): weighed as absent with a note, not a hard
+    error. Nine lines: the note names the diagram's order limit and --max-order, not the
+    grid's resolution (both found by session 32's user review)."""
+    from pelvislab.tests.test_ema_properties import _frf
+
+    f, H, _ = _frf(np.array([40.0]), np.array([0.05]), 2, 1, 3, "uniform")
+    out_ch = Channels(["a", "b"], ["", ""], np.zeros((2, 3)), np.tile([0.0, 0.0, 1.0], (2, 1)))
+    in_ch = Channels(["drive"], [""], np.zeros((1, 3)), [[0.0, 0.0, 1.0]])
+    write_frf(tmp_path / "z.h5", FrfSet(f, H, out_ch, in_ch, H_std=np.zeros(H.shape)))
+    assert main(["ema", str(tmp_path / "z.h5"), "--json", str(tmp_path / "z.json")]) == 0
+    doc = json.loads((tmp_path / "z.json").read_text())
+    assert any("H_std holds no positive" in n for n in doc["notes"])
+    assert len(doc["modes"]) == 1 and abs(doc["modes"][0]["frequency_hz"] / 40.0 - 1) < 0.01
+    few = np.linspace(30.0, 50.0, 9)
+    write_frf(tmp_path / "few.h5", FrfSet(few, np.interp(few, f, H[:, 0, 0].real)[:, None, None]
+                                           + 1j * np.interp(few, f, H[:, 0, 0].imag)[:, None,
+                                                                                     None],
+                                           Channels(["a"], [""], np.zeros((1, 3)),
+                                                    [[0.0, 0.0, 1.0]]), in_ch))
+    assert main(["ema", str(tmp_path / "few.h5"), "--json", str(tmp_path / "few.json")]) == 0
+    notes = json.loads((tmp_path / "few.json").read_text())["notes"]
+    assert any("--max-order" in n for n in notes), notes

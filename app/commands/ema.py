@@ -246,12 +246,23 @@ def ema_file(path: Path, band_hz: tuple[float, float] | None = None,
     """Read ``/frf`` of a session or FRF-only file and run the EMA on it (with its
     ``H_std``): the step shared by ``pelvislab ema`` and the GUI's replay view.
     Returns ``(FrfSet, EmaResult)``."""
+    import numpy as np
+
     from pelvislab.acquisition.frfset import read_frf
     from pelvislab.model.ema import ema
 
     frf = read_frf(Path(path))
-    result = ema(frf.frequency_hz, frf.H, band_hz=band_hz, H_std=frf.H_std,
+    H_std, note = frf.H_std, None
+    if H_std is not None:
+        measured = np.isfinite(frf.H)
+        if not np.any(measured & np.isfinite(H_std) & (H_std > 0)):
+            # written as zeros or NaN (another tool): weigh as without H_std, and say so
+            H_std, note = None, ("H_std holds no positive finite value on the measured "
+                                 "lines: ignored (each FRF weighted by its RMS)")
+    result = ema(frf.frequency_hz, frf.H, band_hz=band_hz, H_std=H_std,
                  max_order=max_order, frequencies_hz=frequencies_hz, refine=refine)
+    if note:
+        result.notes.insert(0, note)
     return frf, result
 
 
@@ -309,7 +320,7 @@ def run_ema(args: argparse.Namespace) -> int:
         print(f"plot: {plot_path}", file=sys.stderr)
     for m in doc["modes"]:
         zeta_sd = m["damping_ratio_std"]
-        zeta = (f"zeta {m['damping_ratio']:.4f}" if zeta_sd is None
+        zeta = (f"zeta {m['damping_ratio']:.4g}" if zeta_sd is None
                 else f"zeta {m['damping_ratio']:.4g} +/- {zeta_sd:.2g}")
         print(f"{m['frequency_hz']:10.3f} Hz  {zeta}  complexity {m['complexity']:.3f}",
               file=sys.stderr)
