@@ -112,7 +112,8 @@ class EmaResult:
     selection: str = "auto"
     notes: list[str] = field(default_factory=list)
     significance: np.ndarray = field(default_factory=lambda: np.zeros(0))  # see mode_significance
-    # poles just outside the lines, fitted with the modes but not modes themselves (edge_poles)
+    # poles at the edges of the lines, fitted with the modes but not reported as modes
+    # (edge_poles)
     residual_poles: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=complex))
     # standard uncertainties from the pole refinement (refine_poles); NaN where not refined
     frequency_std_hz: np.ndarray = field(default_factory=lambda: np.zeros(0))
@@ -439,7 +440,7 @@ def edge_poles(
     diagram: StabilisationDiagram,
     criteria: StabilityCriteria | None = None,
 ) -> np.ndarray:
-    """Poles just outside the measured lines, to be fitted as residual modes (rad/s).
+    """Poles at the edges of the measured lines, to be fitted as residual modes (rad/s).
 
     A mode a little above (or below) the band, like the pelvis model's 303.6 Hz mode under a
     5-300 Hz sweep, is not resolved by the data, but its tail near the band edge is far from
@@ -911,8 +912,9 @@ def ema(
     selection holds every mode of the band, but a mode left out (two close modes merged, a
     heavily damped one missed, a partial manual pick) pulls the refined poles (measured in
     docs/ema.md);
-    ``residual_poles`` fits a stable pole just outside the lines, when one explains the lines
-    near the edge, together with the modes (:func:`edge_poles`; ``EmaResult.residual_poles``).
+    ``residual_poles`` fits a stable pole at the edge of the lines (fewer than ``edge_lines``
+    lines on one side), when one explains the lines near it, together with the modes
+    (:func:`edge_poles`; ``EmaResult.residual_poles``).
     Returns an :class:`EmaResult` (modes sorted by frequency, shapes, complexity, fit).
     """
     from pelvislab.model.identification import single_blas_thread
@@ -1012,7 +1014,7 @@ def _ema(
         if np.any(at_bound[: poles.size]):
             fb, _ = pole_frequency_damping(both[: poles.size][at_bound[: poles.size]])
             notes.append("the refinement pushed the pole(s) at " + ", ".join(
-                f"{x:.4g} Hz" for x in fb) + " to its bounds (+/-2 % in frequency, a factor 2 "
+                f"{x:.4g} Hz" for x in fb) + " to their bounds (+/-2 % in frequency, a factor 2 "
                 "in damping): something the modal model leaves out pulls them (a mode not "
                 "selected nearby?); their frequency and damping are not reliable and have "
                 "no std")

@@ -188,7 +188,7 @@ def test_a_mode_in_a_gap_of_a_random_grid_is_kept_and_a_pulled_pole_is_flagged()
     result = ema(f, H, refine=True)
     np.testing.assert_allclose(result.frequency_hz, [30.0, 37.5], rtol=2e-3)
     pulled = ema(f, H, frequencies_hz=[30.0], refine=True)  # the 37.5 Hz mode left out
-    assert any("to its bounds" in n for n in pulled.notes), pulled.notes
+    assert any("to their bounds" in n for n in pulled.notes), pulled.notes
     assert np.all(np.isnan(pulled.damping_ratio_std))
 
 
