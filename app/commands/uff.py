@@ -87,9 +87,9 @@ def run_export(args: argparse.Namespace) -> int:
     if args.modes:
         modes = _modes_from_json(Path(args.modes), frf)
     elif args.ema:
-        from pelvislab.model.ema import ema
+        from pelvislab.app.commands.ema import ema_file
 
-        result = ema(frf.frequency_hz, frf.H, H_std=frf.H_std)
+        _, result = ema_file(Path(args.session))  # as `pelvislab ema` does it
         modes = UffModes(result.frequency_hz, result.damping_ratio, result.shapes)
     n = write_uff(out, frf, modes, binary=not args.ascii, geometry=args.geometry)
     n_modes = 0 if modes is None else len(modes.frequency_hz)
