@@ -73,6 +73,16 @@ def _run(protocol: Path, out: Path, resume: bool = False,
     return proc.exitcode, time.monotonic() - started
 
 
+def _cli_run(tmp_path: Path, *options: str, **popen: object) -> tuple[subprocess.Popen, Path]:
+    """``pelvislab run`` of :data:`PROTOCOL` into ``tmp_path/s.h5`` in a child process
+    (``options`` after ``--out``; ``popen`` to :class:`subprocess.Popen`)."""
+    protocol = tmp_path / "p.toml"
+    protocol.write_text(PROTOCOL)
+    out = tmp_path / "s.h5"
+    return subprocess.Popen([sys.executable, "-m", "pelvislab.app", "run", str(protocol),
+                             "--out", str(out), *options], **popen), out
+
+
 def check_consistent(path: Path, interrupted: set[str] | frozenset[str] = frozenset()) -> int:
     """Every complete step whole, /frf lines only from complete steps; returns #complete.
     ``interrupted``: step groups a kill interrupted before this file was resumed."""
@@ -235,12 +245,8 @@ def test_wait_prompts_answered_then_stdin_closed_aborts(tmp_path):
 def test_sigterm_while_waiting_at_the_operator_prompt_ends_the_run(tmp_path):
     # before: the prompt's read of stdin blocked inside a runner listener, so Ctrl-C or
     # SIGTERM left the run waiting (outputs off, but no end) until Enter or end of input
-    protocol = tmp_path / "p.toml"
-    protocol.write_text(PROTOCOL)
-    out = tmp_path / "s.h5"
-    proc = subprocess.Popen([sys.executable, "-m", "pelvislab.app", "run", str(protocol),
-                             "--out", str(out), "--wait-prompts"],
-                            stdin=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    proc, out = _cli_run(tmp_path, "--wait-prompts", stdin=subprocess.PIPE,
+                         stderr=subprocess.PIPE, text=True)
     try:
         line = ""
         while "PROMPT" not in line:
@@ -260,11 +266,7 @@ def test_sigterm_while_waiting_at_the_operator_prompt_ends_the_run(tmp_path):
 def test_completed_run_exits_0_when_nobody_reads_stderr_any_more(tmp_path):
     # pelvislab run ... 2>&1 | head -1: a complete session exited 1 (BrokenPipeError on
     # the last line, turned into "error")
-    protocol = tmp_path / "p.toml"
-    protocol.write_text(PROTOCOL)
-    out = tmp_path / "s.h5"
-    proc = subprocess.Popen([sys.executable, "-m", "pelvislab.app", "run", str(protocol),
-                             "--out", str(out)], stderr=subprocess.PIPE)
+    proc, out = _cli_run(tmp_path, stderr=subprocess.PIPE)
     proc.stderr.readline()
     proc.stderr.close()
     assert proc.wait(timeout=120) == 0
