@@ -57,6 +57,17 @@ class _FrfOnlyFile:
         pass
 
 
+def _summary_page(text: str) -> tuple[QtWidgets.QWidget, QtWidgets.QVBoxLayout,
+                                      QtWidgets.QLabel]:
+    """A result page: a vertical layout that starts with a word-wrapped summary line."""
+    page = QtWidgets.QWidget()
+    layout = QtWidgets.QVBoxLayout(page)
+    summary = QtWidgets.QLabel(text)
+    summary.setWordWrap(True)
+    layout.addWidget(summary)
+    return page, layout, summary
+
+
 class ReplayView(QtWidgets.QWidget):
     """Browse a session file; re-track a step with other settings; show analysis results."""
 
@@ -163,11 +174,8 @@ class ReplayView(QtWidgets.QWidget):
         ident_layout.addWidget(self.ident_frf, 1)
         self.tabs.addTab(ident_page, "Identification")
 
-        gap_page = QtWidgets.QWidget()
-        gap_layout = QtWidgets.QVBoxLayout(gap_page)
-        self.gap_summary = QtWidgets.QLabel("run the diagnosis to see where model and data differ")
-        self.gap_summary.setWordWrap(True)
-        gap_layout.addWidget(self.gap_summary)
+        gap_page, gap_layout, self.gap_summary = _summary_page(
+            "run the diagnosis to see where model and data differ")
         self.residual_plot = pg.PlotWidget(title="Normalised residual: channel x frequency")
         self.residual_plot.setLabel("bottom", "frequency", units="Hz")
         self.residual_plot.setLabel("left", "channel (output/input)")
@@ -192,11 +200,7 @@ class ReplayView(QtWidgets.QWidget):
 
     def _build_modes_page(self) -> None:
         """EMA results: summed FRF over the stabilisation diagram, and the modes table."""
-        page = QtWidgets.QWidget()
-        layout = QtWidgets.QVBoxLayout(page)
-        self.ema_summary = QtWidgets.QLabel("run the modal analysis to see the modes")
-        self.ema_summary.setWordWrap(True)
-        layout.addWidget(self.ema_summary)
+        page, layout, self.ema_summary = _summary_page("run the modal analysis to see the modes")
         self.ema_sum_plot = pg.PlotWidget(title="Sum of |H| over the FRFs")
         # in dB: pyqtgraph's log axis labels its minor ticks, which overlap over the one or
         # two decades a summed FRF spans
