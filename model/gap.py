@@ -128,9 +128,11 @@ class GapOptions:
       fitted misorientation tilt at or below it is not named;
     * ``reading_min_gain``: the model's other dashpot reading replaces its own when it
       removes at least this fraction of the base fit's misfit beyond the noise;
-      ``other_reading_candidates``: before a verdict ``unexplained``, the leading effects
-      (this many) are refitted under the reading not chosen, which replaces it when one
-      of them is then named;
+      ``other_reading_candidates``: before a verdict ``unexplained``, or after a named
+      effect that leaves the held-out lines above ``none_gap``, the leading effects (this
+      many; None: every effect) are refitted under the reading not chosen, which
+      replaces it when one of them is then named (and, after a named effect, fits the
+      held-out lines better by ``reading_min_gain`` of what is left beyond the noise);
     * ``pair_search_sigma``: the springs between bones are searched globally (a line
       search) when the best candidate's held-out χ² is above the noise's by more than this
       many standard deviations (χ² > n + z√n over n held-out values: each |ΔH|²/σ² of
@@ -198,7 +200,7 @@ class GapOptions:
     damping_max: float = 3e4
     rigid_tissue_factor: float = 3.0
     reading_min_gain: float = 0.25
-    other_reading_candidates: int = 3
+    other_reading_candidates: int | None = None
     pair_search_sigma: float = 3.0
     base_refit_leaders: int = 3
     base_refit_min_gain: float = 1e-3
@@ -2731,7 +2733,8 @@ def _verdict_stage(s: _Stages, ranked: Sequence[CandidateResult], cal: _Calibrat
 
 def _other_reading_stage(s_o: _Stages, results: Sequence[CandidateResult]
                          ) -> list[CandidateResult]:
-    """The leading effects (``other_reading_candidates``, best-scoring first, each at its
+    """The leading effects (``other_reading_candidates``, best-scoring first; every
+    effect by default, so that a switch of reading still reports each; each at its
     best variant and place, without the null extension) fitted jointly with the base
     under the other dashpot reading (``s_o``): from the effect's fitted θ and from the
     other reading's base fit, finished with the joint fits' budget; the better fit of
