@@ -160,6 +160,9 @@ class GapOptions:
     * ``screened_grid_starts``: for a candidate with a ``screen_grid`` (the shaker
       armature), this many of the grid's points with the lowest robust cost, the base
       frozen at the base fit, start one more joint-fit job (:func:`_screened_grid_starts`);
+    * ``global_own_starts``: every global candidate (and the global null extension) gets
+      one more joint-fit job from each of its own starts with the base fit (session 33;
+      False runs the joint fits as before it, for the tests of the later stages);
     * ``jobs``: worker processes for the candidate fits (0 = every available core; 1 =
       serial). The result does not depend on it (:func:`pelvislab.model.parallel.parallel_map`).
     """
@@ -207,6 +210,7 @@ class GapOptions:
     std_scale_limit: float = 1.2
     std_scale_max_gap: float = 30.0
     screened_grid_starts: int = 3
+    global_own_starts: bool = True
 
 
 @dataclass
@@ -1932,7 +1936,8 @@ def _joint_fit_stage(s: _Stages,
     # c_sij_L 1636 N s/m: the base fit's c_sij_L 4454; eq. 7.2 from its screened f_c ended
     # at the base's fitted-line chi2, from f_c = 5 at 4.03 per line, held-out gap 0.70)
     axis_jobs += [(cand, u, len(items), "own starts") for items in by_variant.values()
-                  for _cost, cand, u in items if cand.place_kind == "global"]
+                  for _cost, cand, u in items
+                  if cand.place_kind == "global" and opt.global_own_starts]
     jobs.extend(axis_jobs)
     jobs.extend(base_jobs)
     # a local effect drags the base fit; refit the base without the output (input) that
