@@ -1932,9 +1932,9 @@ def _joint_fit_stage(s: _Stages,
                   for _cost, cand, u in items if cand.effect == "added_mass"]
     # a global effect from each of its own starts with the base fit: its screen, with the
     # base frozen at a fit that absorbed the effect, puts it near its null, and the joint
-    # fit from there stays in the base's minimum (judge-like set 9696_005, f_c = 0.67 on
-    # c_sij_L 1636 N s/m: the base fit's c_sij_L 4454; eq. 7.2 from its screened f_c ended
-    # at the base's fitted-line chi2, from f_c = 5 at 4.03 per line, held-out gap 0.70)
+    # fit from there stays near the base's minimum (judge-like set 9696_005, f_c = 0.67 on
+    # c_sij_L 1636 N s/m: the base fit's c_sij_L 4454, held-out gap 2.91; eq. 7.2 from its
+    # screened f_c ended at 2.53, from f_c = 5 at 0.70)
     axis_jobs += [(cand, u, len(items), "own starts") for items in by_variant.values()
                   for _cost, cand, u in items
                   if cand.place_kind == "global" and opt.global_own_starts]
@@ -2742,8 +2742,9 @@ def _other_reading_stage(s_o: _Stages, results: Sequence[CandidateResult]
     effect by default, so that a switch of reading still reports each; each at its
     best variant and place, without the null extension) fitted jointly with the base
     under the other dashpot reading (``s_o``): from the effect's fitted θ and from the
-    other reading's base fit, finished with the joint fits' budget; the better fit of
-    each."""
+    other reading's base fit (a global effect also from each of its own starts with
+    that base fit), finished with the joint fits' budget; the best fit of each on the
+    fitted lines."""
     opt = s_o.opt
     plain = _best_by_effect([r for r in results if r.beyond_null is None])
     leading = sorted(plain.values(), key=lambda r: r.score)[:opt.other_reading_candidates]
@@ -3122,8 +3123,11 @@ def diagnose(data: GapData, model: PelvisModel, options: GapOptions | None = Non
     the base fit and its "where"), the chain's tolerances, the verdict (module docstring);
     while the best candidate leaves the held-out lines measurably above the noise, the
     global line search for springs between bones and the verdict again; before a verdict
-    ``unexplained``, the leading effects refitted under the dashpot reading not chosen
-    (which replaces the chosen one when it names an effect); a named effect is then tested
+    ``unexplained``, or after a named effect that leaves the held-out lines above
+    ``none_gap``, the effects refitted under the dashpot reading not chosen (which
+    replaces the chosen one when it names an effect, and, after a named effect, fits the
+    held-out lines better by ``reading_min_gain`` of what is left); a named effect is then
+    tested
     against the null under the reading not chosen and against one damping per dashpot
     alone.
     Returns the design 4.4 report (``Diagnosis.report``) plus arrays for plots.
