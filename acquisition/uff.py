@@ -25,7 +25,9 @@ FRF was measured (UFF readers turn NaN into 0, so unmeasured lines are left out 
 
 from __future__ import annotations
 
+import os
 import re
+import time
 import tomllib
 from dataclasses import dataclass
 from pathlib import Path
@@ -137,6 +139,28 @@ def _channel_lines(prefix: str, dprefix: str, channels: Channels, k: int) -> tup
     )
 
 
+_MONTHS = ("Jan", "Feb", "Mar", "Apr", "May", "Jun", "Jul", "Aug", "Sep", "Oct", "Nov", "Dec")
+
+
+def _header_dates() -> dict[str, str]:
+    """Dataset 151's dates and times from ``SOURCE_DATE_EPOCH`` (seconds since 1970, UTC;
+    the reproducible-builds convention), so that two exports of one file are identical;
+    empty when it is not set (pyuff then writes the local time of writing). A malformed
+    value is an error, as that convention asks."""
+    raw = os.environ.get("SOURCE_DATE_EPOCH")
+    if raw is None:
+        return {}
+    try:
+        stamp = time.gmtime(int(raw))
+    except (ValueError, OverflowError, OSError):
+        raise ValueError(f"SOURCE_DATE_EPOCH must be whole seconds since 1970, got {raw!r}"
+                         ) from None
+    date = f"{stamp.tm_mday:02d}-{_MONTHS[stamp.tm_mon - 1]}-{stamp.tm_year % 100:02d}"
+    clock = time.strftime("%H:%M:%S", stamp)
+    return {f"{kind}_{what}": value for what in ("db_created", "db_saved", "file_written")
+            for kind, value in (("date", date), ("time", clock))}
+
+
 def uff_datasets(frf: FrfSet, modes: UffModes | None = None, binary: bool = True,
                  geometry: int = 2411) -> list[dict]:
     """The pyuff dataset dictionaries (164, geometry, 58 per FRF, 55 per mode) of ``frf``."""
@@ -169,9 +193,10 @@ def uff_datasets(frf: FrfSet, modes: UffModes | None = None, binary: bool = True
     n = xyz.shape[0]
     n_records = int(np.isfinite(frf.H).any(axis=0).sum())
     n_modes = 0 if modes is None else len(modes.frequency_hz)
-    sets: list[dict] = [pyuff.prepare_151(
+    sets: list[dict] = [{**pyuff.prepare_151(
         model_name="pelvislab", db_app="pelvislab", program="pelvislab",
-        description=f"{HEADER_PREFIX} {n_records} FRF records, {n_modes} modes")]
+        description=f"{HEADER_PREFIX} {n_records} FRF records, {n_modes} modes"),
+        **_header_dates()}]
     sets.append(pyuff.prepare_164(
         units_code=1, units_description="SI: meter (newton)", temp_mode=1,
         length=1.0, force=1.0, temp=1.0, temp_offset=273.15))

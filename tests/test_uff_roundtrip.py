@@ -55,6 +55,27 @@ def test_round_trip_through_pyuff_is_exact(tmp_path):
         np.testing.assert_array_equal(a.direction, b.direction)
 
 
+def test_source_date_epoch_makes_exports_identical(tmp_path, monkeypatch):
+    """Two exports of one FRF set differ only in dataset 151's dates; with
+    SOURCE_DATE_EPOCH (reproducible-builds convention) they are byte for byte equal and
+    carry that date (UTC)."""
+    frf = sample_frfset()
+    monkeypatch.setenv("SOURCE_DATE_EPOCH", "1795651200")  # 2026-11-26 00:00:00 UTC
+    write_uff(tmp_path / "a.uff", frf)
+    monkeypatch.setenv("SOURCE_DATE_EPOCH", "1795651200")
+    write_uff(tmp_path / "b.uff", frf)
+    a = (tmp_path / "a.uff").read_bytes()
+    assert a == (tmp_path / "b.uff").read_bytes()
+    header = pyuff.UFF(str(tmp_path / "a.uff")).read_sets(0)
+    assert header["type"] == 151
+    assert header["date_db_created"] == "26-Nov-26"
+    assert header["time_db_created"] == "00:00:00"
+    assert a.count(b"26-Nov-26 00:00:00") == 3  # created, saved, written
+    monkeypatch.setenv("SOURCE_DATE_EPOCH", "yesterday")
+    with pytest.raises(ValueError, match="SOURCE_DATE_EPOCH"):
+        write_uff(tmp_path / "c.uff", frf)
+
+
 def test_ascii_and_dataset_15_are_close_not_exact(tmp_path):
     frf = sample_frfset(1)
     write_uff(tmp_path / "a.uff", frf, binary=False, geometry=15)
