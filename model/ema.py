@@ -909,18 +909,21 @@ def _missing_mode_note(frequency_hz: np.ndarray, H: np.ndarray, H_fit: np.ndarra
                        H_std: np.ndarray, poles: np.ndarray) -> str:
     """A note when the data's largest misfit beyond the noise lies away from every pole
     fitted: a mode the selection left out ("" otherwise). Away: more than 5 half-power
-    bandwidths ζf, 3 line spacings and 2 % from each pole's frequency (misfit *at* a
+    bandwidths ζf, 3 local line spacings and 2 % from each pole's frequency (misfit *at* a
     mode is p-LSCF's pole bias, which ``--refine`` removes; on the analytic test systems
     with every mode found the local mean reached 14 there, 1.4 elsewhere)."""
     _chi2, f_worst, local = misfit_beyond_noise(frequency_hz, H, H_fit, H_std)
     if not local > MISSING_MODE_LOCAL_CHI2:
         return ""
+    f = np.sort(np.asarray(frequency_hz, dtype=float))
+    # the spacing of the lines there (a stepped sine zooms in on peaks: make demo's grid
+    # is 0.5 Hz at the median, 10 Hz away from its two zoom windows)
+    at = int(np.searchsorted(f, f_worst))
+    spacing_hz = _line_spacing_hz(f[max(at - 3, 0):at + 4])
     fn, zeta = pole_frequency_damping(poles)
-    reach = np.maximum.reduce([5 * zeta * fn, np.full(fn.shape, 3 * _line_spacing_hz(
-        frequency_hz)), 0.02 * fn])
+    reach = np.maximum.reduce([5 * zeta * fn, np.full(fn.shape, 3 * spacing_hz), 0.02 * fn])
     if np.any(np.abs(f_worst - fn) <= reach):
         return ""
-    f = np.sort(np.asarray(frequency_hz, dtype=float))
     if f_worst <= f[min(3, f.size - 1)] or f_worst >= f[max(f.size - 4, 0)]:
         # the residual terms stand for the modes outside the lines; one just outside
         # bends the edge more than they follow (make demo: the 10.4 Hz mode under a
@@ -932,8 +935,8 @@ def _missing_mode_note(frequency_hz: np.ndarray, H: np.ndarray, H_fit: np.ndarra
     return (f"the data near {f_worst:.4g} Hz are left beyond their noise (mean "
             f"|H_fit - H|^2 / H_std^2 = {local:.3g} over 7 lines; 1 at the noise), away from "
             "every mode found: a mode may be missing there (too heavily damped to stabilise "
-            f"over orders, or too lightly damped for lines {_line_spacing_hz(frequency_hz):.3g}"
-            " Hz apart); see the stabilisation diagram, or pick a pole there by hand "
+            f"over orders, or too lightly damped for lines {spacing_hz:.3g} Hz apart there); "
+            "see the stabilisation diagram, or pick a pole there by hand "
             "(--frequencies, or the GUI's Modes tab)")
 
 
