@@ -910,8 +910,9 @@ def _missing_mode_note(frequency_hz: np.ndarray, H: np.ndarray, H_fit: np.ndarra
     """A note when the data's largest misfit beyond the noise lies away from every pole
     fitted: a mode the selection left out ("" otherwise). Away: more than 5 half-power
     bandwidths ζf, 3 local line spacings and 2 % from each pole's frequency (misfit *at* a
-    mode is p-LSCF's pole bias, which ``--refine`` removes; on the analytic test systems
-    with every mode found the local mean reached 14 there, 1.4 elsewhere)."""
+    mode is p-LSCF's pole bias, which ``--refine`` removes: on the analytic test systems
+    with every mode found the largest local mean, 1.3-14, lay at a mode in 19 of 20 fits,
+    and none of 48 such fits gets the note)."""
     _chi2, f_worst, local = misfit_beyond_noise(frequency_hz, H, H_fit, H_std)
     if not local > MISSING_MODE_LOCAL_CHI2:
         return ""
@@ -925,9 +926,9 @@ def _missing_mode_note(frequency_hz: np.ndarray, H: np.ndarray, H_fit: np.ndarra
     if np.any(np.abs(f_worst - fn) <= reach):
         return ""
     if f_worst <= f[min(3, f.size - 1)] or f_worst >= f[max(f.size - 4, 0)]:
-        # the residual terms stand for the modes outside the lines; one just outside
-        # bends the edge more than they follow (make demo: the 10.4 Hz mode under a
-        # 30-300 Hz sweep)
+        # the residual terms stand for the modes outside the lines; one near the edge
+        # bends it more than they follow (make demo's session with 112 Hz picked: its
+        # first line, 30 Hz, with the model's 10.4 Hz mode below the band)
         return (f"the data at the edge of the lines, near {f_worst:.4g} Hz, are left beyond "
                 f"their noise (mean |H_fit - H|^2 / H_std^2 = {local:.3g} over 7 lines; 1 at "
                 "the noise): a mode outside the lines bends them more than the residual terms "
