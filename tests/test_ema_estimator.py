@@ -57,6 +57,18 @@ def receptance(M: np.ndarray, K: np.ndarray, C: np.ndarray, frequency_hz: np.nda
     return H[:, outputs][:, :, inputs]
 
 
+def modal_receptance(frequency_hz: np.ndarray, poles: np.ndarray, phi: np.ndarray,
+                     part: np.ndarray) -> np.ndarray:
+    """Receptance (n_f, n_out, n_in) of modes by superposition: pole p_r (rad/s) with
+    residue phi_r part_r^T / (2i Im p_r) and its complex conjugate."""
+    s = 2j * np.pi * np.asarray(frequency_hz, float)[:, None, None]
+    H = np.zeros((s.shape[0], phi.shape[0], part.shape[0]), dtype=complex)
+    for r, p in enumerate(poles):
+        R = np.outer(phi[:, r], part[:, r]) / (2j * p.imag)
+        H += R / (s - p) + R.conj() / (s - p.conjugate())
+    return H
+
+
 def add_noise(H: np.ndarray, level: float, seed: int) -> np.ndarray:
     """Proportional complex Gaussian noise of RMS ``level`` x |H|."""
     rng = np.random.default_rng(seed)

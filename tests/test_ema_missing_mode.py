@@ -10,20 +10,20 @@ import numpy as np
 import pytest
 
 from pelvislab.model.ema import ema, misfit_beyond_noise, poles_from_modal
-from pelvislab.tests.test_ema_estimator import add_noise, analytic_system, receptance
+from pelvislab.tests.test_ema_estimator import (
+    add_noise,
+    analytic_system,
+    modal_receptance,
+    receptance,
+)
 
 F_HZ = np.arange(5.0, 300.01, 1.0)
 
 
 def _modal_frf(frequency_hz, damping_ratio, shapes):
     """Receptance (n_f, n_out, 1) of modes with the given shapes, driven at output 0."""
-    w = 2 * np.pi * F_HZ[:, None, None]
-    H = np.zeros((F_HZ.size, shapes.shape[0], 1), complex)
-    for k, lam in enumerate(poles_from_modal(np.asarray(frequency_hz),
-                                              np.asarray(damping_ratio))):
-        r = np.outer(shapes[:, k], shapes[:1, k]) / (2j * lam.imag)
-        H += r[None] / (1j * w - lam) + np.conj(r[None]) / (1j * w - np.conj(lam))
-    return H
+    poles = poles_from_modal(np.asarray(frequency_hz), np.asarray(damping_ratio))
+    return modal_receptance(F_HZ, poles, shapes, shapes[:1])
 
 
 def _noisy(H0, rng):

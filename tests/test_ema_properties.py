@@ -10,6 +10,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from pelvislab.model.ema import ema, poles_from_modal
+from pelvislab.tests.test_ema_estimator import modal_receptance
 
 
 @st.composite
@@ -42,11 +43,7 @@ def _frf(fn, zeta, n_out, n_in, seed, grid):
     poles = poles_from_modal(fn, zeta)
     phi = rng.normal(size=(n_out, fn.size)) + 0.2
     part = rng.normal(size=(n_in, fn.size)) + 0.2
-    s = 2j * np.pi * f[:, None, None]
-    H = np.zeros((f.size, n_out, n_in), dtype=complex)
-    for r, p in enumerate(poles):
-        R = np.outer(phi[:, r], part[:, r]) / (2j * p.imag)
-        H += R / (s - p) + R.conj() / (s - p.conjugate())
+    H = modal_receptance(f, poles, phi, part)
     noise = (rng.normal(size=H.shape) + 1j * rng.normal(size=H.shape)) / np.sqrt(2)
     # each mode's largest modal constant over the channels, relative to the largest of all
     visible = np.abs(phi[:, None, :] * part[None, :, :]).max(axis=(0, 1))

@@ -17,6 +17,7 @@ from pelvislab.acquisition.frfset import Channels, FrfSet, write_frf
 from pelvislab.app.cli import main
 from pelvislab.model.ema import ema, pole_frequency_damping, poles_from_modal, refine_poles
 from pelvislab.model.frf import frf
+from pelvislab.tests.test_ema_estimator import modal_receptance
 from pelvislab.tests.test_ema_pelvis import pelvis  # noqa: F401  (fixture)
 
 
@@ -163,11 +164,7 @@ def test_an_frf_with_zero_h_std_does_not_cost_a_real_mode():
     f = np.arange(10.0, 110.0, 0.5)
     poles = poles_from_modal(np.array([30.0, 62.0, 90.0]), np.array([0.02, 0.01, 0.03]))
     phi, part = rng.normal(size=(3, 3)), rng.normal(size=(2, 3))
-    s = 2j * np.pi * f[:, None, None]
-    H0 = np.zeros((f.size, 3, 2), dtype=complex)
-    for r, p in enumerate(poles):
-        R = np.outer(phi[:, r], part[:, r]) / (2j * p.imag)
-        H0 += R / (s - p) + R.conj() / (s - p.conjugate())
+    H0 = modal_receptance(f, poles, phi, part)
     H = _noisy(H0, 1)
     std = 0.01 * np.abs(H0)
     std[:, 1, 1] = 0.0
