@@ -763,8 +763,9 @@ def _publish(tmp: Path, path: Path) -> None:
         raise FileExistsError(f"{path} exists; not overwriting it") from None
     except OSError:  # a file system without hard links
         if not _rename_noreplace(tmp, path):
-            # last resort (no atomic no-replace rename here): a file that appears between
-            # the check and the rename would be replaced
+            # last resort: on Windows os.rename itself refuses an existing target; elsewhere
+            # (no hard links and no renameat2, e.g. exFAT on macOS) a file that appears
+            # between the check and the rename would be replaced
             if path.exists():
                 raise FileExistsError(f"{path} exists; not overwriting it") from None
             os.rename(tmp, path)
