@@ -472,7 +472,7 @@ class ReplayView(QtWidgets.QWidget):
                             for o in where.get("outputs", [])[:3])
         # the reason says why (a verdict 'none' after a large base gap needs it: the
         # calibration null fitted as a whole can explain it)
-        bones = ", ".join(f"{b['bone']} ({100 * b['share']:.0f} %)"
+        bones = ", ".join(f"{b['bone'] or '(no bone)'} ({100 * b['share']:.0f} %)"
                           for b in where.get("bones", [])[:3])
         reason = html.escape(str(report.get("verdict_reason", "")))
         # what the data cannot exclude (a `none` means "not needed", not "absent":

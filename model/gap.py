@@ -1249,7 +1249,8 @@ def where_analysis(data: GapData, H_base: np.ndarray, n_bands: int = 6) -> dict[
     by_out = {n: float(excess[:, o, :].sum()) for o, n in enumerate(data.out_names)}
     by_bone: dict[str, float] = {}
     for o, b in enumerate(data.out_bones):
-        by_bone[b or "(none)"] = by_bone.get(b or "(none)", 0.0) + by_out[data.out_names[o]]
+        # design 4.1 spells "on no modelled bone" as an empty string (reports show it)
+        by_bone[b] = by_bone.get(b, 0.0) + by_out[data.out_names[o]]
     by_in = {n: float(excess[:, :, i].sum()) for i, n in enumerate(data.in_names)}
     Hm = np.where(data.mask, data.H, np.nan)
     Hb = np.where(data.mask, H_base, np.nan)

@@ -360,3 +360,22 @@ def test_gap_commands_keep_freed_memory_on_glibc():
     from pelvislab.app.commands._common import keep_freed_memory_for_reuse
 
     assert keep_freed_memory_for_reuse() is (platform.libc_ver()[0] == "glibc")
+
+
+def test_where_names_an_output_on_no_bone_with_the_empty_string():
+    """Design 4.1 spells "on no modelled bone" as an empty string; where.bones keeps it (the
+    model predicts nothing there, so such an output carries no share)."""
+    from pelvislab.model.gap import where_analysis
+
+    outs = Channels(OUT.name + ["table_z"], OUT.bone + [""],
+                    np.vstack([OUT.position_m, [0.0, 0.0, -0.2]]),
+                    np.vstack([OUT.direction, [0.0, 0.0, 1.0]]))
+    H = np.ones((F_HZ.size, 4, 2), complex)
+    data = prepare_data(F_HZ, H, np.ones(H.shape), outs, IN)
+    H_model = H.copy()
+    H_model[:, 0, :] += 3.0
+    H_model[:, 3, :] += 3.0
+    bones = where_analysis(data, H_model)["bones"]
+    assert bones[0] == {"bone": "sacrum", "share": 1.0}
+    assert {"bone": "", "share": 0.0} in bones
+    assert {b["bone"] for b in bones} == {"", "sacrum", "innominate_right", "innominate_left"}

@@ -267,7 +267,7 @@ def format_report(report: dict) -> str:
     lines.append("  outputs: " + ", ".join(
         f"{o['name']} {o['share']:.0%}" for o in where["outputs"][:4]))
     lines.append("  bones:   " + ", ".join(
-        f"{b['bone']} {b['share']:.0%}" for b in where["bones"]))
+        f"{b['bone'] or '(no bone)'} {b['share']:.0%}" for b in where["bones"]))
     worst = sorted(where.get("frac", []), key=lambda x: x["frac"])[:3]
     if worst:
         lines.append("  lowest FRAC: " + ", ".join(
