@@ -1109,6 +1109,11 @@ def _ema(
         # a mode the selection left out (a heavily damped one is not stable over orders:
         # zeta 10 % at 150 Hz between two 1 % modes, local mean 23-30 there)
         missing = _missing_mode_note(f, Hc, H_fit, std, np.concatenate([poles, edges]))
+        if missing and refit:
+            # the refinement is a fit of the selected modes alone (docs/ema.md: a mode left
+            # out moved a refined neighbour 18 sigma)
+            missing += ("; the poles were refined as if the selection held every mode of "
+                        "the band, so such a mode pulls them: compare without --refine")
         if missing:
             notes.append(missing)
     shapes, part = shapes_from_residues(residues, np.isfinite(Hc).any(axis=0))
