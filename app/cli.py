@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import argparse
 import logging
+import signal
 import sys
 from collections.abc import Sequence
 from importlib import metadata
@@ -77,16 +78,55 @@ def _verbose_anywhere(parser: argparse.ArgumentParser) -> None:
                 _verbose_anywhere(sub)
 
 
+class Terminated(KeyboardInterrupt):
+    """SIGTERM or SIGHUP asked the command to stop: handled as Ctrl-C is (files cleaned up,
+    worker processes terminated, exit 130). A subclass of KeyboardInterrupt so that no
+    ``except Exception`` on the way swallows it."""
+
+
+def _stop_on_termination_signals() -> dict[int, object]:
+    """Turn SIGTERM and SIGHUP into :class:`Terminated` in the main thread (their default
+    action ended the process at once: a partial file left behind, forked workers of the gap
+    fits orphaned). A SIGHUP already ignored (nohup) stays ignored. ``run`` and ``gui`` put
+    their own handlers over these while they run. Returns the handlers to put back."""
+    previous: dict[int, object] = {}
+    for name in ("SIGTERM", "SIGHUP"):
+        sig = getattr(signal, name, None)
+        if sig is None or (name == "SIGHUP" and signal.getsignal(sig) is signal.SIG_IGN):
+            continue
+
+        def stop(signum: int, frame: object, name: str = name) -> None:
+            raise Terminated(f"interrupted by {name}")
+
+        try:
+            previous[sig] = signal.signal(sig, stop)
+        except ValueError:  # not the main thread (a library caller): leave them alone
+            pass
+    return previous
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of the ``pelvislab`` console script; returns the process exit code."""
     parser = build_parser()
     args = parser.parse_args(argv)
     configure_logging(args.verbose)
+    previous = _stop_on_termination_signals()
+    try:
+        return _run_handler(args)
+    finally:
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)  # type: ignore[arg-type]
+
+
+def _run_handler(args: argparse.Namespace) -> int:
     try:
         code = args.handler(args)
     except NotImplementedCommand as exc:
         print(f"pelvislab {exc}", file=sys.stderr)
         return EXIT_USAGE
+    except Terminated as exc:
+        print(f"pelvislab: {exc}", file=sys.stderr)
+        return EXIT_INTERRUPTED
     except KeyboardInterrupt:
         print("pelvislab: interrupted", file=sys.stderr)
         return EXIT_INTERRUPTED

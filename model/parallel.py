@@ -22,7 +22,9 @@ The map runs serially when
 
 A worker that dies (killed, out of memory) stops the map with :class:`WorkerDied` instead
 of waiting for it forever; Ctrl-C reaches the parent only (workers ignore SIGINT and are
-terminated when the parent unwinds).
+terminated when the parent unwinds, as on SIGTERM or SIGHUP, which the command line turns
+into the same interruption). On Linux a worker also ends when its parent dies without
+unwinding (SIGKILL): ``PR_SET_PDEATHSIG``.
 """
 
 from __future__ import annotations
@@ -70,9 +72,26 @@ def can_fork_workers() -> bool:
             and not multiprocessing.current_process().daemon)
 
 
-def _ignore_sigint() -> None:
+def _worker_signals(parent_pid: int) -> None:
+    """Signal set-up of a forked worker (its initializer)."""
     # Ctrl-C is the parent's to handle (one "interrupted" line, not a traceback per worker)
     signal.signal(signal.SIGINT, signal.SIG_IGN)
+    # the parent's handlers for these (the CLI turns them into KeyboardInterrupt) would
+    # make a worker survive the parent's terminate(): a worker just ends
+    for name in ("SIGTERM", "SIGHUP"):
+        if hasattr(signal, name):
+            signal.signal(getattr(signal, name), signal.SIG_DFL)
+    if sys.platform.startswith("linux"):
+        # a parent killed outright (SIGKILL, OOM killer) runs no cleanup: without this its
+        # workers waited on their task pipe forever, holding its stdout open
+        import ctypes
+
+        try:
+            ctypes.CDLL(None, use_errno=True).prctl(1, signal.SIGTERM)  # PR_SET_PDEATHSIG
+        except (OSError, AttributeError):
+            pass
+        if os.getppid() != parent_pid:  # the parent died before prctl took effect
+            os._exit(1)
 
 
 def _run_forked(index: int) -> Any:
@@ -98,7 +117,7 @@ def parallel_map(fn: Callable[[Any], Any], items: Sequence[Any], jobs: int) -> l
     # with the fork start method, the executor forks every worker before it starts its own
     # management thread, so no child is forked from a multi-threaded parent
     pool = ProcessPoolExecutor(n_workers, mp_context=multiprocessing.get_context("fork"),
-                               initializer=_ignore_sigint)
+                               initializer=_worker_signals, initargs=(os.getpid(),))
     try:
         return list(pool.map(_run_forked, range(len(items)), chunksize=1))
     except BrokenProcessPool as exc:
