@@ -16,6 +16,7 @@ from pathlib import Path
 from pelvislab.app.errors import NotImplementedCommand
 
 DEMO_PROTOCOL = "demo.toml"
+EXIT_INTERRUPTED = 130  # as every command: Ctrl-C, SIGTERM, SIGHUP
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -45,7 +46,8 @@ def _stages(out: Path, protocol: Path) -> list[tuple[str, list[str], Path | None
 
 
 def run_demo(args: argparse.Namespace) -> int:
-    """Run every built stage; exit non-zero only when a built stage fails."""
+    """Run every built stage; exit non-zero only when a built stage fails (1) or is
+    interrupted (130, and the later stages are not run)."""
     from pelvislab.app.cli import build_parser
 
     out = _fresh_folder(Path(args.out))
@@ -77,6 +79,14 @@ def run_demo(args: argparse.Namespace) -> int:
             failed = True
             continue
         elapsed = time.perf_counter() - started
+        if code == EXIT_INTERRUPTED:
+            # the operator stopped it (the run stage catches Ctrl-C/SIGTERM itself and says
+            # so): stop here rather than report a failure and skip the rest as missing
+            session = out / "session.h5"
+            kept = (f"; the session so far is kept in {session} (pelvislab run {protocol} "
+                    f"--out {session} --resume continues it)" if session.exists() else "")
+            print(f"   interrupted: the demo stops here{kept}", file=sys.stderr)
+            return EXIT_INTERRUPTED
         if code != 0:
             print(f"   FAILED with exit code {code}", file=sys.stderr)
             failed = True
