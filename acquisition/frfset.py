@@ -124,16 +124,29 @@ def write_frf(target: h5py.File | h5py.Group | str | Path, frf: FrfSet, name: st
     """Write ``frf`` as the group ``name`` (default ``/frf``) of an open file/group or a new file.
 
     An existing group of that name is replaced, so a session's FRF can be rewritten as lines
-    are added. When given a path, the file is created (an FRF-only file) and must not exist.
+    are added. When given a path, the file is created (an FRF-only file) and must not exist;
+    it appears under that name only once complete.
     """
     if isinstance(target, (str, Path)):
+        import os
+        import secrets
+
+        from pelvislab.acquisition.session import publish_new_file
+
         path = Path(target)
         if path.exists():
             raise FileExistsError(f"{path} exists; not overwriting")
-        with h5py.File(path, "w") as handle:
-            handle.attrs["schema"] = FRF_SCHEMA
-            handle.attrs["schema_version"] = FRF_SCHEMA_VERSION
-            write_frf(handle, frf, name)
+        # written under a hidden name and published complete: an interrupted write leaves
+        # no half file under the real name, and a file that appears meanwhile is kept
+        tmp = path.parent / f".{path.name}.{os.getpid()}.{secrets.token_hex(4)}.tmp"
+        try:
+            with h5py.File(tmp, "w-") as handle:
+                handle.attrs["schema"] = FRF_SCHEMA
+                handle.attrs["schema_version"] = FRF_SCHEMA_VERSION
+                write_frf(handle, frf, name)
+            publish_new_file(tmp, path)
+        finally:
+            tmp.unlink(missing_ok=True)
         return
     if name in target:
         del target[name]

@@ -1179,8 +1179,8 @@ def reprocess_session(source: Path | str, target: Path | str, tracking_options: 
     from pelvislab.acquisition.session import (
         SESSION_SCHEMA,
         SESSION_SCHEMA_VERSION,
-        _publish,
         create_log,
+        publish_new_file,
         remove_stale_partials,
     )
 
@@ -1260,7 +1260,7 @@ def reprocess_session(source: Path | str, target: Path | str, tracking_options: 
                     + ": no step kept an FRF line (every channel's tracking failed or was "
                     "judged bad); nothing written")
             write_frf(out, frf)
-        _publish(partial, target)
+        publish_new_file(partial, target)
         problems = reader.damaged + reader.incomplete
     finally:
         partial.unlink(missing_ok=True)

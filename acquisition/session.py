@@ -382,7 +382,7 @@ class SessionWriter:
                 write_frf(handle, FrfSet(frequencies, np.full(shape, np.nan + 1j * np.nan),
                                          outputs, inputs, H_std=np.full(shape, np.nan),
                                          acquired_at_s=np.full(len(frequencies), np.nan)))
-            _publish(tmp, path)
+            publish_new_file(tmp, path)
         finally:
             tmp.unlink(missing_ok=True)
         try:
@@ -754,8 +754,9 @@ def _rename_noreplace(tmp: Path, path: Path) -> bool:
     raise OSError(code, f"cannot rename {tmp} to {path}: {os.strerror(code)}")
 
 
-def _publish(tmp: Path, path: Path) -> None:
-    """Give the finished file ``tmp`` the name ``path``, never replacing an existing file."""
+def publish_new_file(tmp: Path, path: Path) -> None:
+    """Give the finished file ``tmp`` the name ``path``, never replacing an existing file
+    (raises FileExistsError then; ``tmp`` is left for the caller to remove)."""
     fsync_path(tmp)
     try:
         os.link(tmp, path)  # atomic, and fails if path exists

@@ -279,16 +279,18 @@ def write_uff(path: str | Path, frf: FrfSet, modes: UffModes | None = None,
     if path.exists():
         raise FileExistsError(f"{path} exists; not overwriting")
     sets = uff_datasets(frf, modes, binary, geometry)
-    tmp = path.with_name(path.name + ".part")
-    if tmp.exists():
-        tmp.unlink()
+    from pelvislab.acquisition.session import publish_new_file
+
+    # a hidden name of this process: published complete, never over a file that appeared
+    # meanwhile (a replace would overwrite it)
+    tmp = path.parent / f".{path.name}.{os.getpid()}.{time.monotonic_ns()}.part"
     try:
         uff = pyuff.UFF(str(tmp))
         # one dataset per call, always appending to the fresh file: pyuff's binary-58 writer
         # reopens the file ("wb" in overwrite mode truncates what it just wrote)
         for dset in sets:
             uff.write_sets(dset, mode="add")
-        tmp.replace(path)
+        publish_new_file(tmp, path)
     finally:
         if tmp.exists():
             tmp.unlink()

@@ -41,3 +41,55 @@ def test_gap_diagnose_refuses_an_existing_plot_before_the_diagnosis(tmp_path, ca
     assert code == 1
     assert "g_residual_map.png exists; not overwriting" in capsys.readouterr().err
     assert residual.read_text() == "an older plot" and not out.exists()
+
+
+@pytest.mark.parametrize("argv", [
+    ["import-uff", "{missing}", "--out", "{nodir}/x.h5"],
+    ["model", "frf", "--points", "sacrum_x", "--out", "{nodir}/m.h5"],
+    ["export-uff", "{missing}", "{nodir}/x.uff"],
+    ["ema", "{missing}", "--json", "{nodir}/e.json"],
+])
+def test_missing_output_folder_is_said_plainly_before_any_work(tmp_path, capsys, argv):
+    """Helper review, session 34: these commands did the work first, then failed with
+    h5py's "unable to synchronously create file (... o_flags = 242)" or named an
+    internal ``.part`` file; the input does not even exist here, so the output is checked
+    first."""
+    from pelvislab.app.cli import main
+
+    values = {"missing": str(tmp_path / "missing.h5"), "nodir": str(tmp_path / "nodir")}
+    code = main([a.format(**values) for a in argv])
+    err = capsys.readouterr().err
+    assert code == 1
+    assert f"output folder {tmp_path / 'nodir'} does not exist" in err, err
+    assert not (tmp_path / "nodir").exists()
+
+
+def test_frf_and_uff_files_appear_only_complete_and_never_over_another(tmp_path,
+                                                                       monkeypatch):
+    """write_frf and write_uff write under a hidden name and publish the finished file
+    without replacing one that appeared meanwhile (the UFF writer's rename replaced it)."""
+    import numpy as np
+
+    from pelvislab.acquisition import uff as uff_module
+    from pelvislab.acquisition.frfset import Channels, FrfSet, read_frf, write_frf
+
+    ch = Channels(["sacrum_x"], ["sacrum"], np.zeros((1, 3)), np.array([[1.0, 0, 0]]))
+    f = np.arange(10.0, 20.0)
+    frf = FrfSet(f, (1e-6 / f)[:, None, None] * np.ones((f.size, 1, 1), complex), ch, ch)
+    write_frf(tmp_path / "a.h5", frf)
+    assert np.array_equal(read_frf(tmp_path / "a.h5").H, frf.H)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["a.h5"]  # no temporary left
+
+    # another process creates the name while the UFF is being written: it is kept
+    target = tmp_path / "b.uff"
+    real = uff_module.uff_datasets
+
+    def and_meanwhile(*args, **kwargs):
+        target.write_text("someone else's file")
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(uff_module, "uff_datasets", and_meanwhile)
+    with pytest.raises(FileExistsError):
+        uff_module.write_uff(target, frf)
+    assert target.read_text() == "someone else's file"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["a.h5", "b.uff"]

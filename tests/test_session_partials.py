@@ -69,10 +69,10 @@ def test_publish_without_hard_links_never_replaces_a_file_that_appears(tmp_path,
     monkeypatch.setattr(session_mod.os, "link", no_link)
     monkeypatch.setattr(session_mod.Path, "exists", lambda self: False)
     with pytest.raises(FileExistsError, match="not overwriting"):
-        session_mod._publish(tmp, target)
+        session_mod.publish_new_file(tmp, target)
     assert target.read_bytes() == b"theirs" and tmp.read_bytes() == b"new"
     target.unlink()
-    session_mod._publish(tmp, target)  # and with the name free it is renamed into place
+    session_mod.publish_new_file(tmp, target)  # and with the name free it is renamed into place
     assert target.read_bytes() == b"new" and not tmp.exists()
 
 
@@ -86,5 +86,5 @@ def test_publish_syncs_the_new_name(tmp_path, monkeypatch):
     monkeypatch.setattr(session_mod, "fsync_path", lambda p: synced.append(Path(p)))
     tmp, target = tmp_path / "s.h5.partial", tmp_path / "s.h5"
     tmp.write_bytes(b"new")
-    session_mod._publish(tmp, target)
+    session_mod.publish_new_file(tmp, target)
     assert synced == [tmp, target]

@@ -20,6 +20,7 @@ from pelvislab.app.commands._common import (
     check_new_output,
     comma_list,
     incomplete_session_warning,
+    write_json,
 )
 
 
@@ -270,10 +271,7 @@ def run_ema(args: argparse.Namespace) -> int:
     """Handler of ``pelvislab ema``."""
     out = None if args.json == "-" else Path(args.json)
     if out is not None:  # before the fit: a finished result is never written over, nor lost
-        if out.exists():
-            raise FileExistsError(f"{out} exists; not overwriting it")
-        if not out.parent.is_dir():
-            raise FileNotFoundError(f"output folder {out.parent} does not exist")
+        out = check_new_output(out)  # (a folder it cannot write in, too)
     plot_path = None
     if args.plot:
         if out is None:
@@ -309,12 +307,10 @@ def run_ema(args: argparse.Namespace) -> int:
         doc["model_updating"] = _clean(mac_updating(
             frf, result, model, names, filter_rigid=not args.no_rigid_filter,
             with_damping=args.with_damping))
-    text = json.dumps(doc, indent=1)
     if out is None:
-        print(text)
+        print(json.dumps(doc, indent=1))
     else:
-        with out.open("x", encoding="utf-8") as fh:  # "x": still never overwrite
-            fh.write(text + "\n")
+        write_json(out, doc)  # atomic, and still never over an existing file
     if plot_path is not None:
         _plot(result, plot_path)
         print(f"plot: {plot_path}", file=sys.stderr)

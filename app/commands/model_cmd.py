@@ -6,7 +6,7 @@ import argparse
 import json
 import sys
 
-from pelvislab.app.commands._common import comma_list
+from pelvislab.app.commands._common import check_new_output, comma_list
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -118,6 +118,8 @@ def _frf(args: argparse.Namespace) -> int:
         raise ValueError("need finite 0 < --start-hz <= --stop-hz and --step-hz > 0")
     if (args.stop_hz - args.start_hz) / args.step_hz > 1_000_000:
         raise ValueError("more than a million frequency lines: choose a larger --step-hz")
+    if args.out:
+        check_new_output(args.out)  # a missing or read-only folder said plainly, up front
     model = _load(args.model)
     catalogue = load_landmarks(args.landmarks)
     out_names = _names(args.points)

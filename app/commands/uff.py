@@ -7,7 +7,7 @@ import json
 import sys
 from pathlib import Path
 
-from pelvislab.app.commands._common import incomplete_session_warning
+from pelvislab.app.commands._common import check_new_output, incomplete_session_warning
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -72,13 +72,11 @@ def run_export(args: argparse.Namespace) -> int:
     from pelvislab.acquisition.frfset import read_frf
     from pelvislab.acquisition.uff import UffModes, write_uff
 
+    out = check_new_output(args.out)  # before the work: a missing or read-only folder too
     warning = incomplete_session_warning(args.session)
     if warning:
         print(f"warning: {warning}", file=sys.stderr)
     frf = read_frf(Path(args.session))
-    out = Path(args.out)
-    if out.exists():
-        raise FileExistsError(f"{out} exists; not overwriting")
     import numpy as np
 
     if not np.isfinite(frf.H).any():  # a file of geometry only, which import-uff refuses
@@ -102,9 +100,7 @@ def run_import(args: argparse.Namespace) -> int:
     from pelvislab.acquisition.frfset import write_frf
     from pelvislab.acquisition.uff import read_points_file, read_uff
 
-    out = Path(args.out)
-    if out.exists():
-        raise FileExistsError(f"{out} exists; not overwriting")
+    out = check_new_output(args.out)
     points = read_points_file(Path(args.points)) if args.points else None
     frf, notes = read_uff(Path(args.uff), points)
     write_frf(out, frf)
