@@ -104,6 +104,21 @@ def json_safe(value: object) -> object:
     return value
 
 
+def require_response(H: object, what: str = "/frf/H") -> None:
+    """Refuse FRFs with no measured value, or whose measured values are all exactly zero
+    (a writer's placeholder, a disconnected channel): there is no response to analyse,
+    and a fit would report a model error or a gap instead of saying so."""
+    import numpy as np
+
+    values = np.asarray(H)
+    measured = np.isfinite(values)
+    if not measured.any():
+        raise ValueError(f"{what} holds no measured line (every value is NaN)")
+    if not np.any(values[measured] != 0):
+        raise ValueError(f"every measured value of {what} is exactly 0: no response to "
+                         "analyse (a placeholder, or channels not connected?)")
+
+
 def check_new_output(path: str | Path) -> Path:
     """Refuse, before any long work, an output that exists (results are never overwritten,
     like sessions) or whose folder does not."""

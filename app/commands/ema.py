@@ -20,6 +20,7 @@ from pelvislab.app.commands._common import (
     check_new_output,
     comma_list,
     incomplete_session_warning,
+    require_response,
     write_json,
 )
 
@@ -253,6 +254,7 @@ def ema_file(path: Path, band_hz: tuple[float, float] | None = None,
     from pelvislab.model.ema import ema
 
     frf = read_frf(Path(path))
+    require_response(frf.H)
     H_std, note = frf.H_std, None
     if H_std is not None:
         measured = np.isfinite(frf.H)

@@ -26,6 +26,7 @@ from pelvislab.app.commands._common import (
     comma_list,
     incomplete_session_warning,
     keep_freed_memory_for_reuse,
+    require_response,
     write_json,
 )
 
@@ -181,9 +182,8 @@ def usable_std(frf: Any) -> tuple[Any, list[str]]:
     """
     import numpy as np
 
+    require_response(frf.H)
     measured = np.isfinite(frf.H)
-    if not measured.any():
-        raise ValueError("/frf/H holds no measured line (every value is NaN)")
     n_lines = int(np.any(measured, axis=(1, 2)).sum())
     if n_lines < MIN_FREQUENCY_LINES:
         raise ValueError(f"/frf has {n_lines} measured frequency lines; the diagnosis needs "

@@ -13,6 +13,7 @@ from pelvislab.app.commands._common import (
     check_new_output,
     comma_list,
     incomplete_session_warning,
+    require_response,
     write_json,
 )
 
@@ -105,8 +106,16 @@ def identify_file(path: str | Path, method: str = "frf", params: list[str] | Non
         if unknown:
             raise ValueError(f"unknown parameter(s) {unknown}; choose from "
                              f"{', '.join(problem.names)}")
-    if not np.isfinite(frf.H).any():
-        raise ValueError(f"{path}: /frf holds no measured line")
+    try:
+        require_response(frf.H)
+    except ValueError as exc:
+        raise ValueError(f"{path}: {exc}") from None
+    H_std, std_note = frf.H_std, None
+    if H_std is not None and not np.any(
+            np.isfinite(frf.H) & np.isfinite(H_std) & (H_std > 0)):
+        # zeros or NaN written for "unknown" (design 4.2 makes H_std optional): read as absent
+        H_std, std_note = None, ("H_std holds no positive finite value on the measured "
+                                 "lines: ignored")
     f_k, f_c = model.frequency_dependence.f_k, model.frequency_dependence.f_c
     if method == "modal":
         data = modes_from_frf(frf.frequency_hz, frf.H)
@@ -116,15 +125,26 @@ def identify_file(path: str | Path, method: str = "frf", params: list[str] | Non
     elif method == "frf":
         kind = residual
         if kind == "auto":
-            kind = "std" if frf.H_std is not None else "log"
-        if kind == "std" and frf.H_std is None:
-            raise ValueError(f"{path}: --residual std needs H_std in /frf")
+            kind = "std" if H_std is not None else "log"
+        if kind == "std" and H_std is None:
+            raise ValueError(f"{path}: --residual std needs H_std in /frf"
+                             + (f" ({std_note})" if std_note else ""))
+        n_free = len(free) if free is not None else len(problem.names)
+        lines = np.isfinite(frf.H).any(axis=(1, 2))
+        n_residuals = 2 * int(np.isfinite(frf.H).sum())  # real and imaginary parts
+        # mass, damping and stiffness act alike at one frequency (-w^2 M + i w C + K)
+        if int(lines.sum()) < 3 or n_residuals < n_free:
+            raise ValueError(
+                f"{path}: {int(lines.sum())} measured frequency line(s), "
+                f"{n_residuals // 2} FRF value(s), cannot identify {n_free} parameters "
+                "(needs >= 3 lines and at least as many real and imaginary parts as "
+                "parameters); measure more lines or free fewer parameters (--params)")
         if not a_b > 0:
             raise ValueError("--a-b must be > 0")
         spec = ResidualSpec(kind, a=a_b / (1 + a_b), b=1 / (1 + a_b))
         strategy = default_strategy(kind, starts=starts, seed=seed)
         result = identify_frf(
-            problem, frf.frequency_hz, frf.H, frf.H_std, free=free, residual=spec,
+            problem, frf.frequency_hz, frf.H, H_std, free=free, residual=spec,
             strategy=strategy, version_b=version_b, start_freq_dep=(f_k, f_c),
             progress=progress,
         )
@@ -135,6 +155,8 @@ def identify_file(path: str | Path, method: str = "frf", params: list[str] | Non
     doc.update(extra)
     doc["units"] = {"m_": "kg", "k_": "N/m", "c_": "N s/m", "f_": "1"}
     doc["source"] = str(path)
+    if std_note:
+        doc["notes"] = [std_note]
     doc["model"] = model.name
     # The model's FRFs at the identified values, for measured-vs-model views.
     identified = dict(zip(result.names, np.asarray(result.values, dtype=float), strict=True))
@@ -163,6 +185,8 @@ def _identify(args: argparse.Namespace) -> int:
         version_b=args.version_b, residual=args.residual, a_b=float(args.a_b),
         starts=args.starts, seed=args.seed)
     write_json(out, report.to_json())
+    for note in report.document.get("notes", []):
+        print(f"note: {note}", file=sys.stderr)
     if not report.converged:
         print(f"identify: not converged ({report.message.strip('; ')}); result written to "
               f"{out}", file=sys.stderr)
