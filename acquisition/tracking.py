@@ -103,6 +103,22 @@ class TrackingOptions:
             if isinstance(value, bool) or not isinstance(value, int) or value < low:
                 raise ValueError(f"tracking option {name} = {value!r}: must be an integer "
                                  f">= {low}")
+        if self.estimator not in ESTIMATORS:
+            raise ValueError(f"tracking option estimator = {self.estimator!r}: one of "
+                             f"{list(ESTIMATORS)}")
+        if self.gate is not None and not (
+                len(self.gate) == 2
+                and all(isinstance(v, int) and not isinstance(v, bool) for v in self.gate)
+                and 0 <= self.gate[0] < self.gate[1]):
+            raise ValueError(f"tracking option gate = {self.gate!r}: must be (start, stop) "
+                             "sample indices with 0 <= start < stop")
+        if self.band_hz is not None and not (
+                len(self.band_hz) == 2
+                and all(isinstance(v, (int, float)) and not isinstance(v, bool)
+                        and math.isfinite(v) for v in self.band_hz)
+                and 0 < self.band_hz[0] < self.band_hz[1]):
+            raise ValueError(f"tracking option band_hz = {self.band_hz!r}: must be "
+                             "(low, high) in Hz with 0 < low < high")
 
 
 @dataclass

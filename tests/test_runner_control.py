@@ -426,9 +426,18 @@ def test_reprocess_with_unusable_options_fails_and_writes_nothing(tmp_path):
     from pelvislab.acquisition.tracking import TrackingOptions
 
     out = tmp_path / "bad.h5"
+    # a gate past the end of the records: only the first step's tracking can tell
     with pytest.raises(ValueError, match="tracking failed"):
-        r.reprocess_session(tmp_path / "s.h5", out, TrackingOptions(estimator="nonsense"))
+        r.reprocess_session(tmp_path / "s.h5", out, TrackingOptions(gate=(0, 10**7)))
     assert not out.exists()
+    # what the options alone show is refused before any work (session 34: an unknown
+    # estimator was found at the first step, in a message quoting every option)
+    with pytest.raises(ValueError, match="tracking option estimator = 'nonsense'"):
+        TrackingOptions(estimator="nonsense")
+    with pytest.raises(ValueError, match="tracking option gate"):
+        TrackingOptions(gate=(400, 100))
+    with pytest.raises(ValueError, match="tracking option band_hz"):
+        TrackingOptions(band_hz="abc")  # what --tracking band_hz=abc passed on
 
 
 def test_reprocess_refuses_nonsense_and_publishes_only_a_complete_file(tmp_path):
