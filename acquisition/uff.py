@@ -370,8 +370,18 @@ def read_uff(path: str | Path, points: dict[int, PointInfo] | None = None
     if not path.is_file():
         raise FileNotFoundError(f"no such file: {path}")
     with open(path, "rb") as handle:  # every dataset ends with a line "    -1"
+        head = handle.read(64)
         handle.seek(max(0, path.stat().st_size - 64))
         tail = handle.read().rstrip(b" \t\r\n\x00")
+    # what the file is when it is no UFF at all, before guessing at a truncation
+    if not head.strip():
+        raise ValueError(f"{path} is empty (or blank): not a UFF file")
+    if head.startswith(b"\x89HDF"):
+        raise ValueError(f"{path} is an HDF5 file, not UFF (sessions and FRF files are "
+                         "read directly by every command)")
+    if head.lstrip(b" \t\r\n").split(b"\n", 1)[0].strip() != b"-1":
+        raise ValueError(f"{path} is not a UFF file: it does not start with a dataset "
+                         "delimiter line ('    -1')")
     if not (tail.endswith(b"-1") and (len(tail) == 2 or tail[-3:-2] in b" \t\r\n")):
         # pyuff silently drops a dataset cut short: the import would lose FRFs unseen
         raise ValueError(f"{path} ends inside a dataset (no closing '-1' line): truncated? "

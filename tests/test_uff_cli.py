@@ -56,3 +56,19 @@ def test_import_with_points_and_errors(tmp_path, capsys):
     assert main(["export-uff", str(tmp_path / "s.h5"), str(tmp_path / "z.uff"), "--modes",
                  str(tmp_path / "p.toml")]) == 1
     assert "not JSON" in capsys.readouterr().err
+
+
+def test_import_of_a_file_that_is_no_uff_says_what_it_is(tmp_path, capsys):
+    """Helper review, session 34: an HDF5 file and an empty file were both reported as a
+    UFF "ends inside a dataset (no closing '-1' line): truncated?"."""
+    write_frf(tmp_path / "s.h5", sample_frfset())
+    (tmp_path / "empty.uff").write_bytes(b"")
+    (tmp_path / "notes.txt").write_text("a lab note\n    -1\n")
+    expected = {"s.h5": "is an HDF5 file, not UFF", "empty.uff": "is empty",
+                "notes.txt": "does not start with a dataset delimiter line"}
+    for name, reason in expected.items():
+        assert main(["import-uff", str(tmp_path / name), "--out",
+                     str(tmp_path / f"{name}.h5")]) == 1
+        err = capsys.readouterr().err
+        assert reason in err and "truncated" not in err, err
+        assert not (tmp_path / f"{name}.h5").exists()
