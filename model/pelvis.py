@@ -575,6 +575,9 @@ def load_model(path: str | Path | None = None) -> PelvisModel:
         data = tomllib.loads(p.read_text(encoding="utf-8"))
     except tomllib.TOMLDecodeError as exc:
         raise ModelError(f"model file {p}: not valid TOML ({exc})") from None
+    except UnicodeDecodeError:
+        raise ModelError(f"model file {p}: not a UTF-8 text file (a model is TOML; "
+                         "an HDF5 or other binary file given by mistake?)") from None
     return parse_model(data, str(p))
 
 

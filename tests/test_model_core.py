@@ -384,6 +384,10 @@ def test_missing_file_and_bad_toml(tmp_path):
         load_model(tmp_path / "nope.toml")
     with pytest.raises(ModelError, match="not valid TOML"):
         load_model(_write(tmp_path, "[[body]\n"))
+    binary = tmp_path / "session.h5"  # --model given a session file by mistake
+    binary.write_bytes(b"\x89HDF\r\n\x1a\n" + bytes(range(256)))
+    with pytest.raises(ModelError, match="session.h5: not a UTF-8 text file"):
+        load_model(binary)
 
 
 @pytest.mark.parametrize("fk, fc", [(0.0, 0.0), (0.5, 0.0), (0.0, 1.0), (1.0, 1.0)])
