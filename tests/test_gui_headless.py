@@ -29,6 +29,12 @@ def test_screenshot_of_a_bad_file_fails_with_one_line_instead_of_a_dialog(tmp_pa
     assert not (tmp_path / "x.png").exists()
     done = _gui(str(bad), "--screenshot", str(tmp_path / "x.png"), "--after", "inf")
     assert done.returncode == 1 and "--after" in done.stderr
+    # options that mean nothing alone are refused, not ignored with the window left open
+    # (helper review, session 34)
+    done = _gui("--after", "5")
+    assert done.returncode == 1 and "--after goes with --screenshot" in done.stderr
+    done = _gui("--out", str(tmp_path / "s.h5"))
+    assert done.returncode == 1 and "--out goes with --start" in done.stderr
 
 
 @pytest.mark.skipif(sys.platform == "win32", reason="POSIX signal")

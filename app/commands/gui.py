@@ -35,6 +35,10 @@ def run(args: argparse.Namespace) -> int:
         raise ValueError("--analyse needs a session file (pelvislab gui S.h5 --analyse …)")
     if not 0 <= args.after <= 3600:  # inf or NaN would never render
         raise ValueError("--after must be within 0-3600 seconds")
+    if args.after and not args.screenshot:  # else silently ignored, the window left open
+        raise ValueError("--after goes with --screenshot (the wait before rendering)")
+    if args.out and not args.start:
+        raise ValueError("--out goes with --start (the session file the started run writes)")
     start = Path(args.start) if args.start else None
     if start is not None and not start.is_file():
         raise FileNotFoundError(f"no such protocol file: {start}")

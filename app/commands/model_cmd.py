@@ -14,7 +14,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p = subparsers.add_parser("model", help="modes and FRFs of the pelvis model")
     sub = p.add_subparsers(dest="model_command", metavar="ACTION")
     sub.required = True
-    m = sub.add_parser("modes", help="elastic modes of the model (default: thesis appendix E)")
+    m = sub.add_parser("modes", help="elastic modes of the model (default: thesis appendix E)",
+                       description="Natural frequencies (Hz), damping ratios and mode shapes of "
+                       "the pelvis model's elastic modes (eq. 4.55).")
     m.add_argument("--model", metavar="M.toml", help="model file; default: thesis appendix E")
     m.add_argument("--json", action="store_true", help="print JSON to stdout")
     m.add_argument("--f-k", type=float, default=None, metavar="F",
@@ -26,7 +28,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     m.add_argument("--landmarks", metavar="L.toml",
                    help="landmark catalogue; default: protocols/landmarks.toml")
     m.set_defaults(handler=_modes)
-    f = sub.add_parser("frf", help="FRFs of the model at catalogue points")
+    f = sub.add_parser("frf", help="FRFs of the model at catalogue points",
+                       description="Receptance FRFs (m/N) of the pelvis model between landmarks "
+                       "of protocols/landmarks.toml, printed or written as an FRF-only file.")
     f.add_argument("--model", metavar="M.toml", help="model file; default: thesis appendix E")
     f.add_argument("--points", metavar="NAMES",
                    help="comma-separated landmark names (outputs; also inputs unless --inputs), "
