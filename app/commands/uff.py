@@ -15,7 +15,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     e = subparsers.add_parser(
         "export-uff", help="write a session's FRFs as UFF 58 with geometry",
         description="Write /frf as UFF: 164 (SI units), geometry (2411 or 15), one binary "
-        "dataset 58 per measured FRF (receptance, exact round trip), modes as 55 when given.",
+        "dataset 58 per measured FRF (receptance: H round-trips exactly; UFF 58 has no place "
+        "for H_std or acquisition times, which are not written), modes as 55 when given.",
     )
     e.add_argument("session", metavar="S.h5", help="session or FRF-only file")
     e.add_argument("out", metavar="OUT.uff", help="UFF file to write (must not exist)")
@@ -90,6 +91,9 @@ def run_export(args: argparse.Namespace) -> int:
         _, result = ema_file(Path(args.session))  # as `pelvislab ema` does it
         modes = UffModes(result.frequency_hz, result.damping_ratio, result.shapes)
     n = write_uff(out, frf, modes, binary=not args.ascii, geometry=args.geometry)
+    if frf.H_std is not None:
+        print("note: H_std is not in the UFF file (dataset 58 has no place for it): an "
+              "analysis of the imported file estimates the noise instead", file=sys.stderr)
     n_modes = 0 if modes is None else len(modes.frequency_hz)
     print(f"wrote {out}: {n} datasets ({n_modes} modes)", file=sys.stderr)
     return 0
