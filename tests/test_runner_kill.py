@@ -185,6 +185,8 @@ def test_ctrl_c_via_cli_outputs_off_within_100_ms(tmp_path):
     final = [ln for ln in rest.splitlines() if ln.startswith("pelvislab run:")]
     assert len(final) == 1 and "interrupted" in final[0] and "Traceback" not in rest
     assert "of 40 steps" in final[0]
+    # said once: the run's closing log line is not echoed as an "error:" line before it
+    assert "error: run interrupted" not in rest, rest
     with SessionReader(out) as reader:
         assert reader.status[0] == "interrupted"
         logs = reader.handle["runs/000/command_logs"]

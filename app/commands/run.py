@@ -138,6 +138,8 @@ class ConsoleProgress:
             self._line(f"quality warning: step {event.step.index} "
                        f"({event.step.frequency_hz:g} Hz) {event.channel}: {event.message}")
         elif isinstance(event, r.LogMessage) and event.level in ("WARNING", "ERROR"):
+            if event.text.startswith(("run interrupted:", "run aborted:", "run failed:")):
+                return  # the run's closing log line: the command's last line says it
             self._line(f"{event.level.lower()}: {event.text}")
         elif isinstance(event, r.RunFinished) and self._bar:
             self._line("")
