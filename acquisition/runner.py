@@ -741,6 +741,7 @@ class Runner:
         configured: tuple[int, tuple[int, ...]] = (-1, ())
         t_run = self._clock()
         self._waited_s = 0.0  # at operator prompts and in pauses: not bench time
+        pace_from: tuple[float, float] | None = None  # (measuring s, planned s) at step 1
         for si, setup in enumerate(proto.setups):
             steps = [s for s in todo if s.setup_index == si]
             if not steps:
@@ -791,9 +792,17 @@ class Runner:
                 elapsed = self._clock() - t_run
                 left = sum(remaining_est)
                 # the pace of the bench alone: a prompt answered after 6 s made the ETA
-                # jump from 15 to 32 s; the prompts still to come are not counted either
+                # jump from 15 to 32 s; the prompts still to come are not counted either.
+                # Measured from the end of the first step, whose one-off start (opening the
+                # bench, configuring the digitizer) read as pace gave a resumed run's first
+                # ETA as 103 s for 5 s of work; until then the plan's own estimate
                 measuring = max(elapsed - self._waited_s, 0.0)
-                eta = left * (measuring / est_done) if est_done > 0 else left
+                if pace_from is None:
+                    pace_from = (measuring, est_done)
+                    eta = left
+                else:
+                    spent, planned = measuring - pace_from[0], est_done - pace_from[1]
+                    eta = left * (spent / planned) if planned > 0 else left
                 self._emit(Progress(self._t(), n_done, n_total, elapsed, eta))
             self._generators(False)
             self._emit(SetupFinished(self._t(), si, setup.name))

@@ -302,3 +302,26 @@ def test_eta_leaves_out_the_time_at_an_operator_prompt(tmp_path):
         assert session.run().status == "completed"
     # the same pace before and after the 3 s wait (the ETA scales the planned time left)
     assert rates[5] < 1.6 * rates[4], rates
+
+
+def test_eta_leaves_out_the_first_steps_one_off_start(tmp_path):
+    # helper review, session 34: a resumed run's first ETA read 103 s for ~5 s of work; the
+    # first step carries the start (bench, digitizer set-up), here made 3 s long
+    from pelvislab.acquisition.protocol import load_protocol
+
+    protocol = tmp_path / "p.toml"
+    protocol.write_text(PROTOCOL)
+    plan = load_protocol(protocol).steps()
+    estimate = [load_protocol(protocol).step_duration_s(s.frequency_hz) for s in plan]
+    bench = sim_bench.open_simulated_bench(generators="python")
+    rates = {}
+    with prepare_session(protocol, tmp_path / "s.h5", bench=bench) as session:
+        def listen(event):
+            name = type(event).__name__
+            if name == "StepStarted" and event.n_done == 0:
+                time.sleep(3.0)
+            elif name == "Progress" and event.n_done in (2, 6):
+                rates[event.n_done] = event.eta_s / sum(estimate[event.n_done:])
+        session.runner.subscribe(listen)
+        assert session.run().status == "completed"
+    assert rates[2] < 1.6 * rates[6], rates
