@@ -267,9 +267,14 @@ class ReplayView(QtWidgets.QWidget):
         try:
             reader: Any = SessionReader(path)
         except SessionFileError as exc:
-            if "schema 'pelvislab-frf'" not in str(exc):
+            if " has schema " not in str(exc):  # unreadable, in use, another version
                 raise
-            reader = _FrfOnlyFile(Path(path))  # identify, ema and gap read these too
+            # not a session: an FRF-only file, which identify, ema and gap read too; design
+            # 4.2 puts its schema on /frf, so another tool's file may have none at the root
+            try:
+                reader = _FrfOnlyFile(Path(path))
+            except Exception:
+                raise exc from None  # neither: the session reader's reason
         try:
             steps = list(reader.steps(include_incomplete=True, with_echoes=False))
         except Exception:

@@ -64,3 +64,12 @@ def test_frf_only_file_replays_its_frfs(operator_window, tmp_path):
     assert "FRF-only file" in replay.file_label.text()
     assert replay.tabs.currentWidget() is replay.frf and replay.steps == []
     assert replay.current_step() is None
+    # another tool's file with the schema on /frf only (design 4.2), none at the root
+    # (helper review, session 34: refused as "has schema ''")
+    import h5py
+
+    with h5py.File(path, "r+") as f:
+        for key in list(f.attrs):
+            del f.attrs[key]
+    assert window.open_replay(path) is True
+    assert "FRF-only file" in window.replay.file_label.text()
