@@ -27,3 +27,11 @@ def test_interrupted_run_stage_stops_the_demo_with_130_and_names_the_kept_sessio
     assert "FAILED" not in out + err
     assert "identify" not in out.split("simulated session")[1]  # no later stage started
     assert "demo finished" not in out
+
+
+def test_out_naming_a_file_is_refused_plainly(tmp_path, capsys):
+    target = tmp_path / "demo.h5"
+    target.write_text("not a folder")
+    assert main(["demo", "--out", str(target)]) == 1
+    assert "exists and is not a folder" in capsys.readouterr().err
+    assert target.read_text() == "not a folder"

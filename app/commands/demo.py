@@ -104,6 +104,9 @@ def run_demo(args: argparse.Namespace) -> int:
 def _fresh_folder(out: Path) -> Path:
     """``out``, or ``out/run-N`` when ``out`` already holds a demo session: sessions are
     never overwritten, so a second ``make demo`` writes next to the first."""
+    if out.exists() and not out.is_dir():
+        raise NotADirectoryError(f"{out} exists and is not a folder: --out names the folder "
+                                 "for the demo's results")
     if not (out / "session.h5").exists():
         return out
     n = 2
