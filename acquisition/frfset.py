@@ -199,6 +199,16 @@ def _dataset(group: h5py.Group, name: str) -> h5py.Dataset:
     return item
 
 
+def _real_array(group: h5py.Group, name: str) -> np.ndarray:
+    """The dataset ``name`` of ``group`` as float64; a dataset of another kind (strings, a
+    compound) is refused with its name rather than numpy's conversion error."""
+    dataset = _dataset(group, name)
+    if dataset.dtype.kind not in "biuf":
+        raise FrfFileError(f"{group.name}/{name} holds {dataset.dtype} values, expected "
+                           "real numbers")
+    return np.asarray(dataset[()], dtype=float)
+
+
 def _read_complex(dataset: h5py.Dataset) -> np.ndarray:
     """``H`` (design 4.2: complex128). HDF5 has no complex type: writers store a compound of
     two floats, h5py as ("r", "i"), other tools as ("real", "imag"), ("re", "im") ...; a
@@ -267,14 +277,14 @@ def read_frf_group(group: h5py.Group) -> FrfSet:
         # would be identified, fitted and diagnosed as a wrong receptance without a word
         raise FrfFileError(f"{group.name} has units {units!r}; pelvislab reads receptance "
                            "in m/N (design 4.2): convert the FRFs first")
-    frequency = np.asarray(_dataset(group, "frequency_hz")[()], dtype=float).reshape(-1)
+    frequency = _real_array(group, "frequency_hz").reshape(-1)
     H = _read_complex(_dataset(group, "H"))
     attrs = {k: group.attrs[k] for k in group.attrs if k not in ("schema", "schema_version")}
     for name in ("outputs", "inputs"):
         if name not in group:
             raise FrfFileError(f"{group.name} lacks the group {name!r}")
-    H_std = np.asarray(_dataset(group, "H_std")[()], dtype=float) if "H_std" in group else None
-    acquired = (np.asarray(_dataset(group, "acquired_at_s")[()], dtype=float).reshape(-1)
+    H_std = _real_array(group, "H_std") if "H_std" in group else None
+    acquired = (_real_array(group, "acquired_at_s").reshape(-1)
                 if "acquired_at_s" in group else None)
     if frequency.size > 1 and frequency.size == H.shape[0] and np.all(np.isfinite(frequency)):
         order = np.argsort(frequency, kind="stable")

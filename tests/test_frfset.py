@@ -68,3 +68,15 @@ def test_shape_mismatch_rejected():
 def test_non_unit_direction_rejected():
     with pytest.raises(FrfFileError, match="unit vectors"):
         Channels(["a"], ["sacrum"], [[0, 0, 0]], [[0, 0, 2.0]])
+
+
+@pytest.mark.parametrize("name", ["frequency_hz", "H_std", "acquired_at_s"])
+def test_a_dataset_of_text_is_named_not_a_conversion_error(tmp_path, name):
+    # helper review, session 34: "could not convert string to float: np.bytes_(b'a')"
+    write_frf(tmp_path / "f.h5", _frfset())
+    with h5py.File(tmp_path / "f.h5", "a") as h:
+        shape = h["frf"][name].shape
+        del h["frf"][name]
+        h["frf"].create_dataset(name, data=np.full(shape, b"a"))
+    with pytest.raises(FrfFileError, match=f"/frf/{name} holds .* values, expected real"):
+        read_frf(tmp_path / "f.h5")
