@@ -370,7 +370,7 @@ def read_uff(path: str | Path, points: dict[int, PointInfo] | None = None
     if not path.is_file():
         raise FileNotFoundError(f"no such file: {path}")
     with open(path, "rb") as handle:  # every dataset ends with a line "    -1"
-        head = handle.read(64)
+        head = handle.read(4096)  # the first line, past any blank lines before it
         handle.seek(max(0, path.stat().st_size - 64))
         tail = handle.read().rstrip(b" \t\r\n\x00")
     # what the file is when it is no UFF at all, before guessing at a truncation

@@ -271,10 +271,13 @@ class ReplayView(QtWidgets.QWidget):
                 raise
             # not a session: an FRF-only file, which identify, ema and gap read too; design
             # 4.2 puts its schema on /frf, so another tool's file may have none at the root
-            try:
-                reader = _FrfOnlyFile(Path(path))
-            except Exception:
-                raise exc from None  # neither: the session reader's reason
+            if "schema 'pelvislab-frf'" in str(exc):
+                reader = _FrfOnlyFile(Path(path))  # a bad one: its own reason
+            else:
+                try:
+                    reader = _FrfOnlyFile(Path(path))
+                except Exception:
+                    raise exc from None  # neither: the session reader's reason
         try:
             steps = list(reader.steps(include_incomplete=True, with_echoes=False))
         except Exception:

@@ -16,7 +16,6 @@ from pathlib import Path
 from pelvislab.app.errors import NotImplementedCommand
 
 DEMO_PROTOCOL = "demo.toml"
-EXIT_INTERRUPTED = 130  # as every command: Ctrl-C, SIGTERM, SIGHUP
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -48,7 +47,7 @@ def _stages(out: Path, protocol: Path) -> list[tuple[str, list[str], Path | None
 def run_demo(args: argparse.Namespace) -> int:
     """Run every built stage; exit non-zero only when a built stage fails (1) or is
     interrupted (130, and the later stages are not run)."""
-    from pelvislab.app.cli import build_parser
+    from pelvislab.app.cli import EXIT_INTERRUPTED, build_parser
 
     out = _fresh_folder(Path(args.out))
     out.mkdir(parents=True, exist_ok=True)
