@@ -319,6 +319,11 @@ class Agilent33220A(SCPIInstrument):
             self.write("OUTP OFF")
             self.voltage_unit = "vpp"
             self.write(f"OUTP:LOAD {_load_token(self.load_ohm)}")
+        if not reset or self.load_ohm != 50.0:
+            # the levels are *RST's only after a reset into *RST's 50 ohm load: the
+            # instrument rescales the displayed amplitude to another one (0.1 Vpp reads
+            # 0.2 Vpp at high Z), and without a reset they are whatever was left
+            self._forget_levels()
         if external_reference:
             # Option 001 (external timebase) is the only way to know about the lock; a
             # 33220A without it refuses the command (an error, not a silence).
@@ -343,8 +348,18 @@ class Agilent33220A(SCPIInstrument):
             with self.configuration(context):
                 yield
         except BaseException:
+            # what the instrument holds is unknown now (a VOLT may have been executed
+            # before the error, e.g. a timeout on SYST:ERR?): the next block sends the
+            # levels again instead of skipping them as unchanged (helper review, session 34:
+            # 4 Vpp stayed set after a failed block, and a retry at 1 Vpp sent no VOLT)
+            self._forget_levels()
             self.safe_state()
             raise
+
+    def _forget_levels(self) -> None:
+        """Mark amplitude and offset unknown: the next configuration sends both."""
+        self._state["amplitude_vpp"] = None
+        self._state["offset_v"] = None
 
     def _error_for(self, errors: list[tuple[int, str]], context: str) -> InstrumentError:
         base = super()._error_for(errors, context)
@@ -360,7 +375,11 @@ class Agilent33220A(SCPIInstrument):
         amp_cmd = f"VOLT {format_number(amplitude_vpp)}"
         off_cmd = f"VOLT:OFFS {format_number(offset_v)}"
         cmds: list[str] = []
-        if amplitude_vpp != old_amp and offset_v != old_off:
+        if old_amp is None or old_off is None:
+            # levels unknown: offset 0 is valid with any amplitude the instrument holds,
+            # then the amplitude, then the offset (each state valid)
+            cmds = ["VOLT:OFFS 0", amp_cmd] + ([off_cmd] if offset_v != 0 else [])
+        elif amplitude_vpp != old_amp and offset_v != old_off:
             if abs(old_off) + amplitude_vpp / 2 <= vmax:
                 cmds = [amp_cmd, off_cmd]
             elif abs(offset_v) + old_amp / 2 <= vmax:
@@ -402,6 +421,9 @@ class Agilent33220A(SCPIInstrument):
 
     def set_amplitude(self, amplitude_vpp: float) -> None:
         """New amplitude (Vpp) with the present offset."""
+        if self._state["offset_v"] is None:
+            raise DriverError(f"{self.model} {self.resource}: the offset is unknown after a "
+                              "failed configuration; configure the waveform again first")
         check_amplitude_offset(amplitude_vpp, self._state["offset_v"], self.load_ohm,
                                self.max_vpp)
         with self._operation("set_amplitude"):
@@ -511,8 +533,13 @@ class Agilent33220A(SCPIInstrument):
         self.clear_if_interrupted()  # so that a late answer cannot be mistaken later
         try:
             self.write("OUTP OFF")
+            # a write that went out is not an executed command: asked back, so that "outputs
+            # off" is said only when the instrument says so (helper review, session 34)
+            answer = self.ask("OUTP?").strip()
+            if answer not in ("0", "+0", "OFF"):
+                raise InstrumentError(f"OUTP? answered {answer!r} after OUTP OFF")
         except BaseException as exc:  # the caller is already handling a failure
-            msg = f"{self.model} {self.resource}: OUTP OFF failed: {exc}"
+            msg = f"{self.model} {self.resource}: OUTP OFF not confirmed: {exc}"
             self.safe_state_errors.append(msg)
             log.error(msg)
             if not isinstance(exc, Exception):
