@@ -588,10 +588,15 @@ class Runner:
             if on:
                 self._check()  # never switch on after an abort
                 self.bench.drive.output_on()
+                # an abort that could not wait for this lock (50 ms) may have put both off
+                # meanwhile: do not switch the trigger back on after it
+                self._check()
                 self.bench.trigger.output_on()
             else:
-                self.bench.drive.output_off()
-                self.bench.trigger.output_off()
+                try:
+                    self.bench.drive.output_off()
+                finally:  # the trigger off even when the drive's OFF raised
+                    self.bench.trigger.output_off()
 
     def _wait_prompt(self, setup_index: int, setup: Setup) -> None:
         transducers = ", ".join(f"ch{c} -> {p}" for c, p in sorted(setup.transducers.items()))
@@ -756,8 +761,14 @@ class Runner:
             with self._lock:
                 self._check()
                 bench.drive.configure_sine(first.frequency_hz, level)
-            self._generators(True)
             setup_channels = tuple(sorted(setup.transducers))
+            # the trigger generator configured before its output goes on: in its *RST state
+            # (a 1 kHz continuous sine) it would fire the pulsers and the digitizer (helper
+            # review, session 34)
+            if (first.n_pulses, setup_channels) != configured:
+                self._configure(first, setup_channels)
+                configured = (first.n_pulses, setup_channels)
+            self._generators(True)
             for step in steps:
                 self._check()
                 if self._maybe_pause():

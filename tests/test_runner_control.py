@@ -254,6 +254,11 @@ def test_complete_run_events_and_frf(tmp_path):
         assert any("auto-continued" in line for line in reader.log_lines())
         logs = reader.handle["runs/000/command_logs/drive/text"][()]
         assert b"OUTP OFF" in list(logs)
+        # the trigger generator is configured (pulse burst) before its output goes on: in
+        # its *RST state it would fire the pulsers (helper review, session 34)
+        trig = [bytes(t) for t in reader.handle["runs/000/command_logs/trigger/text"][()]]
+        burst = next(i for i, t in enumerate(trig) if t.startswith(b"BURS"))
+        assert burst < trig.index(b"OUTP ON"), trig[:10]
     # the stored FRF is the receptance the test bench applied (ch. 8 accuracy: a few %)
     for i, f in enumerate(frf.frequency_hz):
         for o, name in enumerate(frf.outputs.name):
