@@ -17,6 +17,7 @@ section 2 to instruments and resources::
 
     [trigger]                         # Agilent 33220A #1, pulse-repetition trigger
     resource = "USB0::0x0957::0x0407::MY00000001::INSTR"
+    load_ohm = 50
     [drive]                           # Agilent 33220A #2, shaker drive
     resource = "USB0::0x0957::0x0407::MY00000002::INSTR"
     load_ohm = "inf"
@@ -262,6 +263,13 @@ class BenchConfig:
                 raise err(f"{label}.resource", "must be a non-empty string")
             if "load_ohm" in opts:
                 _load_ohm(opts["load_ohm"], f"{label}.load_ohm", err)
+            elif driver == "agilent33220a":
+                # the limits apply to the voltage the generator shows for its declared load;
+                # a high-impedance input behind a silent 50 ohm default sees twice that
+                # (helper review, session 34): no default, the file says which it is
+                raise err(f"{label}.load_ohm", "missing: the load this generator drives, "
+                          "50 (a 50 ohm input) or \"inf\" (high impedance, e.g. an "
+                          "amplifier); the voltage limits apply to the voltage shown for it")
             return InstrumentConfig(role=label, driver=driver, resource=resource, options=opts)
 
         roles: dict[str, InstrumentConfig | None] = {}

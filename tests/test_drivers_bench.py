@@ -69,6 +69,9 @@ def test_good_bench_file_parses(tmp_path):
         (('"8.5-0.4j"', '"eight"'), "calibration.drive_newton_per_volt"),
         (('resource = "PCI::INSTR0"', 'resourc = "PCI::INSTR0"'), "digitizer.resourc"),
         (('load_ohm = "inf"', 'load_ohm = "open"'), "drive.load_ohm"),
+        # no silent 50 ohm: a high-Z amplifier behind it would see twice the limit
+        (('load_ohm = "inf"\n', ''), "drive.load_ohm"),
+        (("load_ohm = 50\n", ""), "trigger.load_ohm"),
         (("2 = 1600.0", "zero = 1600.0"), "calibration.channel_speed_of_sound_m_s.zero"),
         (('[digitizer]\nresource = "PCI::INSTR0"', '[digitizer]\nresource = "PCI::INSTR0"\n'
           'driver = "tektronix"'), "digitizer.driver"),
