@@ -329,10 +329,20 @@ class Agilent33220A(SCPIInstrument):
             # 33220A without it refuses the command (an error, not a silence).
             self.unlock_error_enabled = True
             errors = self.read_errors()
-            self.has_option_001 = not errors
-            if errors:
+            unlocked = [e for e in errors
+                        if e[0] == REFERENCE_UNLOCKED_CODE or "unlock" in e[1].lower()]
+            # only a refused command means no option 001; error 580 means the option is
+            # there and the 10 MHz reference is not locked (cable out), which was taken
+            # for "no option" and never reported (helper review, session 34)
+            self.has_option_001 = len(unlocked) == len(errors)
+            if not self.has_option_001:
                 log.info("%s: no option 001 (%s): reference lock cannot be reported",
                          self.resource, errors)
+            elif unlocked:
+                raise ReferenceUnlockedError(
+                    f"{self.model} {self.resource}: not locked to the external 10 MHz "
+                    f"reference at open ({unlocked}): check the reference cable, or declare "
+                    "external_reference = false for this generator")
 
     # ---- helpers -----------------------------------------------------------------------
     def _check_open(self) -> None:

@@ -430,3 +430,14 @@ def test_safe_state_asks_whether_the_output_is_off():
     g2.safe_state()
     t2.assert_done()
     assert g2.safe_state_errors == []
+
+
+def test_an_unlocked_reference_at_open_is_reported_not_taken_for_no_option_001():
+    script = open_script()[:-1] + [("SYST:ERR?", '+580,"Reference phase-locked loop is '
+                                    'unlocked"'), ("SYST:ERR?", OK),
+                                   ("OUTP OFF", None), ("OUTP?", "0")]
+    t = ScriptedTransport(script)
+    with pytest.raises(ReferenceUnlockedError, match="not locked to the external 10 MHz"):
+        Agilent33220A(t, "FAKE::INSTR", load_ohm=50.0)
+    t.assert_done()
+    assert t.closed  # and its output was put off and confirmed first
