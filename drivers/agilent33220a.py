@@ -269,9 +269,13 @@ class Agilent33220A(SCPIInstrument):
                  load_ohm: float = 50.0, max_vpp: float | None = None,
                  external_reference: bool = True, reset: bool = True) -> None:
         super().__init__(transport, resource)
-        self.load_ohm = _parse_load(load_ohm)
-        if max_vpp is not None and not (math.isfinite(max_vpp) and max_vpp > 0):
-            raise LimitError(f"max_vpp must be a positive number, got {max_vpp!r}")
+        try:
+            self.load_ohm = _parse_load(load_ohm)
+            if max_vpp is not None and not (math.isfinite(max_vpp) and max_vpp > 0):
+                raise LimitError(f"max_vpp must be a positive number, got {max_vpp!r}")
+        except BaseException:
+            transport.close()  # nothing was sent; the connection is not left open
+            raise
         self.max_vpp = max_vpp
         self.identity = ""
         self.has_option_001: bool | None = None
@@ -291,8 +295,9 @@ class Agilent33220A(SCPIInstrument):
              visa_library: str = "") -> Agilent33220A:
         """Open a 33220A by VISA resource name (``visa_library="x.yaml@sim"`` for
         pyvisa-sim), reset it, set VPP units and the declared load."""
+        load = _parse_load(load_ohm)  # refused before a connection is opened
         transport = VisaTransport(resource, timeout_s=timeout_s, visa_library=visa_library)
-        return cls(transport, resource, load_ohm=_parse_load(load_ohm), max_vpp=max_vpp,
+        return cls(transport, resource, load_ohm=load, max_vpp=max_vpp,
                    external_reference=external_reference)
 
     def _initialise(self, reset: bool, external_reference: bool) -> None:

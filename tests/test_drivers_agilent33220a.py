@@ -441,3 +441,10 @@ def test_an_unlocked_reference_at_open_is_reported_not_taken_for_no_option_001()
         Agilent33220A(t, "FAKE::INSTR", load_ohm=50.0)
     t.assert_done()
     assert t.closed  # and its output was put off and confirmed first
+
+
+def test_bad_limits_at_construction_close_the_connection():
+    t = ScriptedTransport([])
+    with pytest.raises(LimitError, match="max_vpp"):
+        Agilent33220A(t, "FAKE::INSTR", max_vpp=-1.0)
+    assert t.closed and t.sent == []
