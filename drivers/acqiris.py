@@ -312,7 +312,8 @@ class AcqirisDigitizer:
         if not (math.isfinite(sample_rate_hz) and 0 < sample_rate_hz <= fs_max):
             raise LimitError(f"sample_rate_hz {sample_rate_hz!r} outside (0, 500e6]")
         for name, v in (("n_samples", n_samples), ("n_segments", n_segments)):
-            if isinstance(v, bool) or int(v) != v or v < 1:
+            if (isinstance(v, bool) or not isinstance(v, (int, float))
+                    or not math.isfinite(v) or int(v) != v or v < 1):
                 raise LimitError(f"{name} must be a positive integer, got {v!r}")
         lo, hi = DP235_FULL_SCALE_V
         if not lo <= full_scale_v <= hi:
@@ -321,6 +322,9 @@ class AcqirisDigitizer:
             raise LimitError("delay_s and offset_v must be finite")
         self._stop_if_running()
         s = self._session()
+        # a configuration that fails part way leaves the card's settings mixed: acquire
+        # refuses until one succeeds, instead of reading with the previous shape
+        self._config = None
         self._call("AcqrsD1_configHorizontal", s, ViReal64(1.0 / sample_rate_hz),
                    ViReal64(delay_s))
         for ch in chans:

@@ -15,6 +15,7 @@ from pelvislab.drivers.acqiris import (
     AcqirisError,
 )
 from pelvislab.drivers.interfaces import (
+    DriverError,
     InstrumentConnectionError,
     InstrumentTimeoutError,
     LimitError,
@@ -197,6 +198,17 @@ def test_every_nonzero_status_raises_with_the_vendor_message():
     dig = open_fake(fake)
     with pytest.raises(AcqirisError, match="configMemory .*The instrument reported error"):
         dig.configure_sequence([1], 500e6, 100, 10, 0.0, 1.0)
+    # after a good configuration, one that fails part way leaves the card's settings
+    # mixed: no acquisition with the previous shape (helper review, session 34)
+    fake.fail = {}
+    dig.configure_sequence([1], 500e6, 100, 10, 0.0, 1.0)
+    fake.fail = {"AcqrsD1_configMemory": -1074115840}
+    with pytest.raises(AcqirisError):
+        dig.configure_sequence([1], 500e6, 200, 10, 0.0, 1.0)
+    with pytest.raises(DriverError, match="configure_sequence"):
+        dig.acquire(1.0)
+    with pytest.raises(LimitError, match="n_samples"):
+        dig.configure_sequence([1], 500e6, float("nan"), 10, 0.0, 1.0)
     # a warning (positive status, e.g. setup adapted) is not silently accepted either
     fake.fail = {"AcqrsD1_configHorizontal": 0x3FFA4E00}
     with pytest.raises(AcqirisError, match="0x3FFA4E00"):
