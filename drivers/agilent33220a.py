@@ -470,14 +470,20 @@ class Agilent33220A(SCPIInstrument):
         Agilent33220A.trigger_slope.validate(slope)
         with self._operation("configure_pulse_burst"):
             self.function = "pulse"
-            # Order width/period/edge so that no intermediate state breaks a pulse rule.
-            old_w = self._state["width_s"]
+            # Order width/period/edge so that no intermediate state breaks a pulse rule: a
+            # shorter edge first (a narrower width may need it: edge <= 0.625 x width), a
+            # longer one last (helper review, session 34: always last gave -221 when the
+            # old edge did not fit the new width)
+            old_w, old_e = self._state["width_s"], self._state["edge_s"]
+            if edge_s < old_e:
+                self.pulse_edge_s = edge_s
             if width_s < old_w:
                 self.pulse_width_s = width_s
             self.pulse_period_s = period_s
             if width_s >= old_w:
                 self.pulse_width_s = width_s
-            self.pulse_edge_s = edge_s
+            if edge_s >= old_e:
+                self.pulse_edge_s = edge_s
             for c in self._amp_offset_commands(amplitude_vpp, offset_v):
                 self.write(c)
             self.trigger_source = "external"

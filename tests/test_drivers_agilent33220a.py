@@ -448,3 +448,18 @@ def test_bad_limits_at_construction_close_the_connection():
     with pytest.raises(LimitError, match="max_vpp"):
         Agilent33220A(t, "FAKE::INSTR", max_vpp=-1.0)
     assert t.closed and t.sent == []
+
+
+def test_a_narrower_pulse_gets_its_shorter_edge_first():
+    # edge <= 0.625 x width at every step: from 1 us / 100 ns to 100 ns / 5 ns the edge
+    # must shrink before the width (helper review, session 34: edge last gave -221)
+    tail = [("TRIG:SOUR EXT", None), ("TRIG:SLOP POS", None), ("BURS:MODE TRIG", None),
+            ("BURS:NCYC 2000", None), ("BURS:STAT ON", None), ("SYST:ERR?", OK)]
+    g, t = make([("FUNC PULS", None), ("FUNC:PULS:WIDT 1E-06", None),
+                 ("PULS:PER 0.0002", None), ("FUNC:PULS:TRAN 1E-07", None),
+                 ("VOLT 5", None), ("VOLT:OFFS 2.5", None), *tail,
+                 ("FUNC PULS", None), ("FUNC:PULS:TRAN 5E-09", None),
+                 ("FUNC:PULS:WIDT 1E-07", None), ("PULS:PER 0.0002", None), *tail])
+    g.configure_pulse_burst(5000.0, 2000, 1e-6, 5.0, edge_s=100e-9)
+    g.configure_pulse_burst(5000.0, 2000, 100e-9, 5.0, edge_s=5e-9)
+    t.assert_done()
