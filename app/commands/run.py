@@ -98,12 +98,19 @@ class ConsoleProgress:
     def __call__(self, event: Any) -> None:
         from pelvislab.acquisition import runner as r
 
+        if isinstance(event, r.RunFinished):
+            if self._bar:  # end the open line (bar, or an unanswered prompt) before the
+                self.stream.write("\n")  # command's own last line
+                self.stream.flush()
+                self._bar = False
+            return
         if isinstance(event, r.OperatorPrompt):
             if self.wait_prompts:
                 self._line(f"PROMPT: {event.message}")
                 self.stream.write("press Enter when the transducers are in place (Ctrl-C "
                                   "aborts) ")
                 self.stream.flush()
+                self._bar = True  # a line left open: the next one starts on its own
                 # read in a thread: blocked in this listener, the runner could not see an
                 # abort (Ctrl-C, SIGTERM) until Enter; its own wait does (_wait_prompt)
                 threading.Thread(target=self._answer, name="pelvislab-prompt",
@@ -141,8 +148,6 @@ class ConsoleProgress:
             if event.text.startswith(("run interrupted:", "run aborted:", "run failed:")):
                 return  # the run's closing log line: the command's last line says it
             self._line(f"{event.level.lower()}: {event.text}")
-        elif isinstance(event, r.RunFinished) and self._bar:
-            self._line("")
 
 
 # --------------------------------------------------------------------------- run
