@@ -48,6 +48,7 @@ def test_gap_diagnose_refuses_an_existing_plot_before_the_diagnosis(tmp_path, ca
     ["model", "frf", "--points", "sacrum_x", "--out", "{nodir}/m.h5"],
     ["export-uff", "{missing}", "{nodir}/x.uff"],
     ["ema", "{missing}", "--json", "{nodir}/e.json"],
+    ["gap", "benchmark", "--json", "{nodir}/b.json", "--cases", "1"],  # it made the folders
 ])
 def test_missing_output_folder_is_said_plainly_before_any_work(tmp_path, capsys, argv):
     """Helper review, session 34: these commands did the work first, then failed with

@@ -389,9 +389,7 @@ def _benchmark(args: argparse.Namespace) -> int:
         if unknown:
             raise ValueError(f"--kinds: unknown {', '.join(unknown)}; choose from none, "
                              f"{', '.join(EFFECT_NAMES)}")
-    out = Path(args.json)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    check_new_output(out)
+    out = check_new_output(args.json)  # a missing folder refused, as by every command
     keep_freed_memory_for_reuse()
     # test-side generators (may use the simulator); see the module docstring for why
     from pelvislab.tests.benchmarks.bench_gap import make_chain_generator, make_generator
