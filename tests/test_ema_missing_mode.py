@@ -32,6 +32,15 @@ def _noisy(H0, rng):
     return H0 + std * e, std
 
 
+def _heavily_damped_middle_mode(trial):
+    """Draw ``trial``: a 25 % damped mode at 150 Hz between two 1 % modes (60, 240 Hz), as
+    strong as they (its shape x5), with 1 % noise; returns (H, H_std)."""
+    rng = np.random.default_rng([33, trial])
+    shapes = rng.normal(size=(5, 3))
+    shapes[:, 1] *= 5.0
+    return _noisy(_modal_frf([60, 150, 240], [0.01, 0.25, 0.01], shapes), rng)
+
+
 def test_a_heavily_damped_mode_left_out_is_noted_where_it_is():
     """A 25 % damped mode at 150 Hz between two 1 % modes, as strong as they (shape x5):
     over 8 noise and shape draws the selection leaves it out in most (it does not
@@ -39,10 +48,7 @@ def test_a_heavily_damped_mode_left_out_is_noted_where_it_is():
     found there is no such note."""
     missed = 0
     for trial in range(8):
-        rng = np.random.default_rng([33, trial])
-        shapes = rng.normal(size=(5, 3))
-        shapes[:, 1] *= 5.0
-        H, std = _noisy(_modal_frf([60, 150, 240], [0.01, 0.25, 0.01], shapes), rng)
+        H, std = _heavily_damped_middle_mode(trial)
         result = ema(F_HZ, H, H_std=std)
         notes = [n for n in result.notes if "away from every mode found" in n]
         if np.any(np.abs(result.frequency_hz - 150) < 10):
@@ -88,10 +94,7 @@ def test_the_note_warns_that_refined_poles_assumed_every_mode_selected():
     """With ``refine`` the same note says the refined poles are suspect (docs/ema.md: a
     mode left out pulls them); without it, it does not."""
     for trial in range(8):
-        rng = np.random.default_rng([33, trial])
-        shapes = rng.normal(size=(5, 3))
-        shapes[:, 1] *= 5.0
-        H, std = _noisy(_modal_frf([60, 150, 240], [0.01, 0.25, 0.01], shapes), rng)
+        H, std = _heavily_damped_middle_mode(trial)
         plain = ema(F_HZ, H, H_std=std)
         if np.any(np.abs(plain.frequency_hz - 150) < 10):
             continue  # found: no note to check

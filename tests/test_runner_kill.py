@@ -276,15 +276,20 @@ def test_completed_run_exits_0_when_nobody_reads_stderr_any_more(tmp_path):
         assert reader.status[0] == "completed"
 
 
-def test_eta_leaves_out_the_time_at_an_operator_prompt(tmp_path):
-    # before: a prompt answered after 6 s made the ETA jump from 15 to 32 s
+def _eta_run(tmp_path):
+    """The ETA tests' protocol file, its planned step durations (s) and a simulated bench."""
     from pelvislab.acquisition.protocol import load_protocol
 
     protocol = tmp_path / "p.toml"
     protocol.write_text(PROTOCOL)
-    plan = load_protocol(protocol).steps()
-    estimate = [load_protocol(protocol).step_duration_s(s.frequency_hz) for s in plan]
-    bench = sim_bench.open_simulated_bench(generators="python")
+    loaded = load_protocol(protocol)
+    estimate = [loaded.step_duration_s(s.frequency_hz) for s in loaded.steps()]
+    return protocol, estimate, sim_bench.open_simulated_bench(generators="python")
+
+
+def test_eta_leaves_out_the_time_at_an_operator_prompt(tmp_path):
+    # before: a prompt answered after 6 s made the ETA jump from 15 to 32 s
+    protocol, estimate, bench = _eta_run(tmp_path)
     rates = {}
     with prepare_session(protocol, tmp_path / "s.h5", bench=bench,
                          auto_continue=False) as session:
@@ -307,13 +312,7 @@ def test_eta_leaves_out_the_time_at_an_operator_prompt(tmp_path):
 def test_eta_leaves_out_the_first_steps_one_off_start(tmp_path):
     # helper review, session 34: a resumed run's first ETA read 103 s for ~5 s of work; the
     # first step carries the start (bench, digitizer set-up), here made 3 s long
-    from pelvislab.acquisition.protocol import load_protocol
-
-    protocol = tmp_path / "p.toml"
-    protocol.write_text(PROTOCOL)
-    plan = load_protocol(protocol).steps()
-    estimate = [load_protocol(protocol).step_duration_s(s.frequency_hz) for s in plan]
-    bench = sim_bench.open_simulated_bench(generators="python")
+    protocol, estimate, bench = _eta_run(tmp_path)
     rates = {}
     with prepare_session(protocol, tmp_path / "s.h5", bench=bench) as session:
         def listen(event):
