@@ -123,6 +123,14 @@ def identify_modal(
     if data.shapes.shape[0] != O.shape[0]:
         raise ValueError(
             f"measured shapes have {data.shapes.shape[0]} points, model outputs {O.shape[0]}")
+    n_modes = data.frequency_hz.size
+    n_residuals = n_modes * (1 + O.shape[0])  # a frequency and a shape per mode
+    if n_residuals < len(free):
+        # more unknowns than equations: the fit would return one of many solutions
+        raise ValueError(
+            f"{n_modes} mode(s) at {O.shape[0]} output(s) give {n_residuals} residuals "
+            f"(a frequency and a shape per mode), fewer than the {len(free)} parameters "
+            "to update; free fewer parameters or measure more modes")
     w2_meas = (2 * np.pi * data.frequency_hz) ** 2
     phi_meas = data.shapes / np.linalg.norm(data.shapes, axis=0)
     evals = [0]

@@ -84,3 +84,18 @@ def test_shape_mismatch_is_an_error() -> None:
     p = full_observation()
     with pytest.raises(ValueError, match="points"):
         identify_modal(p, ModalData(np.array([10.0]), np.ones((2, 1))))
+
+
+def test_fewer_modal_residuals_than_parameters_are_refused() -> None:
+    # one mode seen at 4 points gives 5 equations; 7 unknowns have no unique answer
+    # (helper review, session 34: `identify --method modal` had no such check)
+    p = full_observation()
+    m = p.assemble(p.nominal)
+    lam, Z = undamped_modes(m.M, m.K)
+    one_mode = ModalData(np.sqrt(lam[:1]) / (2 * np.pi), Z[:, :1])
+    every = [n for n in p.names if n != "c"]
+    assert len(every) > 5
+    with pytest.raises(ValueError, match="5 residuals .* fewer than the 8 parameters"):
+        identify_modal(p, one_mode, free=every, n_rigid=0)
+    springs = [n for n in p.names if n.startswith("k")]
+    identify_modal(p, one_mode, free=springs, n_rigid=0)  # 4 unknowns: answered
