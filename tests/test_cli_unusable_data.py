@@ -70,3 +70,46 @@ def test_an_unusable_h_std_is_ignored_with_a_note_not_taken_for_no_data(tmp_path
     doc = json.loads(out.read_text())
     assert doc["notes"] == ["H_std holds no positive finite value on the measured lines: "
                             "ignored"]
+
+
+@pytest.mark.parametrize("argv, where", [
+    (["identify", "{f}", "--json", "{o}.json", "--params", "k_io_R,c_sij_R"], "notes"),
+    (["ema", "{f}", "--json", "{o}.json"], "notes"),
+    (["export-uff", "{f}", "{o}.uff"], None),
+])
+def test_infinite_frf_values_are_named_not_dropped_without_a_word(tmp_path, capsys, argv,
+                                                                  where):
+    # helper review, session 34: export-uff left an infinite value out of the UFF file
+    # without a word (every analysis reads a non-finite value as a line not measured)
+    path = _model_file(tmp_path)
+    with h5py.File(path, "r") as f:
+        H = f["frf/H"][()]
+    H[7, 0, 0] = complex(np.inf, 0.0)
+    H[9, 1, 0] = complex(1e-6, -np.inf)
+    _edit(path, H=H)
+    capsys.readouterr()
+    code = main([a.format(f=path, o=tmp_path / "out") for a in argv])
+    err = capsys.readouterr().err
+    assert code == 0, err
+    message = "2 value(s) of /frf/H are infinite: read as not measured"
+    assert message in err, err
+    if where:
+        doc = json.loads((tmp_path / "out.json").read_text())
+        assert any(message in n for n in doc[where]), doc[where]
+
+
+def test_gap_diagnosis_names_infinite_frf_values(tmp_path, capsys):
+    path = _model_file(tmp_path)
+    with h5py.File(path, "r") as f:
+        H = f["frf/H"][()]
+    H[3, 0, 0] = complex(-np.inf, 1.0)
+    _edit(path, H=H)
+    out = tmp_path / "g.json"
+    code = main(["gap", "diagnose", str(path), "--json", str(out), "--no-plots",
+                 "--effects", "added_mass", "--jobs", "1"])
+    err = capsys.readouterr().err
+    assert code == 0, err
+    message = ("1 value(s) of /frf/H are infinite: read as not measured (as NaN), so those "
+               "lines are left out")
+    assert json.loads(out.read_text())["warnings"] == [message]
+    assert message in err

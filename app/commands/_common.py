@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 from pelvislab.app.errors import NotImplementedCommand
 
@@ -117,6 +118,24 @@ def require_response(H: object, what: str = "/frf/H") -> None:
     if not np.any(values[measured] != 0):
         raise ValueError(f"every measured value of {what} is exactly 0: no response to "
                          "analyse (a placeholder, or channels not connected?)")
+
+
+def infinite_as_unmeasured(frf: Any, what: str = "/frf/H") -> str | None:
+    """Set the infinite values of ``frf.H`` to NaN (not measured, design 4.2) and return a
+    note naming them, or ``None`` when there are none.
+
+    An infinite FRF value is a writer's fault (a division by a zero force, an overflow),
+    not a measurement: it is read as a line not measured, as every analysis reads NaN,
+    but said rather than dropped without a word, and no fit sees an infinity."""
+    import numpy as np
+
+    infinite = np.isinf(frf.H.real) | np.isinf(frf.H.imag)
+    n = int(infinite.sum())
+    if n == 0:
+        return None
+    frf.H = np.where(infinite, complex(np.nan, np.nan), frf.H)
+    return (f"{n} value(s) of {what} are infinite: read as not measured (as NaN), so those "
+            "lines are left out")
 
 
 def check_new_output(path: str | Path) -> Path:

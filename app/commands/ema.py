@@ -20,6 +20,7 @@ from pelvislab.app.commands._common import (
     check_new_output,
     comma_list,
     incomplete_session_warning,
+    infinite_as_unmeasured,
     require_response,
     write_json,
 )
@@ -254,6 +255,7 @@ def ema_file(path: Path, band_hz: tuple[float, float] | None = None,
     from pelvislab.model.ema import ema
 
     frf = read_frf(Path(path))
+    infinite_note = infinite_as_unmeasured(frf)
     require_response(frf.H)
     H_std, note = frf.H_std, None
     if H_std is not None:
@@ -264,8 +266,7 @@ def ema_file(path: Path, band_hz: tuple[float, float] | None = None,
                                  "lines: ignored (each FRF weighted by its RMS)")
     result = ema(frf.frequency_hz, frf.H, band_hz=band_hz, H_std=H_std,
                  max_order=max_order, frequencies_hz=frequencies_hz, refine=refine)
-    if note:
-        result.notes.insert(0, note)
+    result.notes[:0] = [n for n in (infinite_note, note) if n]
     return frf, result
 
 

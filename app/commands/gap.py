@@ -25,6 +25,7 @@ from pelvislab.app.commands._common import (
     check_new_output,
     comma_list,
     incomplete_session_warning,
+    infinite_as_unmeasured,
     keep_freed_memory_for_reuse,
     require_response,
     write_json,
@@ -139,7 +140,10 @@ def diagnose_file(path: str | Path, model_path: str | Path | None = None,
             raise ValueError(f"--{key.replace('_', '-')} must be a finite factor > 1, "
                              f"got {value}")
     frf = read_frf(path)
+    infinite_note = infinite_as_unmeasured(frf)
     H_std, warnings = usable_std(frf)
+    if infinite_note:
+        warnings.insert(0, infinite_note)
     model = load_model(model_path)
     if effects is not None:
         unknown = sorted(set(effects) - set(EFFECT_NAMES) - set(NULL_EXTENSIONS))

@@ -13,6 +13,7 @@ from pelvislab.app.commands._common import (
     check_new_output,
     comma_list,
     incomplete_session_warning,
+    infinite_as_unmeasured,
     require_response,
     write_json,
 )
@@ -98,6 +99,7 @@ def identify_file(path: str | Path, method: str = "frf", params: list[str] | Non
     from pelvislab.model.pelvis import load_model
 
     frf = read_frf(path)
+    infinite_note = infinite_as_unmeasured(frf)
     model = load_model(model_path)
     problem, _ = pelvis_problem(model, frf.outputs, frf.inputs, symmetric=symmetric)
     free = list(params) if params else None
@@ -155,8 +157,9 @@ def identify_file(path: str | Path, method: str = "frf", params: list[str] | Non
     doc.update(extra)
     doc["units"] = {"m_": "kg", "k_": "N/m", "c_": "N s/m", "f_": "1"}
     doc["source"] = str(path)
-    if std_note:
-        doc["notes"] = [std_note]
+    notes = [n for n in (infinite_note, std_note) if n]
+    if notes:
+        doc["notes"] = notes
     doc["model"] = model.name
     # The model's FRFs at the identified values, for measured-vs-model views.
     identified = dict(zip(result.names, np.asarray(result.values, dtype=float), strict=True))

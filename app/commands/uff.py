@@ -7,7 +7,11 @@ import json
 import sys
 from pathlib import Path
 
-from pelvislab.app.commands._common import check_new_output, incomplete_session_warning
+from pelvislab.app.commands._common import (
+    check_new_output,
+    incomplete_session_warning,
+    infinite_as_unmeasured,
+)
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -82,6 +86,9 @@ def run_export(args: argparse.Namespace) -> int:
 
     if not np.isfinite(frf.H).any():  # a file of geometry only, which import-uff refuses
         raise ValueError(f"{args.session} holds no measured FRF line yet: nothing to export")
+    infinite = infinite_as_unmeasured(frf)
+    if infinite:  # dataset 58 holds the measured lines only
+        print(f"warning: {infinite}", file=sys.stderr)
     modes = None
     if args.modes:
         modes = _modes_from_json(Path(args.modes), frf)
