@@ -22,6 +22,7 @@ import ctypes.util
 import logging
 import math
 import sys
+import threading
 import time
 from collections.abc import Sequence
 from typing import Any
@@ -41,6 +42,7 @@ __all__ = [
     "ACQIRIS_ERROR_ACQ_TIMEOUT",
     "AcqirisDigitizer",
     "AcqirisError",
+    "AcquisitionAbortedError",
     "AqDataDescriptor",
     "AqReadParameters",
     "AqSegmentDescriptor",
@@ -55,6 +57,10 @@ ViInt32 = ctypes.c_int32
 ViReal64 = ctypes.c_double
 
 ACQIRIS_ERROR_ACQ_TIMEOUT = -1074116352  # 0xBFFA4900, AcqirisErrorCodes.h
+
+WAIT_SLICE_MS = 200
+"""One ``waitForEndOfAcquisition`` call waits at most this long (the library allows up to
+10 s), so that an abort from another thread ends a wait within about this time."""
 
 # --- constants of the D1 API (AcqirisD1Interface.h) ---------------------------------------
 CLOCK_INTERNAL = 0
@@ -106,6 +112,11 @@ class AqSegmentDescriptor(ctypes.Structure):
 
     _fields_ = [("horPos", ctypes.c_double), ("timeStampLo", ctypes.c_uint32),
                 ("timeStampHi", ctypes.c_uint32)]
+
+
+class AcquisitionAbortedError(DriverError):
+    """:meth:`AcqirisDigitizer.acquire` ended by :meth:`AcqirisDigitizer.abort` from
+    another thread; no record is returned."""
 
 
 class AcqirisError(InstrumentError):
@@ -206,6 +217,7 @@ class AcqirisDigitizer:
         self._id: int | None = None
         self._config: dict[str, Any] | None = None
         self._running = False
+        self._abort_requested = threading.Event()
         self.segment_pad = 32
         session = ViSession(0)
         self._call("AcqrsD1_InitWithOptions", ctypes.c_char_p(resource.encode()),
@@ -356,6 +368,7 @@ class AcqirisDigitizer:
             raise LimitError(f"timeout_s must be > 0, got {timeout_s!r}")
         cfg = self._config
         s = self._session()
+        self._abort_requested.clear()
         try:
             self._call("AcqrsD1_acquire", s)
             self._running = True
@@ -367,17 +380,21 @@ class AcqirisDigitizer:
             raise
 
     def _wait(self, timeout_s: float) -> None:
-        # The library clips one wait to [0, 10000] ms: wait in chunks up to the total.
+        # Waits in slices up to the total (the library clips one wait to 10 s), checking
+        # between them for an abort from another thread: its stopAcquisition need not end
+        # a wait under way, and a stopped acquisition has no record worth reading.
         deadline = time.monotonic() + timeout_s
         while True:
             remaining_ms = int(math.ceil((deadline - time.monotonic()) * 1e3))
-            chunk = max(1, min(remaining_ms, 10_000))
+            chunk = max(1, min(remaining_ms, WAIT_SLICE_MS))
             try:
                 self._call("AcqrsD1_waitForEndOfAcquisition", self._session(), ViInt32(chunk))
+                self._raise_if_aborted()
                 return
             except AcqirisError as exc:
                 if exc.status != ACQIRIS_ERROR_ACQ_TIMEOUT:
                     raise
+                self._raise_if_aborted()
                 if time.monotonic() >= deadline:
                     cfg = self._config or {}
                     raise InstrumentTimeoutError(
@@ -385,6 +402,11 @@ class AcqirisDigitizer:
                         f"{cfg.get('n_segments')} segments not finished within "
                         f"{timeout_s:g} s (missing external triggers? check the trigger "
                         "generator output and cabling)") from exc
+
+    def _raise_if_aborted(self) -> None:
+        if self._abort_requested.is_set():
+            raise AcquisitionAbortedError(
+                f"{self.model} {self.resource}: acquisition aborted")
 
     def _read_channel(self, channel: int, cfg: dict[str, Any]) -> SegmentedRecord:
         n_samples, n_segments = cfg["n_samples"], cfg["n_segments"]
@@ -429,9 +451,12 @@ class AcqirisDigitizer:
             self.abort()
 
     def abort(self) -> None:
-        """Stop a running acquisition. Never raises (failures are logged)."""
+        """Stop a running acquisition, also from another thread: a wait under way in
+        :meth:`acquire` ends within :data:`WAIT_SLICE_MS` with
+        :class:`AcquisitionAbortedError`. Never raises (failures are logged)."""
         if self._id is None:
             return
+        self._abort_requested.set()
         try:
             self._call("AcqrsD1_stopAcquisition", self._session())
         except Exception as exc:

@@ -551,20 +551,22 @@ class Agilent33220A(SCPIInstrument):
         """Output off. Never raises (failures are logged and kept in safe_state_errors)."""
         if self._closed or not self._identified:
             return
-        self.clear_if_interrupted()  # so that a late answer cannot be mistaken later
-        try:
-            self.write("OUTP OFF")
-            # a write that went out is not an executed command: asked back, so that "outputs
-            # off" is said only when the instrument says so (helper review, session 34)
-            answer = self.ask("OUTP?").strip()
-            if answer not in ("0", "+0", "OFF"):
-                raise InstrumentError(f"OUTP? answered {answer!r} after OUTP OFF")
-        except BaseException as exc:  # the caller is already handling a failure
-            msg = f"{self.model} {self.resource}: OUTP OFF not confirmed: {exc}"
-            self.safe_state_errors.append(msg)
-            log.error(msg)
-            if not isinstance(exc, Exception):
-                raise
+        with self.safe_state_io():  # never between another thread's query and its answer
+            self.clear_if_interrupted()  # so that a late answer cannot be mistaken later
+            try:
+                self.write("OUTP OFF")
+                # a write that went out is not an executed command: asked back, so that
+                # "outputs off" is said only when the instrument says so (helper review,
+                # session 34)
+                answer = self.ask("OUTP?").strip()
+                if answer not in ("0", "+0", "OFF"):
+                    raise InstrumentError(f"OUTP? answered {answer!r} after OUTP OFF")
+            except BaseException as exc:  # the caller is already handling a failure
+                msg = f"{self.model} {self.resource}: OUTP OFF not confirmed: {exc}"
+                self.safe_state_errors.append(msg)
+                log.error(msg)
+                if not isinstance(exc, Exception):
+                    raise
 
     def close(self) -> None:
         """Output off, then release the connection. Idempotent."""

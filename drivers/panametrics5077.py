@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import logging
 import math
+import threading
 import time
 from collections.abc import Mapping
 from dataclasses import dataclass
@@ -159,6 +160,11 @@ class Panametrics5077PR:
         self.safe_state_errors: list[str] = []
         self.settings: dict[str, str] = {}
         self._closed = False
+        # one exchange at a time: a safe state from another thread (an abort) must not
+        # flush the run thread's answer (reset_input_buffer) or take it. It waits for the
+        # exchange under way, at most the port's timeout: unlike the generators' OUTP OFF,
+        # nothing is urgent here, the pulser fires only on the trigger, off by then.
+        self._io_lock = threading.RLock()
         self.identity = ""
         try:
             self.identity = self._query(COMMANDS["identify"].query or "")
@@ -191,6 +197,10 @@ class Panametrics5077PR:
 
     # ---- I/O ----------------------------------------------------------------------------
     def _exchange(self, text: str) -> str:
+        with self._io_lock:
+            return self._exchange_locked(text)
+
+    def _exchange_locked(self, text: str) -> str:
         if self._closed:
             raise DriverError(f"{self.model} {self.resource}: closed")
         self.command_log.append((time.monotonic(), text))
@@ -214,6 +224,10 @@ class Panametrics5077PR:
         return self._exchange(text)
 
     def _set(self, key: str, value: Any) -> None:
+        with self._io_lock:  # the setting and its read-back together
+            self._set_locked(key, value)
+
+    def _set_locked(self, key: str, value: Any) -> None:
         cmd = COMMANDS[key]
         assert cmd.set_fmt is not None
         token = cmd.token(value)

@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import logging
 import math
+import threading
 import time
 from collections.abc import Iterable, Iterator, Mapping
 from contextlib import contextmanager
@@ -54,6 +55,11 @@ log = logging.getLogger(__name__)
 
 MAX_ERROR_READS = 32
 """The 33220A error queue holds at most 20 entries; stop draining after this many reads."""
+
+SAFE_STATE_IO_WAIT_S = 0.5
+"""How long a safe state waits for another thread's exchange with the same instrument to
+end (one command or query takes milliseconds) before it sends anyway: an output left on
+is worse than a query of the run thread cut short."""
 
 
 # --------------------------------------------------------------------------- formatting
@@ -353,22 +359,60 @@ class SCPIInstrument:
         self.resource = resource
         self.command_log: list[tuple[float, str]] = []
         self.query_interrupted = False
+        # One exchange at a time: an abort from another thread (GUI, session close) must
+        # not send between the run thread's query and its answer, nor take that answer.
+        # Re-entrant: a signal handler in the thread that is mid-exchange goes through.
+        self._io_lock = threading.RLock()
+        self._io_forced_by: int | None = None
 
     # raw I/O ---------------------------------------------------------------------------
+    @contextmanager
+    def _exchange(self) -> Iterator[None]:
+        if self._io_forced_by == threading.get_ident():  # a safe state that could not wait
+            yield
+            return
+        with self._io_lock:
+            yield
+
     def write(self, command: str) -> None:
         """Send ``command`` (logged with its time)."""
-        self.command_log.append((time.monotonic(), command))
-        self.transport.write(command)
+        with self._exchange():
+            self.command_log.append((time.monotonic(), command))
+            self.transport.write(command)
 
     def ask(self, command: str) -> str:
         """Send a query (logged) and return its answer."""
-        self.command_log.append((time.monotonic(), command))
-        # If this query is interrupted (timeout, KeyboardInterrupt), its answer may still
-        # arrive later and be read as the answer to the next query: remember it.
-        self.query_interrupted = True
-        answer = self.transport.query(command)
-        self.query_interrupted = False
-        return answer
+        with self._exchange():
+            self.command_log.append((time.monotonic(), command))
+            # If this query is interrupted (timeout, KeyboardInterrupt), its answer may
+            # still arrive later and be read as the answer to the next query: remember it.
+            self.query_interrupted = True
+            answer = self.transport.query(command)
+            self.query_interrupted = False
+            return answer
+
+    @contextmanager
+    def safe_state_io(self, wait_s: float | None = None) -> Iterator[bool]:
+        """The I/O for a safe state, from any thread: waits up to ``wait_s`` (default
+        :data:`SAFE_STATE_IO_WAIT_S`) for another thread's exchange to end, then goes ahead
+        without it (logged), because the output must go off. Yields whether the instrument
+        was free; when it was not, the other exchange counts as interrupted (its answer
+        may arrive late), so :meth:`clear_if_interrupted` flushes it."""
+        if wait_s is None:
+            wait_s = SAFE_STATE_IO_WAIT_S
+        got = self._io_lock.acquire(timeout=wait_s)
+        if not got:
+            log.warning("%s %s: another thread's exchange did not end within %g s; the "
+                        "safe state goes ahead", self.model, self.resource, wait_s)
+            self.query_interrupted = True
+            self._io_forced_by = threading.get_ident()
+        try:
+            yield got
+        finally:
+            if got:
+                self._io_lock.release()
+            else:
+                self._io_forced_by = None
 
     def clear_if_interrupted(self) -> None:
         """Device clear (flush both I/O buffers) after an interrupted query. Never raises."""

@@ -5,14 +5,17 @@ from __future__ import annotations
 import ctypes
 import subprocess
 import sys
+import time
 
 import numpy as np
 import pytest
 
 from pelvislab.drivers.acqiris import (
     ACQIRIS_ERROR_ACQ_TIMEOUT,
+    WAIT_SLICE_MS,
     AcqirisDigitizer,
     AcqirisError,
+    AcquisitionAbortedError,
 )
 from pelvislab.drivers.interfaces import (
     DriverError,
@@ -183,13 +186,56 @@ def test_timeout_chunks_then_raises_clear_error_and_stops():
     dig.close()
 
 
-def test_long_timeout_is_split_into_library_sized_waits():
-    fake = FakeD1(timeouts=1)
+def test_long_timeout_is_split_into_short_waits():
+    # the library allows 10 s per wait; slices of WAIT_SLICE_MS let an abort end it soon
+    fake = FakeD1(timeouts=3)
     dig = open_fake(fake)
     dig.configure_sequence([1], 500e6, 100, 10, 0.0, 1.0)
     dig.acquire(timeout_s=25.0)
     waits = [a[1] for n, a in fake.calls if n == "AcqrsD1_waitForEndOfAcquisition"]
-    assert waits[0] == 10_000 and len(waits) == 2
+    assert waits == [WAIT_SLICE_MS] * 4
+    dig.close()
+
+
+def test_an_abort_from_another_thread_ends_a_wait_under_way():
+    # safety review, session 34: the wait went on in chunks of up to 10 s after an abort
+    import threading
+
+    class Waiting(FakeD1):
+        def __init__(self):
+            super().__init__()
+            self.waiting = threading.Event()
+
+        def _waitForEndOfAcquisition(self, s, ms):
+            self.waiting.set()
+            time.sleep(ms.value / 1e3)  # no trigger comes: each slice times out
+            return ACQIRIS_ERROR_ACQ_TIMEOUT
+
+    fake = Waiting()
+    dig = open_fake(fake)
+    dig.configure_sequence([1], 500e6, 100, 10, 0.0, 1.0)
+    outcome = {}
+
+    def run():
+        try:
+            dig.acquire(timeout_s=60.0)
+        except Exception as exc:
+            outcome["error"] = exc
+
+    run_thread = threading.Thread(target=run)
+    run_thread.start()
+    assert fake.waiting.wait(5.0)
+    t0 = time.monotonic()
+    dig.abort()
+    run_thread.join(10.0)
+    assert not run_thread.is_alive() and time.monotonic() - t0 < 5.0
+    assert isinstance(outcome.get("error"), AcquisitionAbortedError)
+    assert "AcqrsD1_readData" not in fake.names()  # no record read from a stopped card
+    assert fake.names()[-1] == "AcqrsD1_stopAcquisition"
+    # the next acquisition is a new one
+    dig.lib = FakeD1()  # a trigger comes this time
+    dig.configure_sequence([1], 500e6, 100, 10, 0.0, 1.0)
+    assert dig.acquire(timeout_s=1.0)[1].codes.shape == (10, 100)
     dig.close()
 
 

@@ -4,6 +4,7 @@ same driver through pyvisa-sim with sim_instruments/agilent_33220a.yaml."""
 from __future__ import annotations
 
 import math
+import threading
 from pathlib import Path
 
 import pytest
@@ -432,6 +433,69 @@ def test_safe_state_asks_whether_the_output_is_off():
     assert g2.safe_state_errors == []
 
 
+class _HeldQuery(ScriptedTransport):
+    """Holds the answer to ``held`` (once) until ``release`` is set, as a slow instrument
+    would, so that another thread can try to talk to the instrument meanwhile."""
+
+    def __init__(self, script, held):
+        super().__init__(script)
+        self.held, self.entered, self.release = held, threading.Event(), threading.Event()
+
+    def query(self, command):
+        answer = super().query(command)  # sent; its answer comes late
+        if command == self.held and not self.entered.is_set():
+            self.entered.set()
+            self.release.wait(10.0)
+        return answer
+
+
+def _run_thread_query_meanwhile_safe_state(script_after_open):
+    t = _HeldQuery(open_script() + script_after_open, held=None)
+    g = Agilent33220A(t, "FAKE::INSTR", load_ohm=50.0)
+    t.sent.clear()
+    t.held = "SYST:ERR?"  # the run thread's next error check
+    run_thread = threading.Thread(target=g.check_errors)
+    run_thread.start()
+    assert t.entered.wait(5.0)  # the run thread is between its query and the answer
+    abort_thread = threading.Thread(target=g.safe_state)
+    abort_thread.start()
+    return g, t, run_thread, abort_thread
+
+
+def test_a_safe_state_from_another_thread_waits_for_the_exchange_under_way():
+    # safety review, session 34: the abort path sent a device clear and OUTP OFF between
+    # the run thread's query and its answer (the clear cut the query; the answers could
+    # be taken by the wrong thread)
+    g, t, run_thread, abort_thread = _run_thread_query_meanwhile_safe_state(
+        [("SYST:ERR?", OK), ("OUTP OFF", None), ("OUTP?", "0")])
+    abort_thread.join(0.2)
+    assert abort_thread.is_alive() and t.sent == ["SYST:ERR?"]  # waiting its turn
+    t.release.set()
+    run_thread.join(5.0)
+    abort_thread.join(5.0)
+    t.assert_done()
+    assert t.sent == ["SYST:ERR?", "OUTP OFF", "OUTP?"]  # no device clear needed
+    assert g.safe_state_errors == []
+
+
+def test_a_safe_state_does_not_wait_long_for_a_stuck_exchange(monkeypatch):
+    from pelvislab.drivers import scpi
+
+    monkeypatch.setattr(scpi, "SAFE_STATE_IO_WAIT_S", 0.05)
+    g, t, run_thread, abort_thread = _run_thread_query_meanwhile_safe_state(
+        [("SYST:ERR?", OK), ("OUTP OFF", None), ("OUTP?", "0")])
+    abort_thread.join(5.0)
+    assert not abort_thread.is_alive()  # outputs off while the query still hangs
+    assert t.sent == ["SYST:ERR?", "<clear>", "OUTP OFF", "OUTP?"]
+    assert g.safe_state_errors == []
+    t.release.set()
+    run_thread.join(5.0)
+    t.assert_done()
+    g.transport.script = [("OUTP OFF", None), ("OUTP?", "0")]
+    g.safe_state()  # the instrument is free again: taken at once, nothing forced
+    assert t.sent[-2:] == ["OUTP OFF", "OUTP?"] and t.sent.count("<clear>") == 1
+
+
 def test_an_unlocked_reference_at_open_is_reported_not_taken_for_no_option_001():
     script = open_script()[:-1] + [("SYST:ERR?", '+580,"Reference phase-locked loop is '
                                     'unlocked"'), ("SYST:ERR?", OK),
@@ -463,3 +527,4 @@ def test_a_narrower_pulse_gets_its_shorter_edge_first():
     g.configure_pulse_burst(5000.0, 2000, 1e-6, 5.0, edge_s=100e-9)
     g.configure_pulse_burst(5000.0, 2000, 100e-9, 5.0, edge_s=5e-9)
     t.assert_done()
+

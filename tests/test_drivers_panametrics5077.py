@@ -126,3 +126,41 @@ def test_table_is_single_and_marked_unconfirmed():
     assert pm.SERIAL_SETTINGS["status"] == pm.UNCONFIRMED
     assert {"trigger", "gain_db", "pulse_energy", "damping_ohm", "high_pass_hz",
             "low_pass_hz"} <= set(pm.COMMANDS)
+
+
+def test_a_safe_state_from_another_thread_waits_for_the_setting_under_way():
+    # safety review, session 34: an abort's exchange could flush the run thread's answer
+    # (reset_input_buffer) or take it; now it waits for the setting and its read-back
+    import threading
+
+    class SlowPort(FakePort):
+        def __init__(self):
+            super().__init__()
+            self.entered, self.release = threading.Event(), threading.Event()
+
+        def read_until(self, expected=b"\n", size=None):
+            if self.lines[-1] == "GAIN?" and not self.entered.is_set():
+                self.entered.set()
+                self.release.wait(10.0)
+            return super().read_until(expected, size)
+
+    port = SlowPort()
+    p = Panametrics5077PR(port, "FAKE")
+    run_thread = threading.Thread(target=p.configure, kwargs=dict(
+        gain_db=40, pulse_energy="200V", damping_ohm=50, high_pass_hz=None,
+        low_pass_hz=None))
+    run_thread.start()
+    assert port.entered.wait(5.0)
+    abort_thread = threading.Thread(target=p.safe_state)
+    abort_thread.start()
+    abort_thread.join(0.2)
+    assert abort_thread.is_alive() and port.lines[-1] == "GAIN?"
+    port.release.set()
+    abort_thread.join(5.0)
+    run_thread.join(5.0)
+    assert p.safe_state_errors == []
+    assert "VOLT 100" in port.lines[port.lines.index("GAIN?"):]
+    settings = port.lines[1:]  # after ID?: each setting whole, with its read-back
+    assert len(settings) % 2 == 0
+    for line, check in zip(settings[::2], settings[1::2], strict=True):
+        assert check == line.split(" ")[0] + "?", port.lines
