@@ -204,6 +204,19 @@ class Agilent33220A(SCPIInstrument):
     """
 
     model = "Agilent 33220A"
+    # ``gen.amplitude = 15`` would pass the static limits only, not the load's, the offset's
+    # or the bench's max_vpp, and leave the tracked state wrong (safety review, session 34)
+    raw_settings = False
+    setting_methods = {
+        "function": "configure_sine() or configure_pulse_burst()",
+        "frequency_hz": "set_frequency()",
+        "amplitude": "set_amplitude() or configure_sine()",
+        "offset_v": "configure_sine()",
+        "output": "output_on()/output_off()",
+        "output_load": "the load_ohm given at open",
+        "sync_output": "set_sync_output()",
+        "phase_deg": "set_phase()",
+    }
 
     # ---- the declared command table -------------------------------------------------
     function = Control("FUNC?", "FUNC {}", "Output function.", kind=str, values=_FUNCTIONS,
@@ -332,7 +345,8 @@ class Agilent33220A(SCPIInstrument):
         if external_reference:
             # Option 001 (external timebase) is the only way to know about the lock; a
             # 33220A without it refuses the command (an error, not a silence).
-            self.unlock_error_enabled = True
+            with self.driver_settings():
+                self.unlock_error_enabled = True
             errors = self.read_errors()
             unlocked = [e for e in errors
                         if e[0] == REFERENCE_UNLOCKED_CODE or "unlock" in e[1].lower()]
@@ -538,7 +552,8 @@ class Agilent33220A(SCPIInstrument):
         if not self.has_option_001:
             return None
         if not self.unlock_error_enabled:
-            self.unlock_error_enabled = True
+            with self.driver_settings():
+                self.unlock_error_enabled = True
         errors = self.read_errors()
         unlocked = [e for e in errors
                     if e[0] == REFERENCE_UNLOCKED_CODE or "unlock" in e[1].lower()]

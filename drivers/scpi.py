@@ -10,9 +10,11 @@ PyMeasure's ``Instrument.control``; written here from scratch)::
 ``gen.frequency_hz = 1e3`` validates 1e3 against the static limits BEFORE anything is sent,
 then writes ``FREQ 1000``; reading ``gen.frequency_hz`` sends ``FREQ?`` and parses the
 answer. Cross-parameter rules (limits that depend on the function or the load) belong to
-the instrument's high-level methods. After every configuration block the instrument's
-error queue is read until it reports no error; any error raises with the instrument's
-own text (:meth:`SCPIInstrument.check_errors`).
+the instrument's high-level methods; an instrument whose settings depend on each other
+(the 33220A) sets :attr:`SCPIInstrument.raw_settings` False, so that the table's settings
+are made only by those methods (reading stays free). After every configuration block the
+instrument's error queue is read until it reports no error; any error raises with the
+instrument's own text (:meth:`SCPIInstrument.check_errors`).
 
 Transports: :class:`VisaTransport` (pyvisa, real or pyvisa-sim) and
 :class:`ScriptedTransport`, a protocol-level fake that checks the exact command strings
@@ -287,7 +289,11 @@ class Control:
         return self.parse(instrument.ask(self.get_cmd))
 
     def __set__(self, instrument: Any, value: Any) -> None:
-        instrument.write(self.command_for(value))
+        command = self.command_for(value)
+        check = getattr(instrument, "check_raw_setting", None)
+        if check is not None:
+            check(self)
+        instrument.write(command)
 
     # pure helpers, usable without an instrument -------------------------------------
     def validate(self, value: Any) -> str:
@@ -353,6 +359,10 @@ class SCPIInstrument:
     error_query = "SYST:ERR?"
     #: instrument's name used in messages
     model = "SCPI instrument"
+    #: False: the table's settings are made only by the driver's own methods (inside a
+    #: :meth:`configuration` block), which check the limits that depend on other settings
+    #: (load, offset, bench limits) and keep the state they rely on; reading stays free
+    raw_settings = True
 
     def __init__(self, transport: Transport, resource: str = "") -> None:
         self.transport = transport
@@ -364,6 +374,7 @@ class SCPIInstrument:
         # Re-entrant: a signal handler in the thread that is mid-exchange goes through.
         self._io_lock = threading.RLock()
         self._io_forced_by: int | None = None
+        self._blocks = threading.local()  # configuration blocks open in each thread
 
     # raw I/O ---------------------------------------------------------------------------
     @contextmanager
@@ -455,8 +466,30 @@ class SCPIInstrument:
     @contextmanager
     def configuration(self, context: str) -> Iterator[None]:
         """A configuration block: the error queue is read (and raised) at its end."""
-        yield
+        with self.driver_settings():
+            yield
         self.check_errors(context)
+
+    @contextmanager
+    def driver_settings(self) -> Iterator[None]:
+        """Settings of the table made by the driver itself (see :attr:`raw_settings`)."""
+        self._blocks.depth = getattr(self._blocks, "depth", 0) + 1
+        try:
+            yield
+        finally:
+            self._blocks.depth -= 1
+
+    def check_raw_setting(self, control: Control) -> None:
+        """Refuse a setting of the table from outside the driver's methods when the
+        instrument says so (:attr:`raw_settings` False); called before anything is sent."""
+        if self.raw_settings or getattr(self._blocks, "depth", 0) > 0:
+            return
+        methods = getattr(self, "setting_methods", {}).get(control.name)
+        use = f"use {methods}, which check" if methods else "the driver's methods check"
+        raise LimitError(
+            f"{self.model}: {control.name} is not set directly; {use} the limits that "
+            "depend on other settings (load, offset, bench limits) and keep the driver's "
+            "state (reading it is fine)")
 
     # table -----------------------------------------------------------------------------
     @classmethod

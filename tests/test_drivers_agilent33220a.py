@@ -528,3 +528,17 @@ def test_a_narrower_pulse_gets_its_shorter_edge_first():
     g.configure_pulse_burst(5000.0, 2000, 100e-9, 5.0, edge_s=5e-9)
     t.assert_done()
 
+
+def test_settings_of_the_table_are_made_through_the_methods_only():
+    # safety review, session 34: `gen.amplitude = 15` passed the static 20 Vpp limit and
+    # was sent, past the bench's max_vpp and the load's limit, with the tracked state wrong
+    g, t = make([("VOLT?", "+1.0E-01")], max_vpp=2.0)
+    for name, value, method in [("amplitude", 15.0, "set_amplitude"),
+                                ("output", True, "output_on"),
+                                ("offset_v", 1.0, "configure_sine")]:
+        with pytest.raises(LimitError, match=f"{name} is not set directly; use {method}"):
+            setattr(g, name, value)
+    with pytest.raises(LimitError, match="outside"):  # the static limits still come first
+        g.amplitude = 25.0
+    assert g.amplitude == pytest.approx(0.1)  # reading is free
+    t.assert_done()  # nothing was sent for the refused settings
