@@ -582,6 +582,22 @@ class Agilent33220A(SCPIInstrument):
                 log.error(msg)
                 if not isinstance(exc, Exception):
                     raise
+                return
+            self._drain_errors_after_safe_state()
+
+    def _drain_errors_after_safe_state(self) -> None:
+        """Empty the error queue once the output is confirmed off: errors left by the block
+        that failed (a timeout before its SYST:ERR?) are logged here instead of being
+        blamed on the next configuration block. Not a safe-state failure if it fails."""
+        try:
+            stale = self.read_errors()
+        except Exception as exc:
+            log.warning("%s %s: error queue not read after the safe state: %s", self.model,
+                        self.resource, exc)
+            return
+        if stale:
+            log.warning("%s %s: errors left in the queue at the safe state: %s", self.model,
+                        self.resource, stale)
 
     def close(self) -> None:
         """Output off, then release the connection. Idempotent."""

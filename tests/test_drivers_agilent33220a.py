@@ -255,7 +255,7 @@ def test_sim_open_configure_and_read_back():
         assert g.trigger_source == "external" and g.pulse_period_s == pytest.approx(2e-4)
         assert g.reference_locked() is True
     # closed: the output off, and the instrument asked whether it is
-    assert [c[1] for c in g.command_log[-2:]] == ["OUTP OFF", "OUTP?"]
+    assert [c[1] for c in g.command_log[-3:]] == ["OUTP OFF", "OUTP?", "SYST:ERR?"]
 
 
 def test_sim_two_generators_identify_by_their_own_serial_and_keep_their_own_state():
@@ -341,7 +341,8 @@ def test_exception_mid_sweep_leaves_both_generators_off(failure):
     assert t2.query("OUTP?") in ("0", "OFF")
     assert t1.closed_by_driver and t2.closed_by_driver
     for g in (trig, drive):
-        assert [c[1] for c in g.command_log[-2:]] == ["OUTP OFF", "OUTP?"]
+        assert [c[1] for c in g.command_log[-3:]] == ["OUTP OFF", "OUTP?",
+                                                    "SYST:ERR?"]
         assert not g.safe_state_errors  # each confirmed off
     VisaTransport.close(t1)
     VisaTransport.close(t2)
@@ -383,10 +384,10 @@ def test_amplitude_offset_ordering_never_passes_an_invalid_state(old_amp, old_fr
 
 def test_interrupted_query_gets_a_device_clear_before_output_off():
     g, t = make([("FREQ 12", None), ("SYST:ERR?", KeyboardInterrupt()), ("OUTP OFF", None),
-                 ("OUTP?", "0")])
+                 ("OUTP?", "0"), ("SYST:ERR?", OK)])
     with pytest.raises(KeyboardInterrupt):
         g.set_frequency(12.0)
-    assert t.sent[-4:] == ["SYST:ERR?", "<clear>", "OUTP OFF", "OUTP?"]
+    assert t.sent[-5:] == ["SYST:ERR?", "<clear>", "OUTP OFF", "OUTP?", "SYST:ERR?"]
     t.assert_done()
 
 
@@ -394,7 +395,8 @@ def test_sim_device_clear_is_harmless():
     with sim_gen() as g:
         g.query_interrupted = True
         g.safe_state()
-        assert [c[1] for c in g.command_log[-3:]] == ["<device clear>", "OUTP OFF", "OUTP?"]
+        assert [c[1] for c in g.command_log[-4:]] == ["<device clear>", "OUTP OFF", "OUTP?",
+                                                    "SYST:ERR?"]
         assert g.output_enabled is False and not g.safe_state_errors
 
 
@@ -411,6 +413,9 @@ def test_levels_are_sent_again_after_a_failed_block():
                  ("VOLT 1", None), ("SYST:ERR?", OK),
                  ("FUNC SIN", None), ("BURS:STAT OFF", None), ("FREQ 100", None),
                  ("VOLT 4", None), ("SYST:ERR?", timeout), ("OUTP OFF", None), ("OUTP?", "0"),
+                 # the queue drained once the output is off: VOLT 4's error is not blamed
+                 # on the next block
+                 ("SYST:ERR?", '-222,"Data out of range"'), ("SYST:ERR?", OK),
                  ("FUNC SIN", None), ("BURS:STAT OFF", None), ("FREQ 100", None),
                  ("VOLT:OFFS 0", None), ("VOLT 1", None), ("SYST:ERR?", OK)])
     g.configure_sine(100, 1.0)
@@ -427,7 +432,7 @@ def test_safe_state_asks_whether_the_output_is_off():
     g.safe_state()
     t.assert_done()
     assert any("OUTP OFF not confirmed" in m and "'1'" in m for m in g.safe_state_errors)
-    g2, t2 = make([("OUTP OFF", None), ("OUTP?", "0")])
+    g2, t2 = make([("OUTP OFF", None), ("OUTP?", "0"), ("SYST:ERR?", OK)])
     g2.safe_state()
     t2.assert_done()
     assert g2.safe_state_errors == []
@@ -467,14 +472,14 @@ def test_a_safe_state_from_another_thread_waits_for_the_exchange_under_way():
     # the run thread's query and its answer (the clear cut the query; the answers could
     # be taken by the wrong thread)
     g, t, run_thread, abort_thread = _run_thread_query_meanwhile_safe_state(
-        [("SYST:ERR?", OK), ("OUTP OFF", None), ("OUTP?", "0")])
+        [("SYST:ERR?", OK), ("OUTP OFF", None), ("OUTP?", "0"), ("SYST:ERR?", OK)])
     abort_thread.join(0.2)
     assert abort_thread.is_alive() and t.sent == ["SYST:ERR?"]  # waiting its turn
     t.release.set()
     run_thread.join(5.0)
     abort_thread.join(5.0)
     t.assert_done()
-    assert t.sent == ["SYST:ERR?", "OUTP OFF", "OUTP?"]  # no device clear needed
+    assert t.sent == ["SYST:ERR?", "OUTP OFF", "OUTP?", "SYST:ERR?"]  # no device clear needed
     assert g.safe_state_errors == []
 
 
@@ -483,23 +488,23 @@ def test_a_safe_state_does_not_wait_long_for_a_stuck_exchange(monkeypatch):
 
     monkeypatch.setattr(scpi, "SAFE_STATE_IO_WAIT_S", 0.05)
     g, t, run_thread, abort_thread = _run_thread_query_meanwhile_safe_state(
-        [("SYST:ERR?", OK), ("OUTP OFF", None), ("OUTP?", "0")])
+        [("SYST:ERR?", OK), ("OUTP OFF", None), ("OUTP?", "0"), ("SYST:ERR?", OK)])
     abort_thread.join(5.0)
     assert not abort_thread.is_alive()  # outputs off while the query still hangs
-    assert t.sent == ["SYST:ERR?", "<clear>", "OUTP OFF", "OUTP?"]
+    assert t.sent == ["SYST:ERR?", "<clear>", "OUTP OFF", "OUTP?", "SYST:ERR?"]
     assert g.safe_state_errors == []
     t.release.set()
     run_thread.join(5.0)
     t.assert_done()
-    g.transport.script = [("OUTP OFF", None), ("OUTP?", "0")]
+    g.transport.script = [("OUTP OFF", None), ("OUTP?", "0"), ("SYST:ERR?", OK)]
     g.safe_state()  # the instrument is free again: taken at once, nothing forced
-    assert t.sent[-2:] == ["OUTP OFF", "OUTP?"] and t.sent.count("<clear>") == 1
+    assert t.sent[-3:] == ["OUTP OFF", "OUTP?", "SYST:ERR?"] and t.sent.count("<clear>") == 1
 
 
 def test_an_unlocked_reference_at_open_is_reported_not_taken_for_no_option_001():
     script = open_script()[:-1] + [("SYST:ERR?", '+580,"Reference phase-locked loop is '
                                     'unlocked"'), ("SYST:ERR?", OK),
-                                   ("OUTP OFF", None), ("OUTP?", "0")]
+                                   ("OUTP OFF", None), ("OUTP?", "0"), ("SYST:ERR?", OK)]
     t = ScriptedTransport(script)
     with pytest.raises(ReferenceUnlockedError, match="not locked to the external 10 MHz"):
         Agilent33220A(t, "FAKE::INSTR", load_ohm=50.0)

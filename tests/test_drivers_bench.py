@@ -226,7 +226,8 @@ def test_open_bench_real_path_opens_in_order_and_cleans_up_on_failure(tmp_path, 
     assert kdrive["max_vpp"] == 2.5 and ktrig["max_vpp"] is None  # drive limit applied
     assert drive.load_ohm == math.inf and trig.load_ohm == 50
     for g in (trig, drive):
-        assert g._closed and [c[1] for c in g.command_log[-2:]] == ["OUTP OFF", "OUTP?"]
+        assert g._closed and [c[1] for c in g.command_log[-3:]] == ["OUTP OFF", "OUTP?",
+                                                                  "SYST:ERR?"]
 
 
 def test_interpreter_exit_turns_outputs_off_even_without_close(tmp_path):
