@@ -227,6 +227,7 @@ class ReplayView(QtWidgets.QWidget):
         # stable poles of a column, then fit those (pelvislab ema --frequencies)
         picks = QtWidgets.QHBoxLayout()
         self.pick_label = QtWidgets.QLabel("click poles in the diagram to pick modes by hand")
+        self.pick_label.setWordWrap(True)  # the row fits the 1366 px of the operator window
         self.fit_picks_button = QtWidgets.QPushButton("Fit picked poles")
         self.fit_picks_button.clicked.connect(self.fit_picked_poles)
         self.fit_picks_button.setEnabled(False)

@@ -27,6 +27,14 @@ def test_window_shows_simulated_badge_and_stop_shortcut(operator_window):
     assert "nothing is running" in window.statusBar().currentMessage()
 
 
+def test_the_operator_window_fits_a_1366_px_screen(operator_window):
+    # docs audit, session 35: the Modes pane's row of controls (session 32) made the
+    # window 1399 px wide at least, wider than the exam bed's 1366 x 768 screen
+    window = operator_window()
+    assert window.minimumSizeHint().width() <= 1366
+    assert window.minimumSizeHint().height() <= 768
+
+
 def test_bad_session_file_gives_a_dialog_not_a_crash(operator_window, tmp_path, monkeypatch):
     shown = []
     monkeypatch.setattr(QtWidgets.QMessageBox, "critical",
