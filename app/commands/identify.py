@@ -32,7 +32,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                    "on peak-picked modes")
     p.add_argument("--params", metavar="NAMES",
                    help="comma-separated parameters to identify (design 4.5 names); default: "
-                   "all (frf) or masses and stiffnesses (modal)")
+                   "all (frf) or the stiffnesses (modal: frequencies and shapes cannot tell "
+                   "a common scale of masses and stiffnesses)")
     p.add_argument("--model", metavar="M.toml", help="starting model; default: thesis appendix E")
     p.add_argument("--symmetric", action="store_true",
                    help="impose left/right symmetry (k_io, c_sij, m_innominate, ...)")
