@@ -768,6 +768,9 @@ class Runner:
             if (first.n_pulses, setup_channels) != configured:
                 self._configure(first, setup_channels)
                 configured = (first.n_pulses, setup_channels)
+            # a pause asked at the prompt holds before the outputs go on, not after one
+            # step's ON (GUI review, session 35: ON and OFF again on the subject)
+            self._maybe_pause()
             self._generators(True)
             for step in steps:
                 self._check()

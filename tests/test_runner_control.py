@@ -333,6 +333,33 @@ def test_prompt_waits_for_confirmation_with_outputs_off(tmp_path):
     assert seen == [("s1", False), ("s2", False)]
 
 
+def test_a_pause_asked_at_a_prompt_keeps_the_outputs_off_until_resumed(tmp_path):
+    # GUI review, session 35: Pause at the transducer prompt, then confirm: both outputs
+    # went ON and at once OFF again (a burst on the subject during a pause)
+    bench = make_bench()
+    with prepare(tmp_path, bench, auto_continue=False) as session:
+        runner = session.runner
+        resumed = []
+
+        def listener(event):
+            if isinstance(event, r.OperatorPrompt) and event.setup == "s2":
+                runner.pause()
+                runner.confirm()
+            if isinstance(event, r.Paused):
+                threading.Timer(0.1, lambda: (resumed.append(time.monotonic()),
+                                              runner.resume())).start()
+            elif isinstance(event, r.OperatorPrompt):
+                threading.Timer(0.05, runner.confirm).start()
+
+        runner.subscribe(listener)
+        final = session.run()
+    assert final.status == "completed" and resumed
+    for gen in (bench.drive, bench.trigger):
+        on_times = [t for t, text in gen.command_log if text == "OUTP ON"]
+        assert len(on_times) == 2, gen.command_log  # once per setup, the 2nd after resume
+        assert on_times[1] > resumed[0]
+
+
 @pytest.mark.parametrize("fault", ["digitizer", "generator"])
 def test_instrument_fault_outputs_off_reason_kept_data(tmp_path, fault):
     if fault == "digitizer":
