@@ -6,6 +6,7 @@ Views only: each panel takes arrays already computed by ``pelvislab.acquisition`
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 from typing import Any
 
@@ -197,6 +198,8 @@ class QualityTable(QtWidgets.QTableWidget):
                 problems.append(f"{hops} peak hops")
             if lost:
                 problems.append(f"{lost} echoes lost")
+            if corr is None and snr is None:  # nothing to judge by is not "OK"
+                problems.append("no tracking figures")
             status = "OK" if not problems else "CHECK: " + ", ".join(problems)
             if problems:
                 warnings.append(f"{row.get('channel', '?')}: {', '.join(problems)}")
@@ -214,10 +217,12 @@ class QualityTable(QtWidgets.QTableWidget):
 
 
 def _as_float(value: object) -> float | None:
+    """``value`` as a finite float; None when missing, not a number, NaN or infinite."""
     try:
-        return None if value is None else float(value)  # type: ignore[arg-type]
+        number = None if value is None else float(value)  # type: ignore[arg-type]
     except (TypeError, ValueError):
         return None
+    return number if number is not None and math.isfinite(number) else None
 
 
 def gate_seconds(channel: Any) -> tuple[float, float] | None:

@@ -81,3 +81,22 @@ def test_frf_only_file_replays_its_frfs(operator_window, tmp_path):
             del f.attrs[key]
     assert window.open_replay(path) is True
     assert "FRF-only file" in window.replay.file_label.text()
+
+
+def test_a_channel_without_tracking_figures_is_not_shown_as_ok(qtbot):
+    # GUI review, session 35: a step whose correlation and SNR were missing (NaN in the
+    # file) was listed "OK"
+    from pelvislab.app.gui_plots import QualityTable
+
+    table = QualityTable()
+    qtbot.addWidget(table)
+    warnings = table.show_quality([
+        {"channel": "ch1", "landmark": "SIAS_R_x", "correlation": float("nan"),
+         "snr_db": None, "peak_hops": 0, "lost": 0},
+        {"channel": "ch2", "landmark": "sacrum_x", "correlation": 0.99, "snr_db": 30.0,
+         "peak_hops": 0, "lost": 0},
+    ])
+    status = [table.item(r, table.columnCount() - 1).text() for r in range(2)]
+    assert status == ["CHECK: no tracking figures", "OK"]
+    assert warnings == ["ch1: no tracking figures"]
+    assert table.item(0, 2).text() == ""  # not "nan"
