@@ -34,6 +34,23 @@ UI_SWITCH_INTERVAL_S = 0.001
 SUBJECT_ID_PATTERN = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,31}$")
 LARGE_BUTTON_CSS = "font-size: 16pt; font-weight: bold; padding: 10px;"
 STOP_CSS = LARGE_BUTTON_CSS + "background: #c62828; color: white;"
+# the run's state, readable from the exam bed: (text, background, text colour)
+STATE_STYLES = {
+    "ready": ("READY — outputs off", "#cfd8dc", "black"),
+    "running": ("RUNNING — OUTPUTS ON", "#2e7d32", "white"),
+    "waiting": ("WAITING — outputs off", "#fdd835", "black"),
+    "paused": ("PAUSED — outputs off", "#1565c0", "white"),
+    "stopping": ("STOPPING — outputs off", "#ef6c00", "white"),
+    "completed": ("COMPLETED — outputs off", "#cfd8dc", "black"),
+    "aborted": ("ABORTED — outputs off", "#ffcc80", "black"),
+    "interrupted": ("INTERRUPTED — outputs off", "#ffcc80", "black"),
+    "failed": ("FAILED — outputs off", "#ef9a9a", "black"),
+    "unsafe": ("OUTPUTS NOT CONFIRMED OFF: switch the amplifier off by hand", "#b71c1c",
+               "white"),
+}
+CLOSE_WAIT_S = 30.0
+"""Longest wait, after STOP, for the run thread to end and close the session file when the
+window closes (an acquisition under way ends first)."""
 
 
 def shipped_protocols() -> dict[str, Path]:
@@ -102,6 +119,9 @@ class OperatorWindow(QtWidgets.QMainWindow):
         self.bench_path = bench_path
         self.control: SessionControl | None = None
         self.fault_dialog: QtWidgets.QMessageBox | None = None
+        self.ask_before_closing_a_run = True  # False where nobody can answer (tests, shots)
+        self._last_stop_key: tuple[int, int] | None = None
+        self.outputs_unconfirmed = False  # the last run ended without outputs confirmed off
         self._latest_step: Any = None
         self._frf_lines: dict[tuple[str, str], dict[float, complex]] = {}
         self._channel_labels: list[str] = []
@@ -160,6 +180,7 @@ class OperatorWindow(QtWidgets.QMainWindow):
         out_row.addWidget(out_browse)
         form.addRow("Output file", out_row)
         side_layout.addWidget(setup_box)
+        self.setup_box = setup_box  # locked while a run goes (no dialog over STOP)
 
         bench_box = QtWidgets.QGroupBox("Bench")
         bench_layout = QtWidgets.QVBoxLayout(bench_box)
@@ -178,9 +199,14 @@ class OperatorWindow(QtWidgets.QMainWindow):
         self.bench_table.setWordWrap(False)
         bench_layout.addWidget(self.bench_table)
         side_layout.addWidget(bench_box)
+        self.bench_box = bench_box
 
         run_box = QtWidgets.QGroupBox("Run")
         run_layout = QtWidgets.QVBoxLayout(run_box)
+        self.state_banner = QtWidgets.QLabel()
+        self.state_banner.setAlignment(QtCore.Qt.AlignmentFlag.AlignCenter)
+        self.state_banner.setWordWrap(True)
+        run_layout.addWidget(self.state_banner)
         buttons = QtWidgets.QHBoxLayout()
         self.start_button = QtWidgets.QPushButton("Start")
         self.start_button.setStyleSheet(LARGE_BUTTON_CSS)
@@ -212,7 +238,9 @@ class OperatorWindow(QtWidgets.QMainWindow):
             "background: #fff59d; padding: 6px; font-size: 11pt; font-weight: bold;")
         self.prompt_label.setVisible(False)
         run_layout.addWidget(self.prompt_label)
-        self.confirm_button = QtWidgets.QPushButton("Transducers in place — continue")
+        self.confirm_button = QtWidgets.QPushButton("Placed — continue")
+        self.confirm_button.setToolTip("the transducers are in place as the prompt says")
+        self.confirm_button.setStyleSheet(LARGE_BUTTON_CSS)  # pressed with gloves on
         self.confirm_button.setVisible(False)
         self.confirm_button.clicked.connect(self.confirm_prompt)
         run_layout.addWidget(self.confirm_button)
@@ -258,6 +286,43 @@ class OperatorWindow(QtWidgets.QMainWindow):
         self.tabs.addTab(self.replay, "Replay")
         self.tabs.currentChanged.connect(self._tab_changed)
         self.statusBar().showMessage("ready")
+        self._set_state("ready")
+        # STOP keys reach the window also while a modal dialog (a file chooser, a message
+        # box) has the focus: its own Esc would only close the dialog (GUI review, session 35)
+        app = QtWidgets.QApplication.instance()
+        if app is not None:
+            app.installEventFilter(self)
+
+    def _set_state(self, state: str) -> None:
+        """The state banner: what the run does and whether the outputs are on."""
+        if self.outputs_unconfirmed and state not in ("running", "waiting", "paused"):
+            state = "unsafe"
+        text, background, colour = STATE_STYLES[state]
+        self.state_banner.setText(text)
+        self.state_banner.setStyleSheet(
+            f"background: {background}; color: {colour}; font-size: 14pt; "
+            "font-weight: bold; padding: 4px;")
+        _fit_height(self.state_banner)
+        self.run_state = state
+
+    def _running(self) -> bool:
+        return self.control is not None and not self.control.finished.is_set()
+
+    def eventFilter(self, watched: QtCore.QObject, event: QtCore.QEvent) -> bool:
+        """Esc / Ctrl+. stop a run even while a modal dialog is open (the dialog's own Esc
+        still closes it)."""
+        if (event.type() == QtCore.QEvent.Type.KeyPress and self._running()
+                and QtWidgets.QApplication.activeModalWidget() is not None):
+            key = event.key()  # type: ignore[attr-defined]
+            ctrl = bool(event.modifiers()  # type: ignore[attr-defined]
+                        & QtCore.Qt.KeyboardModifier.ControlModifier)
+            if key == QtCore.Qt.Key.Key_Escape or (ctrl and key == QtCore.Qt.Key.Key_Period):
+                # one key press is offered to the filter once per widget it travels through
+                stamp = (int(event.timestamp()), int(key))  # type: ignore[attr-defined]
+                if stamp != self._last_stop_key:
+                    self._last_stop_key = stamp
+                    self.stop_run()
+        return super().eventFilter(watched, event)
 
     def _tab_changed(self, index: int) -> None:
         """Replay gets the whole width unless a run is going (STOP stays visible then)."""
@@ -358,6 +423,9 @@ class OperatorWindow(QtWidgets.QMainWindow):
         self._show_bench(self.control.prepared.bench)
         self.start_button.setEnabled(False)
         self.pause_button.setEnabled(True)
+        self.setup_box.setEnabled(False)
+        self.outputs_unconfirmed = False
+        self._set_state("running")
         self.tabs.setCurrentIndex(0)
         self.control.start()
         self._say(f"started {protocol.name} -> {out}")
@@ -378,11 +446,17 @@ class OperatorWindow(QtWidgets.QMainWindow):
     def stop_run(self) -> None:
         """STOP: outputs off immediately, then the runner ends the run as aborted."""
         if self.control is None or self.control.finished.is_set():
-            self.statusBar().showMessage("STOP: nothing is running")
+            if self.outputs_unconfirmed:  # the instruments are closed: nothing to send now
+                self.statusBar().showMessage(
+                    "STOP: no run; the last one ended with its OUTPUTS NOT CONFIRMED OFF: "
+                    "switch the shaker amplifier off by hand")
+            else:
+                self.statusBar().showMessage("STOP: nothing is running")
             return
         self.control.stop()
         self._say("STOP pressed: outputs off")
         self.statusBar().showMessage("STOPPED: outputs off")
+        self._set_state("stopping")
 
     def toggle_pause(self) -> None:
         """Pause between steps (outputs off) or resume."""
@@ -392,6 +466,7 @@ class OperatorWindow(QtWidgets.QMainWindow):
         if self.pause_button.text() == "Pause":
             runner.pause()
             self.pause_button.setText("Resume")
+            self.eta_label.setText("pause asked: the outputs go off before the next step")
         else:
             runner.resume()
             self.pause_button.setText("Pause")
@@ -402,6 +477,7 @@ class OperatorWindow(QtWidgets.QMainWindow):
             self.control.runner.confirm()
         self.prompt_label.setVisible(False)
         self.confirm_button.setVisible(False)
+        self.bench_box.setVisible(True)
 
     def add_note(self) -> None:
         """Save the note into the running session (or say that none runs)."""
@@ -437,15 +513,29 @@ class OperatorWindow(QtWidgets.QMainWindow):
             elif isinstance(event, r.StepStarted):
                 self.statusBar().showMessage(
                     f"setup {event.step.setup}: {event.step.frequency_hz:g} Hz")
+                if not self.control.runner.aborted:
+                    self._set_state("running")
             elif isinstance(event, r.StepFinished):
                 latest_step = event.data
                 changed_frfs |= self._add_frf_lines(event.data)
             elif isinstance(event, r.OperatorPrompt):
                 placement = ", ".join(self._channel_labels)
+                # the whole instruction readable: the bench list makes room meanwhile
+                # (GUI review, session 35: the prompt was cut at 67 of its 174 px). Room
+                # first: showing a widget lays the window out at once, and a window grown
+                # past the screen does not shrink back
+                self.bench_box.setVisible(event.auto_continue)
                 self.prompt_label.setText(f"{event.message}\nPlace: {placement}")
+                _fit_height(self.prompt_label)
                 self.prompt_label.setVisible(True)
                 self.confirm_button.setVisible(not event.auto_continue)
                 self._say(f"PROMPT: {event.message}")
+                if not event.auto_continue:
+                    self._set_state("waiting")
+                    self.eta_label.setText("waiting for the operator (outputs off)")
+                    self.statusBar().showMessage(
+                        "waiting for the operator: place the transducers, then "
+                        "Placed — continue")
             elif isinstance(event, r.SetupStarted):
                 self._channel_labels = [
                     f"ch{c} → {p}" for c, p in sorted(event.transducers.items())]
@@ -456,6 +546,8 @@ class OperatorWindow(QtWidgets.QMainWindow):
                     self._say(f"QUALITY {event.channel}: {event.message}")
             elif isinstance(event, r.Paused):
                 self._say("paused: outputs off")
+                self._set_state("paused")
+                self.eta_label.setText("paused (outputs off): Resume to continue")
             elif isinstance(event, r.Resumed):
                 self._say("resumed")
             elif isinstance(event, r.LogMessage):
@@ -465,7 +557,8 @@ class OperatorWindow(QtWidgets.QMainWindow):
                 self._say(f"FAULT: {event.reason}")
             elif isinstance(event, r.RunFinished):
                 self._run_finished(event)
-        if latest_progress is not None:
+        if latest_progress is not None and self.control is not None and \
+                not self.control.finished.is_set() and self.run_state == "running":
             event = latest_progress
             self.progress.setValue(int(round(100 * event.fraction)))
             self.eta_label.setText(
@@ -480,10 +573,12 @@ class OperatorWindow(QtWidgets.QMainWindow):
 
     def _run_finished(self, event: Any) -> None:
         self.start_button.setEnabled(True)
+        self.setup_box.setEnabled(True)
         self.pause_button.setEnabled(False)
         self.pause_button.setText("Pause")
         self.prompt_label.setVisible(False)
         self.confirm_button.setVisible(False)
+        self.bench_box.setVisible(True)
         text = f"run {event.status}: {event.n_done}/{event.n_steps} steps"
         if event.reason:
             text += f" — {event.reason}"
@@ -493,6 +588,9 @@ class OperatorWindow(QtWidgets.QMainWindow):
                      + "): switch the shaker amplifier off by hand")
         self._say(text)
         self.statusBar().showMessage(text)
+        self.outputs_unconfirmed = bool(unsafe)
+        self._set_state(event.status if event.status in STATE_STYLES else "aborted")
+        self.eta_label.setText(f"{event.n_done}/{event.n_steps} steps; run {event.status}")
         if event.status == "failed" or unsafe:
             # Non-modal: the event loop (and STOP, and the plots) must keep running.
             title = "Outputs not confirmed off" if unsafe else "Run failed"
@@ -540,12 +638,48 @@ class OperatorWindow(QtWidgets.QMainWindow):
         return True
 
     def closeEvent(self, event: QtGui.QCloseEvent) -> None:
-        """Closing the window ends a running session safely (outputs off, file closed)."""
-        if self.control is not None and not self.control.finished.is_set():
-            self.control.stop("window closed by the operator")
-            self.control.finished.wait(5.0)
+        """Closing the window ends a running session safely (outputs off, file closed);
+        from the close button the operator is asked first."""
+        if self._running():
+            if self.ask_before_closing_a_run:
+                answer = QtWidgets.QMessageBox.question(
+                    self, "A run is going",
+                    "Stop the run (outputs off; the steps measured so far are kept) and "
+                    "close the window?")
+                if answer != QtWidgets.QMessageBox.StandardButton.Yes:
+                    event.ignore()
+                    return
+            if self._running():  # Esc during the question may have stopped it already
+                self.control.stop("window closed by the operator")
+            self._wait_for_the_run_to_end()
         self.replay.close_session()
         super().closeEvent(event)
+
+    def _wait_for_the_run_to_end(self) -> None:
+        """After STOP (outputs already off): let the run thread end and close the session
+        file, so that it is not left marked "running" (GUI review, session 35: a slow
+        acquisition outlasted the former 5 s wait)."""
+        self._set_state("stopping")
+        self.statusBar().showMessage("stopping: closing the session file…")
+        deadline = time.monotonic() + CLOSE_WAIT_S
+        while self.control is not None and not self.control.finished.wait(0.05):
+            QtWidgets.QApplication.processEvents()
+            if time.monotonic() > deadline:
+                print(f"pelvislab gui: the run did not end within {CLOSE_WAIT_S:g} s of STOP "
+                      "(outputs were put off); its session file may read 'running': "
+                      "`pelvislab run --resume` continues it", file=sys.stderr)
+                return
+
+
+SIDE_TEXT_WIDTH_PX = 330
+"""Width of a text in the side panel (fixed at 360 px, less the group box's margins)."""
+
+
+def _fit_height(label: QtWidgets.QLabel) -> None:
+    """Give a word-wrapped label of the side panel the height its text needs: nested
+    layouts do not always ask for it, and the panel then cut the text. (Its present width
+    is no guide: a label hidden until now has a stale one.)"""
+    label.setMinimumHeight(label.heightForWidth(SIDE_TEXT_WIDTH_PX))
 
 
 def run_gui(session_file: Path | None = None, screenshot: Path | None = None,
@@ -573,6 +707,7 @@ def run_gui(session_file: Path | None = None, screenshot: Path | None = None,
     def on_sigint(*_: object) -> None:
         closing["asked"] = True
         if closing["window"] is not None:
+            closing["window"].ask_before_closing_a_run = False  # a signal means: stop now
             closing["window"].close()  # its closeEvent stops a running session first
             closing["app"].quit()
 
@@ -587,6 +722,7 @@ def run_gui(session_file: Path | None = None, screenshot: Path | None = None,
             previous_handlers[sig] = signal.signal(sig, on_sigint)
     app = QtWidgets.QApplication.instance() or QtWidgets.QApplication(["pelvislab"])
     window = OperatorWindow(session_file, bench_path=bench_path)
+    window.ask_before_closing_a_run = screenshot is None  # nobody answers offscreen
     closing["window"], closing["app"] = window, app
     window.resize(*size)
     window.show()

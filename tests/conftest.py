@@ -44,6 +44,7 @@ def operator_window(qtbot):
 
     yield make
     for window in windows:
+        window.ask_before_closing_a_run = False  # nobody answers a question offscreen
         window.close()
         window.deleteLater()
     QtWidgets.QApplication.processEvents()

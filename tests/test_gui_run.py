@@ -63,6 +63,84 @@ def test_run_from_window_plots_update_and_stop_turns_outputs_off(operator_window
         assert len(list(reader.steps(with_echoes=False))) >= 2
 
 
+def test_the_state_banner_and_set_up_follow_the_run(operator_window, qtbot, tmp_path):
+    # GUI review, session 35: running, waiting, paused and aborted looked alike; the
+    # set-up stayed editable (its file choosers, modal, then hid STOP)
+    window = operator_window()
+    assert window.state_banner.text() == "READY — outputs off"
+    _start(window, tmp_path, protocol="demo")
+    assert not window.setup_box.isEnabled()
+    qtbot.waitUntil(window.confirm_button.isVisible, timeout=30_000)
+    assert window.state_banner.text() == "WAITING — outputs off"
+    window.confirm_prompt()
+    qtbot.waitUntil(lambda: window.state_banner.text() == "RUNNING — OUTPUTS ON",
+                    timeout=60_000)
+    window.toggle_pause()
+    qtbot.waitUntil(lambda: window.state_banner.text() == "PAUSED — outputs off",
+                    timeout=60_000)
+    assert "paused" in window.eta_label.text()
+    window.stop_run()
+    qtbot.waitUntil(window.start_button.isEnabled, timeout=30_000)
+    assert window.state_banner.text() == "ABORTED — outputs off"
+    assert "left" not in window.eta_label.text() and "aborted" in window.eta_label.text()
+    assert window.setup_box.isEnabled()
+
+
+def test_esc_stops_the_run_while_a_modal_dialog_is_open(operator_window, qtbot, tmp_path):
+    # GUI review, session 35: with a file chooser or a message box open during a run, Esc
+    # only closed the dialog and the shaker kept driving
+    from PySide6 import QtWidgets
+
+    window = operator_window()
+    out = _start(window, tmp_path, protocol="demo")
+    qtbot.waitUntil(window.confirm_button.isVisible, timeout=30_000)
+    window.confirm_prompt()
+    qtbot.waitUntil(lambda: window.state_banner.text() == "RUNNING — OUTPUTS ON",
+                    timeout=60_000)
+    box = QtWidgets.QMessageBox(QtWidgets.QMessageBox.Icon.Critical, "Cannot open session",
+                                "x.h5 is not a readable HDF5 file", parent=window)
+    box.setModal(True)
+    box.show()
+    qtbot.waitUntil(lambda: QtWidgets.QApplication.activeModalWidget() is box)
+    qtbot.keyClick(box, QtCore.Qt.Key.Key_Escape)
+    assert window.control.runner.aborted
+    qtbot.waitUntil(window.control.finished.is_set, timeout=30_000)
+    with SessionReader(out) as reader:
+        assert reader.status[0] == "aborted" and "STOP" in reader.status[1]
+
+
+def test_closing_asks_first_then_stops_and_closes_the_file(operator_window, qtbot, tmp_path,
+                                                          monkeypatch):
+    from PySide6 import QtWidgets
+
+    window = operator_window()
+    out = _start(window, tmp_path, protocol="demo")
+    qtbot.waitUntil(window.confirm_button.isVisible, timeout=30_000)
+    window.confirm_prompt()
+    Button = QtWidgets.QMessageBox.StandardButton
+    answers = [Button.No, Button.Yes]
+    monkeypatch.setattr(QtWidgets.QMessageBox, "question",
+                        lambda *args, **kwargs: answers.pop(0))
+    window.close()
+    assert window.isVisible() and not window.control.runner.aborted  # "No": goes on
+    window.close()
+    assert not answers and window.control.finished.is_set()  # waited for the file
+    with SessionReader(out) as reader:
+        assert reader.status == ("aborted", "window closed by the operator")
+
+
+def test_stop_after_outputs_not_confirmed_off_says_so(operator_window):
+    from types import SimpleNamespace
+
+    window = operator_window()
+    window._run_finished(SimpleNamespace(status="failed", n_done=3, n_steps=8,
+                                         reason="digitizer: lost", unsafe=("drive: timeout",)))
+    assert window.state_banner.text().startswith("OUTPUTS NOT CONFIRMED OFF")
+    window.stop_run()
+    assert "NOT CONFIRMED OFF" in window.statusBar().currentMessage()
+    window.fault_dialog.close()
+
+
 def test_note_is_saved_into_the_session(operator_window, qtbot, tmp_path):
     window = operator_window()
     out = _start(window, tmp_path, protocol="demo")
