@@ -63,7 +63,15 @@ ECHO_COMPRESSION = {"compression": "gzip", "compression_opts": 1}
 
 
 class SessionFileError(ValueError):
-    """Not a usable session file; the one-line message says which file and why."""
+    """Not a usable session file; the one-line message says which file and why.
+
+    ``schema``: the root ``schema`` attribute found when that is the reason ("" for none:
+    another program's HDF5 file, or an FRF-only file with its schema on ``/frf``), else
+    None."""
+
+    def __init__(self, message: str, *, schema: str | None = None) -> None:
+        super().__init__(message)
+        self.schema = schema
 
 
 SUBJECT_ID_PATTERN = re.compile(r"[A-Za-z0-9._-]{0,32}")
@@ -834,10 +842,14 @@ class SessionReader:
                                    f"damaged?): {reason}") from None
         try:
             schema = _text(self._h5.attrs.get("schema", ""))
+            if not schema:  # another program's HDF5 file
+                raise SessionFileError(f"{self.path} is an HDF5 file but not a pelvislab "
+                                       f"session (no 'schema' attribute {SESSION_SCHEMA!r})",
+                                       schema="")
             if schema != SESSION_SCHEMA:
                 hint = " (an FRF-only file?)" if schema == "pelvislab-frf" else ""
                 raise SessionFileError(f"{self.path} has schema {schema!r}, expected "
-                                       f"{SESSION_SCHEMA!r}{hint}")
+                                       f"{SESSION_SCHEMA!r}{hint}", schema=schema)
             version = self._h5.attrs.get("schema_version", None)
             try:
                 version = int(version)  # type: ignore[arg-type]

@@ -268,11 +268,11 @@ class ReplayView(QtWidgets.QWidget):
         try:
             reader: Any = SessionReader(path)
         except SessionFileError as exc:
-            if " has schema " not in str(exc):  # unreadable, in use, another version
+            if exc.schema is None:  # unreadable, in use, another version
                 raise
             # not a session: an FRF-only file, which identify, ema and gap read too; design
             # 4.2 puts its schema on /frf, so another tool's file may have none at the root
-            if "schema 'pelvislab-frf'" in str(exc):
+            if exc.schema == "pelvislab-frf":
                 reader = _FrfOnlyFile(Path(path))  # a bad one: its own reason
             else:
                 try:

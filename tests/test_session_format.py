@@ -183,6 +183,11 @@ def test_wrong_schema_and_version(tmp_path, protocol):
     write_frf(frf_only, read_frf(path))
     with pytest.raises(SessionFileError, match="FRF-only"):
         SessionReader(frf_only)
+    foreign = tmp_path / "other.h5"  # another program's HDF5 file (GUI review, session 35:
+    with h5py.File(foreign, "w") as f:  # "has schema '', expected 'pelvislab-session'")
+        f["data"] = [1.0, 2.0]
+    with pytest.raises(SessionFileError, match="an HDF5 file but not a pelvislab session"):
+        SessionReader(foreign)
 
 
 def test_cli_resume_and_reprocess_refuse_bad_files(tmp_path, protocol):
