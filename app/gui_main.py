@@ -404,9 +404,14 @@ class OperatorWindow(QtWidgets.QMainWindow):
             return
         problem = subject_id_problem(self.subject_edit.text().strip())
         protocol = self.protocol_path()
-        out = Path(self.out_edit.text().strip())
+        out_text = self.out_edit.text().strip()
+        out = Path(out_text)
         if problem is None and protocol is None:
             problem = "choose a protocol"
+        if problem is None and not out_text:
+            problem = "choose an output file (…)"
+        if problem is None and out.is_dir():
+            problem = f"{out} is a folder: give the session file's name (e.g. {out}/S017.h5)"
         if problem is None and out.exists():
             problem = f"{out} exists: choose another output file (sessions are never overwritten)"
         if problem is not None:

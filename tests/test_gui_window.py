@@ -100,3 +100,21 @@ def test_a_channel_without_tracking_figures_is_not_shown_as_ok(qtbot):
     assert status == ["CHECK: no tracking figures", "OK"]
     assert warnings == ["ch1: no tracking figures"]
     assert table.item(0, 2).text() == ""  # not "nan"
+
+
+def test_start_names_an_empty_or_folder_output(operator_window, tmp_path, monkeypatch):
+    # GUI review, session 35: an empty output gave ". exists", a folder "<folder> exists"
+    from pelvislab.app import gui_main
+
+    said = []
+    monkeypatch.setattr(gui_main, "alert", lambda parent, title, text, critical=True:
+                        said.append(text))
+    window = operator_window()
+    window.subject_edit.setText("T001")
+    for out in ("", str(tmp_path)):
+        window.out_edit.setText(out)
+        window.start_run()
+        assert window.control is None
+    assert said == ["choose an output file (…)",
+                    f"{tmp_path} is a folder: give the session file's name "
+                    f"(e.g. {tmp_path}/S017.h5)"]
