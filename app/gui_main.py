@@ -77,13 +77,13 @@ class SessionControl:
     """One measurement session seen from the GUI: bench, protocol, writer, runner thread."""
 
     def __init__(self, protocol_path: Path, out_path: Path, subject_id: str,
-                 bench_path: Path | None = None) -> None:
+                 bench_path: Path | None = None, resume: bool = False) -> None:
         from pelvislab.acquisition import runner as runner_module
 
         self.events: queue.Queue = queue.Queue()
         self.prepared = runner_module.prepare_session(
             protocol_path, out_path, bench_path=bench_path, auto_continue=False,
-            subject_id=subject_id,
+            subject_id=subject_id, resume=resume,
         )
         self.runner = self.prepared.runner
         self.runner.subscribe(self.events.put)
@@ -412,14 +412,17 @@ class OperatorWindow(QtWidgets.QMainWindow):
             problem = "choose an output file (…)"
         if problem is None and out.is_dir():
             problem = f"{out} is a folder: give the session file's name (e.g. {out}/S017.h5)"
+        resume = False
         if problem is None and out.exists():
-            problem = f"{out} exists: choose another output file (sessions are never overwritten)"
+            resume, problem = self._resume_or_why_not(out)
+            if problem is None and not resume:
+                return  # the operator chose not to continue that session
         if problem is not None:
             alert(self, "Cannot start", problem, critical=False)
             return
         try:
             self.control = SessionControl(protocol, out, self.subject_edit.text().strip(),
-                                          self.bench_path)
+                                          self.bench_path, resume=resume)
         except Exception as exc:
             alert(self, "Cannot start", str(exc))
             return
@@ -433,7 +436,33 @@ class OperatorWindow(QtWidgets.QMainWindow):
         self._set_state("running")
         self.tabs.setCurrentIndex(0)
         self.control.start()
-        self._say(f"started {protocol.name} -> {out}")
+        self._say(f"{'resumed' if resume else 'started'} {protocol.name} -> {out}")
+
+    def _resume_or_why_not(self, out: Path) -> tuple[bool, str | None]:
+        """An existing output file: offer to continue it (as ``pelvislab run --resume``:
+        only its missing steps are measured, nothing is written over) when it is a session
+        of the subject entered; else say why not. Returns (resume, problem)."""
+        from pelvislab.acquisition.session import SessionReader
+
+        subject = self.subject_edit.text().strip()
+        try:
+            with SessionReader(out) as reader:
+                value = reader.attrs.get("subject_id", "")
+                recorded = value.decode() if isinstance(value, bytes) else str(value)
+                status, _ = reader.status
+                n_steps = len(list(reader.steps(with_echoes=False)))
+        except Exception as exc:
+            return False, (f"{out} exists and is not a session to continue ({exc}): choose "
+                           "another output file (sessions are never overwritten)")
+        if recorded != subject:
+            return False, (f"{out} is the session of subject {recorded!r}, not {subject!r}: "
+                           "choose another output file (sessions are never overwritten)")
+        answer = QtWidgets.QMessageBox.question(
+            self, "Continue this session?",
+            f"{out.name} exists: subject {subject}, {n_steps} steps measured, last run "
+            f"{status}. Continue it (only the missing steps are measured; nothing is "
+            "written over)?")
+        return answer == QtWidgets.QMessageBox.StandardButton.Yes, None
 
     def _show_bench(self, bench: Any) -> None:
         rows = []

@@ -141,6 +141,47 @@ def test_stop_after_outputs_not_confirmed_off_says_so(operator_window):
     window.fault_dialog.close()
 
 
+def test_a_stopped_session_can_be_continued_from_the_window(operator_window, qtbot, tmp_path,
+                                                            monkeypatch):
+    # GUI review, session 35: after STOP (or a closed window) the operator could only start
+    # a new file and measure everything again; `pelvislab run --resume` was CLI-only
+    from PySide6 import QtWidgets
+
+    from pelvislab.app import gui_main
+
+    said = []
+    monkeypatch.setattr(gui_main, "alert", lambda parent, title, text, critical=True:
+                        said.append(text))
+    monkeypatch.setattr(QtWidgets.QMessageBox, "question",
+                        lambda *args, **kwargs: QtWidgets.QMessageBox.StandardButton.Yes)
+    window = operator_window()
+    out = _start(window, tmp_path, protocol="demo")
+    qtbot.waitUntil(window.confirm_button.isVisible, timeout=30_000)
+    window.confirm_prompt()
+    qtbot.waitUntil(lambda: sum(len(v) for v in window._frf_lines.values()) >= 4,
+                    timeout=60_000)
+    window.stop_run()
+    qtbot.waitUntil(window.start_button.isEnabled, timeout=30_000)
+    with SessionReader(out) as reader:
+        kept = len(list(reader.steps(with_echoes=False)))
+    window.subject_edit.setText("T002")  # another subject's file is never continued
+    window.start_run()
+    assert window.control.finished.is_set() and "subject 'T001', not 'T002'" in said[-1]
+    window.subject_edit.setText("T001")
+    window.start_run()
+    assert not window.control.finished.is_set()
+    qtbot.waitUntil(window.confirm_button.isVisible, timeout=30_000)
+    window.confirm_prompt()
+    qtbot.waitUntil(lambda: window.progress.value() > 0 and window.run_state == "running",
+                    timeout=60_000)
+    window.stop_run()
+    qtbot.waitUntil(window.start_button.isEnabled, timeout=30_000)
+    with SessionReader(out) as reader:
+        assert len(list(reader.steps(with_echoes=False))) >= kept
+        assert any("resumed, " + str(kept) + " steps kept" in line
+                   for line in reader.log_lines())
+
+
 def test_note_is_saved_into_the_session(operator_window, qtbot, tmp_path):
     window = operator_window()
     out = _start(window, tmp_path, protocol="demo")
