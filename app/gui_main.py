@@ -575,6 +575,7 @@ class OperatorWindow(QtWidgets.QMainWindow):
                     f"ch{c} → {p}" for c, p in sorted(event.transducers.items())]
                 self.ascan.set_channels(self._channel_labels)
                 self.displacement.set_channels(self._channel_labels)
+                self.quality.setRowCount(0)  # the previous setup's figures are not these
             elif isinstance(event, r.Quality):
                 if not event.ok:
                     self._say(f"QUALITY {event.channel}: {event.message}")

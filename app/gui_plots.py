@@ -57,6 +57,9 @@ class AScanPanel(pg.GraphicsLayoutWidget):
             plot.setVisible(visible)
             if visible:
                 plot.setTitle(f"A-scan {names[i]}")
+                # the previous setup's echo is not shown under the new landmark's name
+                self._curves[i].setData([], [])
+                self._gates[i].setVisible(False)
 
     def show_echo(self, index: int, time_s: np.ndarray, volts: np.ndarray,
                   gate_s: tuple[float, float] | None) -> None:

@@ -118,3 +118,20 @@ def test_start_names_an_empty_or_folder_output(operator_window, tmp_path, monkey
     assert said == ["choose an output file (…)",
                     f"{tmp_path} is a folder: give the session file's name "
                     f"(e.g. {tmp_path}/S017.h5)"]
+
+
+def test_a_new_setup_does_not_show_the_last_echo_under_the_new_landmark(qtbot):
+    # GUI review, session 35: at the next setup's prompt the A-scans were already titled
+    # with the new landmarks but still showed the previous setup's echoes
+    import numpy as np
+
+    from pelvislab.app.gui_plots import AScanPanel
+
+    panel = AScanPanel()
+    qtbot.addWidget(panel)
+    panel.set_channels(["ch1 → SIAS_R_x"])
+    panel.show_echo(0, np.linspace(0, 1e-6, 50), np.ones(50), (2e-7, 4e-7))
+    panel.set_channels(["ch1 → SIPS_R_x"])
+    x, _ = panel._curves[0].getData()
+    assert x is None or len(x) == 0
+    assert not panel._gates[0].isVisible()
