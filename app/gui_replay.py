@@ -431,8 +431,11 @@ class ReplayView(QtWidgets.QWidget):
         """Parameters with their standard errors; measured vs model FRFs."""
         params = report.to_json().get("parameters", {})
         self.param_table.setRowCount(len(params))
+        units = report.to_json().get("units", {})  # by prefix: m_ kg, k_ N/m, c_ N s/m, f_ 1
         for r, (name, entry) in enumerate(sorted(params.items())):
-            self.param_table.setItem(r, 0, QtWidgets.QTableWidgetItem(name))
+            unit = next((u for prefix, u in units.items() if name.startswith(prefix)), "")
+            label = f"{name} ({unit})" if unit and unit != "1" else name
+            self.param_table.setItem(r, 0, QtWidgets.QTableWidgetItem(label))
             self.param_table.setItem(r, 1, QtWidgets.QTableWidgetItem(f"{entry['value']:.4g}"))
             std = entry.get("std")
             self.param_table.setItem(r, 2, QtWidgets.QTableWidgetItem(
