@@ -37,6 +37,7 @@ STOP_CSS = LARGE_BUTTON_CSS + "background: #c62828; color: white;"
 # the run's state, readable from the exam bed: (text, background, text colour)
 STATE_STYLES = {
     "ready": ("READY — outputs off", "#cfd8dc", "black"),
+    "starting": ("STARTING — outputs off", "#cfd8dc", "black"),
     "running": ("RUNNING — OUTPUTS ON", "#2e7d32", "white"),
     "waiting": ("WAITING — outputs off", "#fdd835", "black"),
     "paused": ("PAUSED — outputs off", "#1565c0", "white"),
@@ -295,7 +296,8 @@ class OperatorWindow(QtWidgets.QMainWindow):
 
     def _set_state(self, state: str) -> None:
         """The state banner: what the run does and whether the outputs are on."""
-        if self.outputs_unconfirmed and state not in ("running", "waiting", "paused"):
+        if self.outputs_unconfirmed and state not in ("starting", "running", "waiting",
+                                                      "paused"):
             state = "unsafe"
         text, background, colour = STATE_STYLES[state]
         self.state_banner.setText(text)
@@ -433,7 +435,7 @@ class OperatorWindow(QtWidgets.QMainWindow):
         self.pause_button.setEnabled(True)
         self.setup_box.setEnabled(False)
         self.outputs_unconfirmed = False
-        self._set_state("running")
+        self._set_state("starting")  # RUNNING from the first step on (outputs go on then)
         self.tabs.setCurrentIndex(0)
         self.control.start()
         self._say(f"{'resumed' if resume else 'started'} {protocol.name} -> {out}")
