@@ -1095,6 +1095,14 @@ def prepare_session(protocol_path: Path | str, out_path: Path | str,
             skip = [s.key for s in reader.steps(with_echoes=False)]
             problems = reader.damaged + reader.incomplete
             previous_run = reader.status
+            recorded = reader.attrs.get("subject_id", "")
+            recorded = recorded.decode() if isinstance(recorded, bytes) else str(recorded)
+        # one subject per file: continuing it with another ID would mix two subjects'
+        # steps in one FRF (found while adding the GUI's resume, session 35)
+        if subject_id is not None and subject_id != recorded:
+            raise ValueError(f"--resume: {out} is the session of subject {recorded!r}, not "
+                             f"{subject_id!r}; resume without --subject-id, or start a new "
+                             "session for that subject")
     elif out.exists():
         raise FileExistsError(f"{out} exists; not overwriting it (use --resume to continue "
                               "that session, or choose another --out)")

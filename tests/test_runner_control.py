@@ -388,7 +388,16 @@ def test_resume_measures_only_what_is_missing(tmp_path):
         assert session.run().status == "failed"
     bench2 = make_bench()
     proto = tmp_path / "p.toml"
-    with r.prepare_session(proto, tmp_path / "s.h5", bench=bench2, resume=True) as session:
+    with SessionReader(tmp_path / "s.h5") as reader:
+        subject = reader.attrs["subject_id"]
+    # another subject's ID is refused before the bench is touched (two subjects' steps
+    # would end up in one FRF)
+    with pytest.raises(ValueError, match=f"session of subject '{subject}', not 'X99'"):
+        r.prepare_session(proto, tmp_path / "s.h5", bench=bench2, resume=True,
+                          subject_id="X99")
+    assert not bench2.drive.command_log
+    with r.prepare_session(proto, tmp_path / "s.h5", bench=bench2, resume=True,
+                           subject_id=subject) as session:
         assert len(session.runner.protocol.steps()) == 8
         final = session.run()
     assert final.status == "completed" and final.n_done == 8
