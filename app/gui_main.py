@@ -561,7 +561,11 @@ class OperatorWindow(QtWidgets.QMainWindow):
                 # first: showing a widget lays the window out at once, and a window grown
                 # past the screen does not shrink back
                 self.bench_box.setVisible(event.auto_continue)
-                self.prompt_label.setText(f"{event.message}\nPlace: {placement}")
+                # the runner's own prompt already lists the placement; a protocol's text
+                # says it in words, so the landmark names follow then
+                said = all(p.split(" → ")[-1] in event.message for p in self._channel_labels)
+                self.prompt_label.setText(
+                    event.message if said else f"{event.message}\nPlace: {placement}")
                 _fit_height(self.prompt_label)
                 self.prompt_label.setVisible(True)
                 self.confirm_button.setVisible(not event.auto_continue)

@@ -72,6 +72,10 @@ def test_the_state_banner_and_set_up_follow_the_run(operator_window, qtbot, tmp_
     assert not window.setup_box.isEnabled()
     qtbot.waitUntil(window.confirm_button.isVisible, timeout=30_000)
     assert window.state_banner.text() == "WAITING — outputs off"
+    # the runner's own prompt lists the placement: not said twice (a protocol's worded
+    # prompt gets the "Place:" line, see the face-up run above)
+    assert "Place:" not in window.prompt_label.text()
+    assert "ch1 -> SIAS_R_x" in window.prompt_label.text()
     window.confirm_prompt()
     qtbot.waitUntil(lambda: window.state_banner.text() == "RUNNING — OUTPUTS ON",
                     timeout=60_000)
