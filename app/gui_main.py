@@ -393,7 +393,9 @@ class OperatorWindow(QtWidgets.QMainWindow):
         self.bench_table.setRowCount(len(rows))
         for r, values in enumerate(rows):
             for c, text in enumerate(values):
-                self.bench_table.setItem(r, c, QtWidgets.QTableWidgetItem(text))
+                item = QtWidgets.QTableWidgetItem(text)
+                item.setToolTip(text)  # identities and resources are cut in 360 px
+                self.bench_table.setItem(r, c, item)
 
     # ------------------------------------------------------------------ run control
     def _say(self, text: str) -> None:
