@@ -34,3 +34,11 @@ def alert(parent: QtWidgets.QWidget | None, title: str, text: str,
         QtWidgets.QMessageBox.critical(parent, title, text)
     else:
         QtWidgets.QMessageBox.warning(parent, title, text)
+
+
+def ask(parent: QtWidgets.QWidget | None, title: str, text: str) -> bool:
+    """A yes/no question; where nobody can answer (headless) the answer is no."""
+    if _headless:
+        return False
+    answer = QtWidgets.QMessageBox.question(parent, title, text)
+    return answer == QtWidgets.QMessageBox.StandardButton.Yes

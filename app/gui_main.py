@@ -20,7 +20,7 @@ from typing import Any
 import numpy as np
 from PySide6 import QtCore, QtGui, QtWidgets
 
-from pelvislab.app.gui_dialogs import alert, set_headless
+from pelvislab.app.gui_dialogs import alert, ask, set_headless
 from pelvislab.app.gui_plots import (
     AScanPanel,
     DisplacementPanel,
@@ -419,11 +419,12 @@ class OperatorWindow(QtWidgets.QMainWindow):
         resume = False
         if problem is None and out.exists():
             resume, problem = self._resume_or_why_not(out)
-            if problem is None and not resume:
-                return  # the operator chose not to continue that session
         if problem is not None:
             alert(self, "Cannot start", problem, critical=False)
             return
+        if resume and self.replay.path is not None and self.replay.path.resolve() == \
+                out.resolve():
+            self.replay.close_session()  # HDF5 opens a file once: read-only here blocks it
         try:
             self.control = SessionControl(protocol, out, self.subject_edit.text().strip(),
                                           self.bench_path, resume=resume)
@@ -461,12 +462,15 @@ class OperatorWindow(QtWidgets.QMainWindow):
         if recorded != subject:
             return False, (f"{out} is the session of subject {recorded!r}, not {subject!r}: "
                            "choose another output file (sessions are never overwritten)")
-        answer = QtWidgets.QMessageBox.question(
-            self, "Continue this session?",
-            f"{out.name} exists: subject {subject}, {n_steps} steps measured, last run "
-            f"{status}. Continue it (only the missing steps are measured; nothing is "
-            "written over)?")
-        return answer == QtWidgets.QMessageBox.StandardButton.Yes, None
+        question = (f"{out.name} exists: subject {subject}, {n_steps} steps measured, last "
+                    f"run {status}. Continue it (only the missing steps are measured; "
+                    "nothing is written over)?")
+        if not ask(self, "Continue this session?", question):
+            # headless (a screenshot run) nobody answers: refused as before, not hung
+            # (review of session 35's diff)
+            return False, (f"{out} exists: choose another output file (sessions are never "
+                           "overwritten), or continue it from the window")
+        return True, None
 
     def _show_bench(self, bench: Any) -> None:
         rows = []
@@ -492,8 +496,15 @@ class OperatorWindow(QtWidgets.QMainWindow):
                 self.statusBar().showMessage("STOP: nothing is running")
             return
         self.control.stop()
-        self._say("STOP pressed: outputs off")
-        self.statusBar().showMessage("STOPPED: outputs off")
+        # the abort's safe state has run (in this thread): what it could not confirm shows
+        self.outputs_unconfirmed = bool(self.control.runner.unsafe)
+        if self.outputs_unconfirmed:
+            self._say("STOP pressed: OUTPUTS NOT CONFIRMED OFF (" + "; ".join(
+                self.control.runner.unsafe) + "): switch the shaker amplifier off by hand")
+            self.statusBar().showMessage("STOPPED: OUTPUTS NOT CONFIRMED OFF")
+        else:
+            self._say("STOP pressed: outputs off")
+            self.statusBar().showMessage("STOPPED: outputs off")
         self._set_state("stopping")
 
     def toggle_pause(self) -> None:

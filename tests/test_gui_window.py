@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import pytest
 from PySide6 import QtWidgets
 
@@ -135,3 +137,49 @@ def test_a_new_setup_does_not_show_the_last_echo_under_the_new_landmark(qtbot):
     x, _ = panel._curves[0].getData()
     assert x is None or len(x) == 0
     assert not panel._gates[0].isVisible()
+
+
+def test_a_screenshot_run_on_an_existing_session_is_refused_not_hung(tmp_path):
+    # review of session 35's diff: the "continue this session?" question hung a headless
+    # `gui --start ... --out EXISTING --screenshot` (nobody answers offscreen)
+    import subprocess
+    import sys
+
+    protocol = Path(__file__).resolve().parents[1] / "protocols" / "demo.toml"
+    out = tmp_path / "s.h5"
+    argv = [sys.executable, "-m", "pelvislab.app", "gui", "--start", str(protocol), "--out",
+            str(out), "--after", "0.5", "--screenshot"]
+    first = subprocess.run(argv + [str(tmp_path / "a.png")], capture_output=True, text=True,
+                           timeout=120)
+    assert first.returncode == 0 and out.exists(), first.stderr
+    second = subprocess.run(argv + [str(tmp_path / "b.png")], capture_output=True,
+                            text=True, timeout=120)
+    assert second.returncode == 1, second.stderr
+    assert "s.h5 exists" in second.stderr
+
+
+def test_a_question_where_nobody_can_answer_is_answered_no(monkeypatch):
+    # the window's own path to the same question (run_gui sets headless for screenshots)
+    from pelvislab.app import gui_dialogs
+
+    monkeypatch.setattr(QtWidgets.QMessageBox, "question",
+                        lambda *a, **k: pytest.fail("a dialog was shown headless"))
+    monkeypatch.setattr(gui_dialogs, "_headless", True)
+    assert gui_dialogs.ask(None, "Continue this session?", "…") is False
+
+
+def test_stop_whose_safe_state_fails_says_outputs_not_confirmed_off(operator_window):
+    # review of session 35's diff: the banner said "STOPPING — outputs off" although the
+    # abort's safe state (run in the GUI thread) had reported a failure
+    import threading
+    from types import SimpleNamespace
+
+    window = operator_window()
+    stopped = []
+    window.control = SimpleNamespace(
+        finished=threading.Event(), stop=lambda: stopped.append(True),
+        runner=SimpleNamespace(unsafe=("drive: OUTP OFF not confirmed: timeout",)))
+    window.stop_run()
+    assert stopped and window.state_banner.text().startswith("OUTPUTS NOT CONFIRMED OFF")
+    assert "NOT CONFIRMED" in window.statusBar().currentMessage()
+    window.control.finished.set()
