@@ -171,13 +171,14 @@ def test_a_question_where_nobody_can_answer_is_answered_no(monkeypatch):
 def test_stop_whose_safe_state_fails_says_outputs_not_confirmed_off(operator_window):
     # review of session 35's diff: the banner said "STOPPING — outputs off" although the
     # abort's safe state (run in the GUI thread) had reported a failure
+    import queue
     import threading
     from types import SimpleNamespace
 
     window = operator_window()
     stopped = []
     window.control = SimpleNamespace(
-        finished=threading.Event(), stop=lambda: stopped.append(True),
+        finished=threading.Event(), stop=lambda: stopped.append(True), events=queue.Queue(),
         runner=SimpleNamespace(unsafe=("drive: OUTP OFF not confirmed: timeout",)))
     window.stop_run()
     assert stopped and window.state_banner.text().startswith("OUTPUTS NOT CONFIRMED OFF")
