@@ -124,13 +124,15 @@ def identify_modal(
         raise ValueError(
             f"measured shapes have {data.shapes.shape[0]} points, model outputs {O.shape[0]}")
     n_modes = data.frequency_hz.size
-    n_residuals = n_modes * (1 + O.shape[0])  # a frequency and a shape per mode
-    if n_residuals < len(free):
+    # independent equations per mode: its frequency and its shape's direction (a unit
+    # vector at n outputs has n - 1 degrees of freedom)
+    n_equations = n_modes * O.shape[0]
+    if n_equations < len(free):
         # more unknowns than equations: the fit would return one of many solutions
         raise ValueError(
-            f"{n_modes} mode(s) at {O.shape[0]} output(s) give {n_residuals} residuals "
-            f"(a frequency and a shape per mode), fewer than the {len(free)} parameters "
-            "to update; free fewer parameters or measure more modes")
+            f"{n_modes} mode(s) at {O.shape[0]} output(s) give {n_equations} independent "
+            f"equations (a frequency and a unit shape per mode), fewer than the "
+            f"{len(free)} parameters to update; free fewer parameters or measure more modes")
     w2_meas = (2 * np.pi * data.frequency_hz) ** 2
     phi_meas = data.shapes / np.linalg.norm(data.shapes, axis=0)
     evals = [0]

@@ -87,15 +87,20 @@ def test_shape_mismatch_is_an_error() -> None:
 
 
 def test_fewer_modal_residuals_than_parameters_are_refused() -> None:
-    # one mode seen at 4 points gives 5 equations; 7 unknowns have no unique answer
-    # (helper review, session 34: `identify --method modal` had no such check)
+    # one mode seen at 4 points gives 4 independent equations (its frequency and a unit
+    # shape); more unknowns have no unique answer (helper review, session 34:
+    # `identify --method modal` had no such check; 5 unknowns passed until a review of
+    # session 35 counted a unit shape's n - 1 degrees of freedom)
     p = full_observation()
     m = p.assemble(p.nominal)
     lam, Z = undamped_modes(m.M, m.K)
     one_mode = ModalData(np.sqrt(lam[:1]) / (2 * np.pi), Z[:, :1])
     every = [n for n in p.names if n != "c"]
     assert len(every) > 5
-    with pytest.raises(ValueError, match="5 residuals .* fewer than the 8 parameters"):
+    with pytest.raises(ValueError, match="4 independent equations .* fewer than the 8 "):
         identify_modal(p, one_mode, free=every, n_rigid=0)
+    with pytest.raises(ValueError, match="fewer than the 5 parameters"):
+        identify_modal(p, one_mode, free=[n for n in every if n.startswith("k")] + ["m0"],
+                       n_rigid=0)
     springs = [n for n in p.names if n.startswith("k")]
     identify_modal(p, one_mode, free=springs, n_rigid=0)  # 4 unknowns: answered
