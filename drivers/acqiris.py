@@ -315,6 +315,7 @@ class AcqirisDigitizer:
         Validated first: channels in (1, 2); 0 < sample_rate_hz <= 500 MS/s;
         full scale 50 mV to 5 V (DP235); n_samples, n_segments >= 1.
         """
+        self._abort_requested.clear()  # a new sequence: an earlier abort is over
         chans = tuple(int(c) for c in channels)
         if not chans or len(set(chans)) != len(chans) or \
                 any(c not in DP235_CHANNELS for c in chans):
@@ -368,7 +369,7 @@ class AcqirisDigitizer:
             raise LimitError(f"timeout_s must be > 0, got {timeout_s!r}")
         cfg = self._config
         s = self._session()
-        self._abort_requested.clear()
+        self._raise_if_aborted()  # an abort that came before this acquisition counts too
         try:
             self._call("AcqrsD1_acquire", s)
             self._running = True
@@ -376,7 +377,7 @@ class AcqirisDigitizer:
             self._running = False
             return {ch: self._read_channel(ch, cfg) for ch in cfg["channels"]}
         except BaseException:
-            self.abort()
+            self._stop()  # not an abort: a retry after a timeout may acquire again
             raise
 
     def _wait(self, timeout_s: float) -> None:
@@ -448,15 +449,23 @@ class AcqirisDigitizer:
 
     def _stop_if_running(self) -> None:
         if self._running:
-            self.abort()
+            self._stop()
 
     def abort(self) -> None:
         """Stop a running acquisition, also from another thread: a wait under way in
         :meth:`acquire` ends within :data:`WAIT_SLICE_MS` with
-        :class:`AcquisitionAbortedError`. Never raises (failures are logged)."""
+        :class:`AcquisitionAbortedError`, and so does every :meth:`acquire` until the next
+        :meth:`configure_sequence`. Never raises (failures are logged)."""
         if self._id is None:
             return
+        # holds until the next configure_sequence(): cleared on entering acquire(), an
+        # abort arriving just before it was lost and the wait ran to its full timeout
+        # (review of session 35's diff)
         self._abort_requested.set()
+        self._stop()
+
+    def _stop(self) -> None:
+        """stopAcquisition; never raises (failures are logged)."""
         try:
             self._call("AcqrsD1_stopAcquisition", self._session())
         except Exception as exc:

@@ -323,3 +323,26 @@ def test_library_without_instrument_data_still_opens():
     dig = AcqirisDigitizer(Old(), "PCI::INSTR0")
     assert dig.identity == "Acqiris DP235 at PCI::INSTR0"
     dig.close()
+
+
+def test_an_abort_just_before_an_acquisition_is_not_lost():
+    # review of session 35's diff: acquire() cleared the abort on entry, so a STOP between
+    # the runner's last check and acquire() waited out the whole timeout
+    fake = FakeD1(timeouts=10**6)
+    dig = open_fake(fake)
+    dig.configure_sequence([1], 500e6, 100, 10, 0.0, 1.0)
+    dig.abort()
+    t0 = time.monotonic()
+    with pytest.raises(AcquisitionAbortedError):
+        dig.acquire(timeout_s=3.0)
+    assert time.monotonic() - t0 < 1.0
+    assert "AcqrsD1_acquire" not in fake.names()  # the card is not armed again
+    # a timeout is not an abort: the next acquisition may go ahead without reconfiguring
+    fake2 = FakeD1(timeouts=10**6)
+    dig.lib = fake2
+    dig.configure_sequence([1], 500e6, 100, 10, 0.0, 1.0)
+    with pytest.raises(InstrumentTimeoutError):
+        dig.acquire(timeout_s=0.05)
+    fake2.timeouts = 0
+    assert dig.acquire(timeout_s=1.0)[1].codes.shape == (10, 100)
+    dig.close()
