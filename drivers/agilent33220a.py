@@ -563,36 +563,62 @@ class Agilent33220A(SCPIInstrument):
         return not unlocked
 
     def safe_state(self) -> None:
-        """Output off. Never raises (failures are logged and kept in safe_state_errors)."""
+        """Output off. Never raises (failures are logged and kept in safe_state_errors).
+
+        From any thread: it waits for another thread's exchange under way (at most
+        ``SAFE_STATE_IO_WAIT_S``), else sends ``OUTP OFF`` anyway after a device clear;
+        the read-back ``OUTP?`` is then asked only once that exchange has ended, since
+        its pending read would take the answer (review of session 35's diff)."""
         if self._closed or not self._identified:
             return
-        with self.safe_state_io():  # never between another thread's query and its answer
+        with self.safe_state_io() as free:  # never between another query and its answer
             self.clear_if_interrupted()  # so that a late answer cannot be mistaken later
             try:
                 self.write("OUTP OFF")
-                # a write that went out is not an executed command: asked back, so that
-                # "outputs off" is said only when the instrument says so (helper review,
-                # session 34)
-                answer = self.ask("OUTP?").strip()
-                if answer not in ("0", "+0", "OFF"):
-                    raise InstrumentError(f"OUTP? answered {answer!r} after OUTP OFF")
             except BaseException as exc:  # the caller is already handling a failure
-                msg = f"{self.model} {self.resource}: OUTP OFF not confirmed: {exc}"
-                self.safe_state_errors.append(msg)
-                log.error(msg)
+                self._not_confirmed(exc)
                 if not isinstance(exc, Exception):
                     raise
                 return
-            self._drain_errors_after_safe_state()
+            if free:
+                self._confirm_output_off()
+                return
+        with self.safe_state_io(force=False) as free:
+            if free:
+                self._confirm_output_off()
+            else:
+                self._not_confirmed("sent while another thread's exchange hung; not asked "
+                                    "back (its pending read would take the answer)")
+
+    def _not_confirmed(self, reason: object) -> None:
+        msg = f"{self.model} {self.resource}: OUTP OFF not confirmed: {reason}"
+        self.safe_state_errors.append(msg)
+        log.error(msg)
+
+    def _confirm_output_off(self) -> None:
+        """Ask ``OUTP?`` after ``OUTP OFF`` (a write that went out is not an executed
+        command: "outputs off" is said only when the instrument says so; helper review,
+        session 34), then empty the error queue."""
+        try:
+            answer = self.ask("OUTP?").strip()
+            if answer not in ("0", "+0", "OFF"):
+                raise InstrumentError(f"OUTP? answered {answer!r} after OUTP OFF")
+        except BaseException as exc:
+            self._not_confirmed(exc)
+            if not isinstance(exc, Exception):
+                raise
+            return
+        self._drain_errors_after_safe_state()
 
     def _drain_errors_after_safe_state(self) -> None:
         """Empty the error queue once the output is confirmed off: errors left by the block
         that failed (a timeout before its SYST:ERR?) are logged here instead of being
-        blamed on the next configuration block. Not a safe-state failure if it fails."""
+        blamed on the next configuration block. Not a safe-state failure if it fails, nor
+        if Ctrl-C cuts it (the output is off; whoever stops the run has the abort)."""
         try:
             stale = self.read_errors()
-        except Exception as exc:
-            log.warning("%s %s: error queue not read after the safe state: %s", self.model,
+        except (Exception, KeyboardInterrupt) as exc:
+            log.warning("%s %s: error queue not read after the safe state: %r", self.model,
                         self.resource, exc)
             return
         if stale:

@@ -403,16 +403,20 @@ class SCPIInstrument:
             return answer
 
     @contextmanager
-    def safe_state_io(self, wait_s: float | None = None) -> Iterator[bool]:
+    def safe_state_io(self, wait_s: float | None = None, force: bool = True
+                      ) -> Iterator[bool]:
         """The I/O for a safe state, from any thread: waits up to ``wait_s`` (default
-        :data:`SAFE_STATE_IO_WAIT_S`) for another thread's exchange to end, then goes ahead
-        without it (logged), because the output must go off. Yields whether the instrument
-        was free; when it was not, the other exchange counts as interrupted (its answer
-        may arrive late), so :meth:`clear_if_interrupted` flushes it."""
+        :data:`SAFE_STATE_IO_WAIT_S`) for another thread's exchange to end. Yields whether
+        the instrument was free. When it was not and ``force``, this thread goes ahead
+        without it (logged), because the output must go off: the other exchange counts as
+        interrupted (its answer may arrive late), so :meth:`clear_if_interrupted` flushes
+        it. Forced, send only commands that have no answer: the other exchange's pending
+        read would take it."""
         if wait_s is None:
             wait_s = SAFE_STATE_IO_WAIT_S
         got = self._io_lock.acquire(timeout=wait_s)
-        if not got:
+        previous = self._io_forced_by
+        if not got and force:
             log.warning("%s %s: another thread's exchange did not end within %g s; the "
                         "safe state goes ahead", self.model, self.resource, wait_s)
             self.query_interrupted = True
@@ -422,8 +426,8 @@ class SCPIInstrument:
         finally:
             if got:
                 self._io_lock.release()
-            else:
-                self._io_forced_by = None
+            elif force:
+                self._io_forced_by = previous  # a nested forced safe state keeps the outer
 
     def clear_if_interrupted(self) -> None:
         """Device clear (flush both I/O buffers) after an interrupted query. Never raises."""
