@@ -12,6 +12,7 @@ from __future__ import annotations
 import hashlib
 import os
 import signal
+import sys
 import time
 
 import pytest
@@ -125,3 +126,35 @@ def test_exit_code_survives_a_terminal_that_hung_up(monkeypatch):
     monkeypatch.setattr(sys, "stderr", HungUp())
     args = argparse.Namespace(out="s.h5")
     assert _report(args, Prepared(), Final(), 1.0) == EXIT_INTERRUPTED
+
+
+def test_an_interrupt_that_cannot_propagate_is_not_printed(monkeypatch):
+    # clean-clone run, session 35: Ctrl-C landed in a weakref callback of the import
+    # machinery; CPython printed the handler's RunInterrupted as "Exception ignored ...
+    # Traceback" on stderr (the abort itself had been done)
+    import gc
+    from types import SimpleNamespace
+
+    from pelvislab.acquisition.runner import RunInterrupted
+
+    seen = []
+    monkeypatch.setattr(sys, "unraisablehook", lambda args: seen.append(args.exc_type))
+
+    class Raises:
+        def __init__(self, exc):
+            self.exc = exc
+
+        def __del__(self):
+            raise self.exc
+
+    def run():
+        Raises(RunInterrupted("interrupted by Ctrl-C (SIGINT)"))  # dropped at once
+        Raises(ValueError("a real problem"))
+        gc.collect()
+        return "finished"
+
+    prepared = SimpleNamespace(runner=SimpleNamespace(interrupt=lambda reason: None), run=run)
+    hook = sys.unraisablehook
+    assert _run_with_signals(prepared) == "finished"
+    assert seen == [ValueError]  # others still reported
+    assert sys.unraisablehook is hook  # put back
