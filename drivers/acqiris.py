@@ -458,9 +458,9 @@ class AcqirisDigitizer:
         :meth:`configure_sequence`. Never raises (failures are logged)."""
         if self._id is None:
             return
-        # holds until the next configure_sequence(): cleared on entering acquire(), an
-        # abort arriving just before it was lost and the wait ran to its full timeout
-        # (review of session 35's diff)
+        # holds until the next configure_sequence() (when acquire() cleared it on entry,
+        # an abort arriving just before was lost and the wait ran to its full timeout:
+        # review of session 35's diff)
         self._abort_requested.set()
         self._stop()
 
