@@ -110,6 +110,6 @@ def test_gap_diagnosis_names_infinite_frf_values(tmp_path, capsys):
     err = capsys.readouterr().err
     assert code == 0, err
     message = ("1 value(s) of /frf/H are infinite: read as not measured (as NaN), so those "
-               "lines are left out")
+               "values are left out of the analysis")
     assert json.loads(out.read_text())["warnings"] == [message]
     assert message in err

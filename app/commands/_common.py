@@ -135,7 +135,7 @@ def infinite_as_unmeasured(frf: Any, what: str = "/frf/H") -> str | None:
         return None
     frf.H = np.where(infinite, complex(np.nan, np.nan), frf.H)
     return (f"{n} value(s) of {what} are infinite: read as not measured (as NaN), so those "
-            "lines are left out")
+            "values are left out of the analysis")
 
 
 def check_new_output(path: str | Path) -> Path:
