@@ -429,9 +429,10 @@ class ReplayView(QtWidgets.QWidget):
 
     def show_identification(self, report: Any) -> None:
         """Parameters with their standard errors; measured vs model FRFs."""
-        params = report.to_json().get("parameters", {})
+        document = report.to_json()
+        params = document.get("parameters", {})
         self.param_table.setRowCount(len(params))
-        units = report.to_json().get("units", {})  # by prefix: m_ kg, k_ N/m, c_ N s/m, f_ 1
+        units = document.get("units", {})  # by prefix: m_ kg, k_ N/m, c_ N s/m, f_ 1
         for r, (name, entry) in enumerate(sorted(params.items())):
             unit = next((u for prefix, u in units.items() if name.startswith(prefix)), "")
             label = f"{name} ({unit})" if unit and unit != "1" else name
