@@ -562,53 +562,56 @@ class Agilent33220A(SCPIInstrument):
             raise self._error_for(others, "reference_locked")
         return not unlocked
 
-    def safe_state(self) -> None:
-        """Output off. Never raises (failures are logged and kept in safe_state_errors).
+    def safe_state(self) -> list[str]:
+        """Output off. Never raises an Exception; returns this call's failures, also kept
+        in ``safe_state_errors`` (a list another thread's safe state may append to
+        meanwhile) and logged.
 
         From any thread: it waits for another thread's exchange under way (at most
         ``SAFE_STATE_IO_WAIT_S``), else sends ``OUTP OFF`` anyway after a device clear;
         the read-back ``OUTP?`` is then asked only once that exchange has ended, since
         its pending read would take the answer (review of session 35's diff)."""
         if self._closed or not self._identified:
-            return
+            return []
         with self.safe_state_io() as free:  # never between another query and its answer
             self.clear_if_interrupted()  # so that a late answer cannot be mistaken later
             try:
                 self.write("OUTP OFF")
             except BaseException as exc:  # the caller is already handling a failure
-                self._not_confirmed(exc)
+                failures = [self._not_confirmed(exc)]
                 if not isinstance(exc, Exception):
                     raise
-                return
+                return failures
             if free:
-                self._confirm_output_off()
-                return
+                return self._confirm_output_off()
         with self.safe_state_io(force=False) as free:
             if free:
-                self._confirm_output_off()
-            else:
-                self._not_confirmed("sent while another thread's exchange hung; not asked "
-                                    "back (its pending read would take the answer)")
+                return self._confirm_output_off()
+            return [self._not_confirmed("sent while another thread's exchange hung; not "
+                                        "asked back (its pending read would take the "
+                                        "answer)")]
 
-    def _not_confirmed(self, reason: object) -> None:
+    def _not_confirmed(self, reason: object) -> str:
         msg = f"{self.model} {self.resource}: OUTP OFF not confirmed: {reason}"
         self.safe_state_errors.append(msg)
         log.error(msg)
+        return msg
 
-    def _confirm_output_off(self) -> None:
+    def _confirm_output_off(self) -> list[str]:
         """Ask ``OUTP?`` after ``OUTP OFF`` (a write that went out is not an executed
         command: "outputs off" is said only when the instrument says so; helper review,
-        session 34), then empty the error queue."""
+        session 34), then empty the error queue. Returns the failure, if any."""
         try:
             answer = self.ask("OUTP?").strip()
             if answer not in ("0", "+0", "OFF"):
                 raise InstrumentError(f"OUTP? answered {answer!r} after OUTP OFF")
         except BaseException as exc:
-            self._not_confirmed(exc)
+            failure = self._not_confirmed(exc)
             if not isinstance(exc, Exception):
                 raise
-            return
+            return [failure]
         self._drain_errors_after_safe_state()
+        return []
 
     def _drain_errors_after_safe_state(self) -> None:
         """Empty the error queue once the output is confirmed off: errors left by the block

@@ -435,15 +435,20 @@ class Bench:
                 continue
             own = getattr(inst, "safe_state_errors", None)
             seen = len(own) if isinstance(own, list) else 0
+            result = None
             try:
-                fn()
+                result = fn()
             except BaseException as exc:  # the other outputs must still go off
                 msg = f"{label}: {what} failed: {type(exc).__name__}: {exc}"
                 failed.append(msg)
                 log.error(msg)
                 if not isinstance(exc, Exception) and pending is None:
                     pending = exc
-            if isinstance(own, list):  # logged by the driver, not raised
+            # logged by the driver, not raised: this call's own, when the driver says which
+            # (another thread's safe state may append to the same list meanwhile)
+            if isinstance(result, list):
+                failed += [f"{label}: {m}" for m in result]
+            elif isinstance(own, list):
                 failed += [f"{label}: {m}" for m in own[seen:]]
         self.safe_state_errors += failed
         if pending is not None:

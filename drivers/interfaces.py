@@ -128,8 +128,10 @@ class Generator(Protocol):
         instrument cannot tell (e.g. 33220A without option 001)."""
         ...
 
-    def safe_state(self) -> None:
-        """Outputs off. Never raises (failures are logged)."""
+    def safe_state(self) -> list[str] | None:
+        """Outputs off. Never raises (failures are logged); may return this call's
+        failures (the 33220A does), which ``Bench`` then reports instead of reading them
+        off ``safe_state_errors``."""
         ...
 
     def close(self) -> None:

@@ -169,6 +169,32 @@ def test_keyboard_interrupt_in_safe_state_reraised_after_all_done():
     assert ("p0", "safe") in log and ("trig", "safe") in log
 
 
+def test_a_safe_state_reports_its_own_failures_not_another_threads(tmp_path):
+    # review of session 35's diff: the bench read a driver's failures off the end of its
+    # shared safe_state_errors list, so one that another thread's safe state appended
+    # meanwhile was charged to this call (and "outputs not confirmed off" written)
+    from pelvislab.drivers.agilent33220a import Agilent33220A
+    from pelvislab.drivers.scpi import ScriptedTransport
+    from pelvislab.tests.test_drivers_agilent33220a import open_script
+
+    class Drive(Agilent33220A):
+        def _confirm_output_off(self):
+            # another thread's safe state fails on this instrument meanwhile
+            self.safe_state_errors.append("Agilent 33220A X: OUTP OFF not confirmed: other")
+            return super()._confirm_output_off()
+
+    t = ScriptedTransport(open_script() + [("OUTP OFF", None), ("OUTP?", "0"),
+                                           ("SYST:ERR?", '+0,"No error"')])
+    drive = Drive(t, "FAKE::INSTR", load_ohm=50.0)
+    log = []
+    bench = Bench(trigger=FakeGen("trig", log), drive=drive, digitizer=FakeDig(log),
+                  pulsers=[], config=BenchConfig.default(), simulated=True)
+    assert bench.safe_state() == []  # this call confirmed the output off
+    t.assert_done()
+    drive._closed = True  # nothing more to send (not at the interpreter's exit either)
+    bench.close()
+
+
 def test_open_bench_none_without_sim_gives_clear_error(monkeypatch):
     import builtins
 
