@@ -28,6 +28,19 @@ def _start(window, tmp_path, protocol="face_up"):
     return out
 
 
+def _demo_past_its_first_prompt(window, qtbot, tmp_path):
+    """Start the demo protocol and confirm its first operator prompt; returns the file."""
+    out = _start(window, tmp_path, protocol="demo")
+    qtbot.waitUntil(window.confirm_button.isVisible, timeout=30_000)
+    window.confirm_prompt()
+    return out
+
+
+def _wait_for_frf_lines(window, qtbot, n, timeout_ms=60_000):
+    qtbot.waitUntil(lambda: sum(len(v) for v in window._frf_lines.values()) >= n,
+                    timeout=timeout_ms)
+
+
 def test_run_from_window_plots_update_and_stop_turns_outputs_off(operator_window, qtbot,
                                                                    tmp_path):
     window = operator_window()
@@ -96,9 +109,7 @@ def test_esc_stops_the_run_while_a_modal_dialog_is_open(operator_window, qtbot, 
     from PySide6 import QtWidgets
 
     window = operator_window()
-    out = _start(window, tmp_path, protocol="demo")
-    qtbot.waitUntil(window.confirm_button.isVisible, timeout=30_000)
-    window.confirm_prompt()
+    out = _demo_past_its_first_prompt(window, qtbot, tmp_path)
     qtbot.waitUntil(lambda: window.state_banner.text() == "RUNNING — OUTPUTS ON",
                     timeout=60_000)
     box = QtWidgets.QMessageBox(QtWidgets.QMessageBox.Icon.Critical, "Cannot open session",
@@ -118,9 +129,7 @@ def test_closing_asks_first_then_stops_and_closes_the_file(operator_window, qtbo
     from PySide6 import QtWidgets
 
     window = operator_window()
-    out = _start(window, tmp_path, protocol="demo")
-    qtbot.waitUntil(window.confirm_button.isVisible, timeout=30_000)
-    window.confirm_prompt()
+    out = _demo_past_its_first_prompt(window, qtbot, tmp_path)
     Button = QtWidgets.QMessageBox.StandardButton
     answers = [Button.No, Button.Yes]
     monkeypatch.setattr(QtWidgets.QMessageBox, "question",
@@ -159,11 +168,8 @@ def test_a_stopped_session_can_be_continued_from_the_window(operator_window, qtb
     monkeypatch.setattr(QtWidgets.QMessageBox, "question",
                         lambda *args, **kwargs: QtWidgets.QMessageBox.StandardButton.Yes)
     window = operator_window()
-    out = _start(window, tmp_path, protocol="demo")
-    qtbot.waitUntil(window.confirm_button.isVisible, timeout=30_000)
-    window.confirm_prompt()
-    qtbot.waitUntil(lambda: sum(len(v) for v in window._frf_lines.values()) >= 4,
-                    timeout=60_000)
+    out = _demo_past_its_first_prompt(window, qtbot, tmp_path)
+    _wait_for_frf_lines(window, qtbot, 4)
     window.stop_run()
     qtbot.waitUntil(window.start_button.isEnabled, timeout=30_000)
     with SessionReader(out) as reader:
@@ -203,11 +209,8 @@ def test_note_is_saved_into_the_session(operator_window, qtbot, tmp_path):
 
 def test_replay_steps_through_a_recorded_session(operator_window, qtbot, tmp_path):
     window = operator_window()
-    out = _start(window, tmp_path, protocol="demo")
-    qtbot.waitUntil(window.confirm_button.isVisible, timeout=30_000)
-    window.confirm_prompt()
-    qtbot.waitUntil(lambda: sum(len(v) for v in window._frf_lines.values()) >= 6,
-                    timeout=120_000)
+    out = _demo_past_its_first_prompt(window, qtbot, tmp_path)
+    _wait_for_frf_lines(window, qtbot, 6, timeout_ms=120_000)
     window.stop_run()
     qtbot.waitUntil(window.control.finished.is_set, timeout=30_000)
     assert window.open_replay(out)
