@@ -239,8 +239,9 @@ class PulserReceiver(Protocol):
         pulser fires on the external trigger input."""
         ...
 
-    def safe_state(self) -> None:
-        """Pulser quiet (lowest energy / internal trigger off). Never raises."""
+    def safe_state(self) -> list[str] | None:
+        """Pulser quiet (lowest energy / internal trigger off). Never raises; may return
+        this call's failures (the 5077PR does), as :meth:`Generator.safe_state`."""
         ...
 
     def close(self) -> None:

@@ -263,18 +263,23 @@ class Panametrics5077PR:
             self.safe_state()
             raise
 
-    def safe_state(self) -> None:
+    def safe_state(self) -> list[str]:
         """Lowest pulse energy on external trigger (fires only when the, by then stopped,
-        trigger generator fires). Never raises an Exception; failures are logged."""
+        trigger generator fires). Never raises an Exception; returns this call's failures
+        (also logged and kept in ``safe_state_errors``, which another thread's safe state
+        may append to meanwhile)."""
         if self._closed:
-            return
+            return []
+        failed: list[str] = []
         for key, v in (("pulse_energy", SAFE_PULSE_ENERGY), ("trigger", "external")):
             try:
                 self._set(key, v)
             except Exception as exc:
                 msg = f"{self.model} {self.resource}: safe state {key} failed: {exc}"
+                failed.append(msg)
                 self.safe_state_errors.append(msg)
                 log.error(msg)
+        return failed
 
     def _close_port(self) -> None:
         self._closed = True

@@ -169,7 +169,7 @@ def test_keyboard_interrupt_in_safe_state_reraised_after_all_done():
     assert ("p0", "safe") in log and ("trig", "safe") in log
 
 
-def test_a_safe_state_reports_its_own_failures_not_another_threads(tmp_path):
+def test_a_safe_state_reports_its_own_failures_not_another_threads():
     # review of session 35's diff: the bench read a driver's failures off the end of its
     # shared safe_state_errors list, so one that another thread's safe state appended
     # meanwhile was charged to this call (and "outputs not confirmed off" written)
@@ -192,6 +192,27 @@ def test_a_safe_state_reports_its_own_failures_not_another_threads(tmp_path):
     assert bench.safe_state() == []  # this call confirmed the output off
     t.assert_done()
     drive._closed = True  # nothing more to send (not at the interpreter's exit either)
+    bench.close()
+
+
+def test_a_pulser_safe_state_reports_its_own_failures_not_another_threads():
+    # as above for a 5077PR: its safe state returns this call's failures
+    from pelvislab.drivers.panametrics5077 import Panametrics5077PR
+    from pelvislab.tests.test_drivers_panametrics5077 import FakePort
+
+    class Pulser(Panametrics5077PR):
+        def _set(self, key, value):
+            if key == "trigger":  # another thread's safe state fails meanwhile
+                self.safe_state_errors.append("Panametrics 5077PR X: safe state: other")
+            return super()._set(key, value)
+
+    port = FakePort()
+    log = []
+    bench = Bench(trigger=FakeGen("trig", log), drive=FakeGen("drive", log),
+                  digitizer=FakeDig(log), pulsers=[Pulser(port, "FAKE")],
+                  config=BenchConfig.default(), simulated=True)
+    assert bench.safe_state() == []  # this call set both safe values
+    assert port.state == {"VOLT": "100", "TRIG": "EXT"}
     bench.close()
 
 

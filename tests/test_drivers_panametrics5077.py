@@ -164,3 +164,16 @@ def test_a_safe_state_from_another_thread_waits_for_the_setting_under_way():
     assert len(settings) % 2 == 0
     for line, check in zip(settings[::2], settings[1::2], strict=True):
         assert check == line.split(" ")[0] + "?", port.lines
+
+
+def test_a_safe_state_returns_its_own_failures():
+    # the bench reports what this call could not do (another thread's safe state may
+    # append to the shared safe_state_errors list meanwhile)
+    port = FakePort(silent={"VOLT"})
+    p = Panametrics5077PR(port, "FAKE")
+    p.safe_state_errors.append("an earlier failure")
+    failed = p.safe_state()
+    assert len(failed) == 1 and "safe state pulse_energy failed" in failed[0]
+    assert p.safe_state_errors == ["an earlier failure"] + failed
+    port.silent.clear()
+    assert p.safe_state() == []
