@@ -27,6 +27,39 @@ def channel_pen(index: int, width: float = 1.5) -> QtGui.QPen:
     return pg.mkPen(CHANNEL_PENS[index % len(CHANNEL_PENS)], width=width)
 
 
+def log_tick_labels(values_log10: Sequence[float], visible_log10: tuple[float, float],
+                    scale: float = 1.0) -> list[str]:
+    """Labels of the ticks at ``values_log10`` (log10 of the plotted value) on a log axis
+    showing ``visible_log10`` (low, high), the values shown times ``scale`` (the axis' SI
+    prefix). Only decades when two or more are in view, else the 1-2-5 ticks, else every
+    tick; the others get an empty label. pyqtgraph labels every minor tick of a short
+    log axis, and under a decade of span they overlap into an unreadable column."""
+    shift = math.log10(scale) if scale > 0 else 0.0
+    low, high = sorted(visible_log10)
+    low, high = low + shift, high + shift
+    decades = math.floor(high) - math.ceil(low) + 1
+    if decades >= 2:
+        kept = {1}
+    else:
+        in_view = [k + math.log10(m) for k in range(math.floor(low), math.ceil(high) + 1)
+                   for m in (1, 2, 5)]
+        kept = {1, 2, 5} if sum(low <= v <= high for v in in_view) >= 2 else set(range(1, 10))
+    labels = []
+    for v in values_log10:
+        shown = v + shift
+        mantissa = round(10 ** (shown - math.floor(shown + 1e-9)), 6)
+        labels.append(f"{10 ** shown:g}" if round(mantissa) in kept
+                      and abs(mantissa - round(mantissa)) < 1e-3 else "")
+    return labels
+
+
+class LogLabelAxis(pg.AxisItem):
+    """A log axis labelled by :func:`log_tick_labels` (ticks as pyqtgraph places them)."""
+
+    def logTickStrings(self, values: list[float], scale: float, spacing: float) -> list[str]:
+        return log_tick_labels(values, tuple(self.range), scale)
+
+
 class AScanPanel(pg.GraphicsLayoutWidget):
     """The latest echo of each channel (volts against depth-time in µs) with its gate."""
 
@@ -113,7 +146,8 @@ class FrfPanel(pg.GraphicsLayoutWidget):
 
     def __init__(self, parent: QtWidgets.QWidget | None = None) -> None:
         super().__init__(parent)
-        self.magnitude = self.addPlot(row=0, col=0, title="FRF magnitude")
+        self.magnitude = self.addPlot(row=0, col=0, title="FRF magnitude",
+                                      axisItems={"left": LogLabelAxis("left")})
         self.magnitude.setLogMode(x=False, y=True)
         self.magnitude.setLabel("left", "|H|", units="m/N")
         self.magnitude.showGrid(x=True, y=True, alpha=0.2)
@@ -127,6 +161,11 @@ class FrfPanel(pg.GraphicsLayoutWidget):
         self.legend = pg.LegendItem(labelTextSize="8pt")
         self.addItem(self.legend, row=0, col=1, rowspan=2)
         self.ci.layout.setColumnFixedWidth(1, 190)
+        # at its own height, at the top: stretched over both plots its rows drifted apart,
+        # each line's sample far below its name
+        self.legend.setSizePolicy(QtWidgets.QSizePolicy.Policy.Preferred,
+                                  QtWidgets.QSizePolicy.Policy.Fixed)
+        self.ci.layout.setAlignment(self.legend, QtCore.Qt.AlignmentFlag.AlignTop)
         self._measured: dict[str, tuple[pg.PlotDataItem, pg.PlotDataItem]] = {}
         self._model: dict[str, tuple[pg.PlotDataItem, pg.PlotDataItem]] = {}
 

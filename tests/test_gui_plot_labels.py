@@ -1,0 +1,55 @@
+"""Readable FRF plots: the log axis' labels and the legend's rows (pyqtgraph, offscreen)."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from pelvislab.app.gui_plots import FrfPanel, log_tick_labels
+
+MINOR = [k + math.log10(m) for k in (-1, 0, 1) for m in range(1, 10)]
+
+
+def labelled(visible, scale=1.0):
+    return [f"{10 ** v * scale:g}" for v, s in zip(MINOR, log_tick_labels(MINOR, visible, scale),
+                                                    strict=True) if s]
+
+
+def test_only_decades_are_labelled_when_two_are_in_view():
+    # pyqtgraph labels every minor tick of a short log axis: 0.5 ... 30 was a column of
+    # overlapping numbers (GUI review, session 35)
+    assert labelled((math.log10(0.5), math.log10(30))) == ["0.1", "1", "10"]
+
+
+def test_one_two_five_under_two_decades_and_every_tick_in_a_narrow_span():
+    assert labelled((math.log10(2), math.log10(7))) == ["0.1", "0.2", "0.5", "1", "2", "5",
+                                                        "10", "20", "50"]
+    assert labelled((math.log10(2.2), math.log10(3.9))) == [
+        f"{m * 10.0 ** k:g}" for k in (-1, 0, 1) for m in range(1, 10)]
+
+
+def test_the_axis_prefix_scale_is_applied_before_choosing():
+    # values in m/N shown in µm/N: the displayed 1, 10 (1e-6, 1e-5 m/N) are the decades
+    values = [math.log10(x) for x in (1e-6, 2e-6, 5e-6, 1e-5, 3e-5)]
+    labels = log_tick_labels(values, (math.log10(0.5e-6), math.log10(30e-6)), 1e6)
+    assert labels == ["1", "", "", "10", ""]
+
+
+@pytest.mark.parametrize("n_lines", [2, 3])
+def test_each_legend_row_keeps_its_name_beside_its_line(qtbot, n_lines):
+    # the legend stretched over both plots: each name sat far above its line sample
+    panel = FrfPanel()
+    qtbot.addWidget(panel)
+    panel.resize(980, 300)
+    frequency_hz = np.linspace(30, 280, 20)
+    for i in range(n_lines):
+        panel.show_measured(f"out{i} / in", i, frequency_hz, np.full(20, 1e-6 * (i + 1)))
+    panel.show()
+    qtbot.waitExposed(panel)
+    qtbot.wait(50)
+    for sample, label in panel.legend.items:
+        centre_sample = sample.sceneBoundingRect().center().y()
+        centre_label = label.item.sceneBoundingRect().center().y()  # the text itself
+        assert abs(centre_sample - centre_label) < 6, (centre_sample, centre_label)
