@@ -6,6 +6,7 @@ Views only: each panel takes arrays already computed by ``pelvislab.acquisition`
 
 from __future__ import annotations
 
+import html
 import math
 from collections.abc import Sequence
 from typing import Any
@@ -51,6 +52,14 @@ def log_tick_labels(values_log10: Sequence[float], visible_log10: tuple[float, f
         labels.append(f"{10 ** shown:g}" if round(mantissa) in kept
                       and abs(mantissa - round(mantissa)) < 1e-3 else "")
     return labels
+
+
+def displacement_title(title: str, names: Sequence[str]) -> str:
+    """``title`` and, under it, each channel's name in its pen's colour (HTML)."""
+    coloured = "&nbsp;&nbsp;".join(
+        f'<span style="color:{CHANNEL_PENS[i % len(CHANNEL_PENS)]}">&#9632; {html.escape(n)}</span>'
+        for i, n in enumerate(names))
+    return f"{html.escape(title)}<br><span style='font-size:9pt'>{coloured}</span>"
 
 
 class LogLabelAxis(pg.AxisItem):
@@ -109,14 +118,17 @@ class AScanPanel(pg.GraphicsLayoutWidget):
 
 
 class DisplacementPanel(pg.PlotWidget):
-    """Displacement (µm) of each channel over the pulses of the current step."""
+    """Displacement (µm) of each channel over the pulses of the current step. The
+    channels are named in the title in their colours: a legend inside the plot hid the
+    traces it named (they fill the whole box)."""
+
+    TITLE = "Displacement, current step"
 
     def __init__(self, parent: QtWidgets.QWidget | None = None) -> None:
-        super().__init__(parent, title="Displacement, current step")
+        super().__init__(parent, title=self.TITLE)
         self.setLabel("bottom", "time", units="s")
         self.setLabel("left", "displacement", units="m")
         self.showGrid(x=True, y=True, alpha=0.2)
-        self.addLegend(offset=(10, 10))
         self.setDownsampling(auto=True, mode="peak")
         self.setClipToView(True)
         self._curves: list[pg.PlotDataItem] = []
@@ -124,16 +136,11 @@ class DisplacementPanel(pg.PlotWidget):
     def set_channels(self, names: Sequence[str]) -> None:
         """One curve per channel; curves are reused and renamed between setups."""
         while len(self._curves) < len(names):
-            i = len(self._curves)
-            self._curves.append(self.plot(pen=channel_pen(i), name=f"ch{i + 1}"))
-        legend = self.getPlotItem().legend
+            self._curves.append(self.plot(pen=channel_pen(len(self._curves))))
         for i, curve in enumerate(self._curves):
             curve.setVisible(i < len(names))
-            if i < len(names):
-                curve.setData([], [])
-                if legend is not None:
-                    legend.removeItem(curve)
-                    legend.addItem(curve, names[i])
+            curve.setData([], [])
+        self.setTitle(displacement_title(self.TITLE, names))
 
     def show_trace(self, index: int, time_s: np.ndarray, displacement_m: np.ndarray) -> None:
         """Draw channel ``index``'s displacement trace (metres; pyqtgraph scales the units)."""

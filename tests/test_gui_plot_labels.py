@@ -53,3 +53,19 @@ def test_each_legend_row_keeps_its_name_beside_its_line(qtbot, n_lines):
         centre_sample = sample.sceneBoundingRect().center().y()
         centre_label = label.item.sceneBoundingRect().center().y()  # the text itself
         assert abs(centre_sample - centre_label) < 6, (centre_sample, centre_label)
+
+
+def test_the_displacement_channels_are_named_in_the_title_not_over_the_traces(qtbot):
+    # the legend sat on the traces, which fill the whole box (GUI review, session 35)
+    from pelvislab.app.gui_plots import CHANNEL_PENS, DisplacementPanel
+
+    panel = DisplacementPanel()
+    qtbot.addWidget(panel)
+    panel.set_channels(["ch1 → SIAS_R_x", "ch2 → sacrum<x>"])
+    title = panel.getPlotItem().titleLabel.text
+    assert f'color:{CHANNEL_PENS[0]}">&#9632; ch1 → SIAS_R_x' in title
+    assert f'color:{CHANNEL_PENS[1]}">&#9632; ch2 → sacrum&lt;x&gt;' in title
+    assert panel.getPlotItem().legend is None
+    panel.set_channels(["ch1 → PSIS_L"])  # a new setup renames
+    assert "PSIS_L" in panel.getPlotItem().titleLabel.text
+    assert "sacrum" not in panel.getPlotItem().titleLabel.text
