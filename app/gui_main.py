@@ -65,6 +65,16 @@ def shipped_protocols() -> dict[str, Path]:
     return dict(sorted(found.items(), key=lambda kv: (kv[0] != "demo", kv[0])))
 
 
+def short_identity(identity: str) -> str:
+    """An IEEE 488.2 ``*IDN?`` answer (maker, model, serial, firmware) as "model serial",
+    what tells the instruments of a bench apart in a narrow table; other text up to its
+    first comma (the digitizer's "Acqiris DP235 (simulated), 2 ch, ...")."""
+    fields = [f.strip() for f in identity.split(",")]
+    if len(fields) == 4 and all(f and " " not in f for f in fields[1:3]):
+        return f"{fields[1]} {fields[2]}"
+    return fields[0] or identity
+
+
 def subject_id_problem(text: str) -> str | None:
     """Why ``text`` is not acceptable as a subject ID (IDs only: no names), or None."""
     if not text:
@@ -193,11 +203,17 @@ class OperatorWindow(QtWidgets.QMainWindow):
         self.bench_table = QtWidgets.QTableWidget(0, 3)
         self.bench_table.setHorizontalHeaderLabels(("role", "identity", "resource"))
         self.bench_table.verticalHeader().setVisible(False)
-        self.bench_table.horizontalHeader().setStretchLastSection(True)
+        header = self.bench_table.horizontalHeader()
+        header.setSectionResizeMode(0, QtWidgets.QHeaderView.ResizeMode.ResizeToContents)
+        header.setSectionResizeMode(1, QtWidgets.QHeaderView.ResizeMode.Stretch)
+        header.setSectionResizeMode(2, QtWidgets.QHeaderView.ResizeMode.Interactive)
+        header.resizeSection(2, 125)
         self.bench_table.setEditTriggers(QtWidgets.QAbstractItemView.EditTrigger.NoEditTriggers)
         self.bench_table.setMaximumHeight(150)
         self.bench_table.verticalHeader().setDefaultSectionSize(22)
         self.bench_table.setWordWrap(False)
+        # a VISA resource ends in what tells two generators apart (their serial numbers)
+        self.bench_table.setTextElideMode(QtCore.Qt.TextElideMode.ElideMiddle)
         bench_layout.addWidget(self.bench_table)
         side_layout.addWidget(bench_box)
         self.bench_box = bench_box
@@ -393,8 +409,8 @@ class OperatorWindow(QtWidgets.QMainWindow):
         self.bench_table.setRowCount(len(rows))
         for r, values in enumerate(rows):
             for c, text in enumerate(values):
-                item = QtWidgets.QTableWidgetItem(text)
-                item.setToolTip(text)  # identities and resources are cut in 360 px
+                item = QtWidgets.QTableWidgetItem(short_identity(text) if c == 1 else text)
+                item.setToolTip(text)  # whole: identities and resources are cut in 360 px
                 self.bench_table.setItem(r, c, item)
 
     # ------------------------------------------------------------------ run control

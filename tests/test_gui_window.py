@@ -184,3 +184,30 @@ def test_stop_whose_safe_state_fails_says_outputs_not_confirmed_off(operator_win
     assert stopped and window.state_banner.text().startswith("OUTPUTS NOT CONFIRMED OFF")
     assert "NOT CONFIRMED" in window.statusBar().currentMessage()
     window.control.finished.set()
+
+
+def test_the_bench_table_shows_model_and_serial_with_the_whole_identity_as_tooltip(
+        operator_window):
+    # review of session 35: "Agilent Technologies,33220A,MY4..." was cut to "Agilent
+    # Techn..." for both generators, which only the serial number tells apart
+    from types import SimpleNamespace
+
+    from pelvislab.app.gui_main import short_identity
+
+    window = operator_window()
+    idn = "Agilent Technologies,33220A,MY44000002,2.02-2.02-22-2"
+    bench = SimpleNamespace(
+        trigger=SimpleNamespace(identity=idn.replace("02,", "01,", 1), resource="USB0::1"),
+        drive=SimpleNamespace(identity=idn, resource="USB0::2"),
+        digitizer=SimpleNamespace(identity="Acqiris DP235 (simulated), 2 ch, 500 MS/s, 8 bit",
+                                  resource="PCI::INSTR0"),
+        pulsers=[SimpleNamespace(identity="PANAMETRICS 5077PR", resource="COM3")],
+        simulated=False)
+    window._show_bench(bench)
+    table = window.bench_table
+    assert [table.item(r, 1).text() for r in range(4)] == [
+        "33220A MY44000001", "33220A MY44000002", "Acqiris DP235 (simulated)",
+        "PANAMETRICS 5077PR"]
+    assert table.item(1, 1).toolTip() == idn
+    assert short_identity("a,,b,c") == "a"  # not an *IDN? answer: its first field
+    assert short_identity(",x") == ",x"
