@@ -11,7 +11,7 @@ there, has risen by about the critical value.
 
 import numpy as np
 import pytest
-from hypothesis import given
+from hypothesis import example, given
 from hypothesis import strategies as st
 
 from pelvislab.acquisition.frfset import read_frf
@@ -97,6 +97,8 @@ def test_range_on_the_nulls_side_follows_the_nulls_exact_chi2():
 
 @given(u_fit=st.floats(-3.0, 3.0), half=st.floats(0.0, 3.0), rise=st.floats(-5.0, 100.0),
        critical=st.floats(0.5, 30.0))
+@example(u_fit=5e-324, half=1.0, rise=2.0, critical=1.0)  # rounding put the end on 0
+@example(u_fit=-5e-324, half=1.0, rise=2.0, critical=1.0)
 def test_range_and_the_test_at_the_null_never_disagree(u_fit, half, rise, critical):
     low, high = gap._range_about_fit(u_fit, half, rise, critical)
     assert low <= u_fit <= high
