@@ -2921,12 +2921,12 @@ def _range_about_fit(u_fit: float, half: float, rise_at_null: float,
         return low, high
     reach = (abs(u_fit) * float(np.sqrt(critical / rise_at_null)) if rise_at_null > 0.0
              else np.inf)
-    # rise > critical: the end stays off 0 also where rounding would reach it (a subnormal
-    # u_fit; hypothesis found u_fit = 5e-324)
-    tiny = float(np.nextafter(0.0, 1.0))
-    if u_fit > 0.0:
-        return (max(u_fit - reach, tiny) if np.isfinite(reach) else -np.inf), high
-    return low, (min(u_fit + reach, -tiny) if np.isfinite(reach) else np.inf)
+    end = u_fit - reach if u_fit > 0.0 else u_fit + reach
+    if rise_at_null > critical and end == 0.0:
+        # the null is excluded: rounding must not put the end on it (a subnormal u_fit;
+        # hypothesis found u_fit = 5e-324)
+        end = float(np.copysign(np.nextafter(0.0, 1.0), u_fit))
+    return (end, high) if u_fit > 0.0 else (low, end)
 
 
 def _not_excluded(s: _Stages, results: Sequence[CandidateResult]) -> list[dict[str, object]]:
