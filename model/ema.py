@@ -896,8 +896,11 @@ def misfit_beyond_noise(frequency_hz: np.ndarray, H: np.ndarray, H_fit: np.ndarr
                   0.0)
     kernel = np.ones(2 * half_window + 1)
     line_sum, line_n = r2.sum(axis=(1, 2)), ok.sum(axis=(1, 2))
-    local = (np.convolve(line_sum, kernel, "same")
-             / np.maximum(np.convolve(line_n, kernel, "same"), 1))
+    # "full" cut to the lines: "same" returns the kernel's length when there are fewer
+    # lines than it (5 lines of validation_phase.toml: an IndexError; review, session 36)
+    centred = slice(half_window, half_window + line_sum.size)
+    local = (np.convolve(line_sum, kernel, "full")[centred]
+             / np.maximum(np.convolve(line_n, kernel, "full")[centred], 1))
     # of the lines whose neighbourhood is worst, the worst line itself
     ties = np.flatnonzero(local >= local.max() * (1 - 1e-12))
     worst = int(ties[np.argmax(line_sum[ties] / np.maximum(line_n[ties], 1))])

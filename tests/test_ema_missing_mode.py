@@ -104,3 +104,17 @@ def test_the_note_warns_that_refined_poles_assumed_every_mode_selected():
         assert notes and "compare without --refine" in notes[0], refined.notes
         return
     pytest.fail("no draw left the 150 Hz mode out")
+
+
+def test_misfit_beyond_noise_on_fewer_lines_than_its_window():
+    # validation_phase.toml measures 5 lines: the 7-line window made an IndexError
+    # (`pelvislab ema` on its sessions failed; review, session 36)
+    H_true = np.ones((5, 1, 1), complex)
+    H_model = H_true.copy()
+    H_model[3] += 0.3
+    chi2, f_worst, local = misfit_beyond_noise(np.arange(5.0), H_true, H_model,
+                                               np.full(H_true.shape, 0.1))
+    assert chi2 == pytest.approx(9 / 5)
+    # every line's neighbourhood holds line 3; those at the edges average fewer lines
+    assert f_worst in (0.0, 4.0)
+    assert local == pytest.approx(9 / 4)
