@@ -20,7 +20,7 @@ from typing import Any
 import numpy as np
 from PySide6 import QtCore, QtGui, QtWidgets
 
-from pelvislab.app.gui_dialogs import alert, ask, set_headless
+from pelvislab.app.gui_dialogs import GuiError, alert, ask, set_headless
 from pelvislab.app.gui_plots import (
     AScanPanel,
     DisplacementPanel,
@@ -840,9 +840,12 @@ def run_gui(session_file: Path | None = None, screenshot: Path | None = None,
     if window.control is not None and not window.control.finished.is_set():
         window.control.stop("screenshot taken")
         window.control.finished.wait(10.0)
+    failures = list(window.replay.headless_failures)
     _dispose(app, window)
     if not ok:
         raise OSError(f"could not write the screenshot {screenshot}")
+    if failures:  # the picture shows the failed analysis; the command must fail too
+        raise GuiError(failures[0] + f" (screenshot written to {screenshot})")
     return 0
 
 

@@ -83,6 +83,9 @@ class ReplayView(QtWidgets.QWidget):
         # the running job's latest progress line, set from the worker thread and shown
         # by the poll timer (a str assignment: no lock needed)
         self._progress_note = ""
+        # offscreen, what an analysis' failure dialog would have said (the command ends
+        # with it as its error after the screenshot)
+        self.headless_failures: list[str] = []
         self._build()
         self._poll = QtCore.QTimer(self)
         self._poll.setInterval(100)
@@ -671,7 +674,7 @@ class ReplayView(QtWidgets.QWidget):
                 try:
                     alert(self, f"{what} failed", str(exc), critical=False)
                 except GuiError as error:  # offscreen: the screenshot shows the status
-                    log.error("%s", error)
+                    self.headless_failures.append(str(error))
                 continue
             done(result)
 

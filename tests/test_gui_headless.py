@@ -53,3 +53,21 @@ def test_ctrl_c_or_sigterm_closes_the_window(tmp_path, signum):
             pytest.fail(f"pelvislab gui still open 20 s after {signum}")
     # closed by the handler, not by a KeyboardInterrupt ("pelvislab: interrupted", 130)
     assert proc.returncode == 0, proc.stderr.read()[-500:]
+
+
+def test_a_failed_analysis_in_a_screenshot_fails_the_command(tmp_path):
+    # replay review, session 36: the failure was logged, the picture saved, exit 0
+    import h5py
+    import numpy as np
+
+    from pelvislab.app.cli import main
+
+    path = tmp_path / "f.h5"
+    assert main(["model", "frf", "--points", "sacrum_x,SIAS_R_x", "--out", str(path)]) == 0
+    with h5py.File(path, "r+") as f:
+        f["frf/H"][...] = np.nan  # nothing measured: identify refuses it
+    png = tmp_path / "x.png"
+    done = _gui(str(path), "--analyse", "identify", "--screenshot", str(png))
+    assert done.returncode == 1, done.stderr
+    assert "identification failed" in done.stderr and "no measured line" in done.stderr
+    assert png.exists()  # the picture still shows the failed analysis' status
