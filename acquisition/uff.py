@@ -236,7 +236,8 @@ def _mode_datasets(frf: FrfSet, modes: UffModes, out_nodes: list[int]) -> list[d
 
     A node measured along several directions gets the least-squares vector ``u`` with
     ``d_c . u = psi_c`` (exact for orthogonal directions); a node measured along one
-    direction gets ``psi d``.
+    direction gets ``psi d``. Channels whose shape entry is NaN are left out, and so is a
+    node with none (a mode with no known entry gets no dataset).
     """
     import pyuff
 
@@ -245,12 +246,17 @@ def _mode_datasets(frf: FrfSet, modes: UffModes, out_nodes: list[int]) -> list[d
         raise ValueError(
             f"mode shapes have {shapes.shape[0]} entries, the FRF set {len(frf.outputs)} outputs"
         )
-    node_ids = sorted(set(out_nodes))
     sets = []
     for r in range(shapes.shape[1]):
+        # a channel without a shape entry (NaN: not measured around this mode) is left
+        # out; a node with none is left out of this mode's dataset (UFF has no "unknown")
+        known = np.isfinite(shapes[:, r])
+        node_ids = sorted({n for o, n in enumerate(out_nodes) if known[o]})
+        if not node_ids:
+            continue
         vec = np.zeros((len(node_ids), 3), dtype=complex)
         for k, node in enumerate(node_ids):
-            rows = [o for o, n in enumerate(out_nodes) if n == node]
+            rows = [o for o, n in enumerate(out_nodes) if n == node and known[o]]
             D = frf.outputs.direction[rows]
             vec[k] = np.linalg.lstsq(D, shapes[rows, r], rcond=None)[0]
         fn = float(modes.frequency_hz[r])

@@ -337,7 +337,10 @@ def draw_ema(sum_plot: pg.PlotItem, stab_plot: pg.PlotItem, result: Any) -> list
     for values, style in ((result.H_measured, {"pen": None, "symbol": "o", "symbolSize": 4,
                                                "symbolBrush": (120, 120, 120)}),
                           (result.H_fit, {"pen": pg.mkPen((200, 60, 60), width=1)})):
-        total = np.nansum(np.abs(np.asarray(values)), axis=(1, 2))
+        # the fit summed over the measured values only: beyond where a run stopped it is
+        # an extrapolation, drawn far above the data (replay review, session 36)
+        values = np.where(np.isfinite(result.H_measured), values, np.nan)
+        total = np.nansum(np.abs(values), axis=(1, 2))
         keep = total > 0
         sum_plot.plot(f[keep], 20 * np.log10(total[keep]), **style)
     pickable = []

@@ -795,16 +795,19 @@ def shapes_from_residues(residues: np.ndarray, measured: np.ndarray | None = Non
     """Mode shapes (n_out, n_modes) and participation (n_modes, n_in) from residue matrices.
 
     Each residue matrix is rank one in theory (``R_r = psi_r l_r^T``); its dominant singular
-    pair gives both. When some FRFs were not measured (``measured`` (n_out, n_in) False, e.g.
-    transducers moved between setups), the rank-one factors are fitted to the measured
-    entries only (alternating least squares from the SVD of the zero-filled matrix); an output
-    with no measured FRF gets NaN. Shapes are normalised so their largest entry is 1.
+    pair gives both. When some FRFs were not measured (``measured`` (n_out, n_in), or per
+    mode (n_modes, n_out, n_in), False: transducers moved between setups, a run stopped
+    before the mode), the rank-one factors are fitted to the measured entries only
+    (alternating least squares from the SVD of the zero-filled matrix); an output with no
+    measured FRF gets NaN. Shapes are normalised so their largest entry is 1.
     """
     n_m, n_out, n_in = residues.shape
-    mask = np.ones((n_out, n_in), dtype=bool) if measured is None else np.asarray(measured)
+    masks = np.ones((n_m, n_out, n_in), dtype=bool) if measured is None else \
+        np.broadcast_to(np.asarray(measured, dtype=bool), (n_m, n_out, n_in))
     shapes = np.zeros((n_out, n_m), dtype=complex)
     part = np.zeros((n_m, n_in), dtype=complex)
     for r in range(n_m):
+        mask = masks[r]
         R = np.where(mask, residues[r], 0.0)
         u, sv, vh = np.linalg.svd(R, full_matrices=False)
         psi = u[:, 0] * sv[0]
@@ -824,6 +827,29 @@ def shapes_from_residues(residues: np.ndarray, measured: np.ndarray | None = Non
         shapes[:, r] = psi
         part[r] = l
     return shapes, part
+
+
+def frfs_around_modes(frequency_hz: np.ndarray, measured: np.ndarray, poles: np.ndarray
+                      ) -> np.ndarray:
+    """(n_modes, n_out, n_in) True where an FRF has measured lines on both sides of a
+    mode's frequency (Hz), the nearest within max(5 half-power bandwidths ζf, 3 line
+    spacings, 2 % of f). ``measured`` (n_f, n_out, n_in) bool on ``frequency_hz``.
+
+    Elsewhere the FRF's residue for that mode is an extrapolation: a run stopped at
+    173.75 Hz made an output the 231.9 Hz mode's reference (1.0 where the complete session
+    gives 0.69) with the other entries near 0 (a helper's replay review, session 36)."""
+    f = np.asarray(frequency_hz, dtype=float)
+    fn, zeta = pole_frequency_damping(np.asarray(poles, dtype=complex).reshape(-1))
+    n_out, n_in = measured.shape[1:]
+    out = np.zeros((fn.size, n_out, n_in), dtype=bool)
+    spacing = _line_spacing_hz(np.sort(f))
+    for r, (fr, z) in enumerate(zip(fn, zeta, strict=True)):
+        reach = max(5 * z * fr, 3 * spacing, 0.02 * fr)
+        below = measured & (f <= fr)[:, None, None]
+        above = measured & (f >= fr)[:, None, None]
+        near = measured & (np.abs(f - fr) <= reach)[:, None, None]
+        out[r] = below.any(axis=0) & above.any(axis=0) & near.any(axis=0)
+    return out
 
 
 def _line_spacing_hz(frequency_hz: np.ndarray) -> float:
@@ -1119,7 +1145,18 @@ def _ema(
                         "the band, so such a mode pulls them: compare without --refine")
         if missing:
             notes.append(missing)
-    shapes, part = shapes_from_residues(residues, np.isfinite(Hc).any(axis=0))
+    measured = np.isfinite(Hc)
+    around = frfs_around_modes(f, measured, poles)
+    shapes, part = shapes_from_residues(residues, around)
+    partial = [k for k in range(poles.size)
+               if (around[k] != measured.any(axis=0)).any()]
+    if partial:
+        notes.append("shape entries left out (null) where an FRF has no lines around the "
+                     "mode (a run stopped, or a setup measured another band): "
+                     + "; ".join(f"{fn_:.4g} Hz: {int((~around[k] & measured.any(axis=0)).sum())} "
+                                 "FRF(s)" for k, fn_ in
+                                 ((k, pole_frequency_damping(poles[k:k + 1])[0][0])
+                                  for k in partial)))
     mpc, mpd = modal_phase_collinearity(shapes)
     fn, zeta = pole_frequency_damping(poles)
     return EmaResult(

@@ -228,6 +228,20 @@ def test_modes_written_as_dataset_55(tmp_path):
     np.testing.assert_allclose(vec, shapes[0, 0] * d, atol=1e-4)
 
 
+def test_a_shape_entry_not_known_leaves_its_node_out_of_dataset_55(tmp_path):
+    # ema leaves an entry NaN where the FRF has no lines around the mode (a run stopped):
+    # it was written as "nan" into the file (replay review, session 36)
+    frf = sample_frfset(2)
+    shapes = np.array([[1.0, 0.2j], [np.nan, 1.0], [-0.3 + 0.1j, 0.4]])
+    write_uff(tmp_path / "m.uff", frf, UffModes(np.array([40.0, 120.0]), np.array([0.02, 0.1]),
+                                                shapes))
+    modes = [s for s in pyuff.UFF(str(tmp_path / "m.uff")).read_sets() if s["type"] == 55]
+    full = modes[1]["node_nums"].tolist()
+    assert len(modes[0]["node_nums"]) == len(full) - 1  # channel 1's node left out
+    for m in modes:
+        assert np.all(np.isfinite(m["r1"])) and np.all(np.isfinite(m["r2"]))
+
+
 def test_errors_are_named(tmp_path):
     with pytest.raises(FileNotFoundError):
         read_uff(tmp_path / "none.uff")
