@@ -57,6 +57,29 @@ class _FrfOnlyFile:
         pass
 
 
+def display_columns(frequency_hz: np.ndarray, max_columns: int = 4000
+                    ) -> tuple[np.ndarray, float, float]:
+    """Columns of an image over frequency for lines at ``frequency_hz`` (ascending, Hz):
+    returns (index of the line shown in each display column, low Hz, high Hz). Each line
+    owns the interval between the midpoints to its neighbours (half a spacing beyond the
+    first and last); display columns are as wide as the closest lines' spacing (at most
+    ``max_columns``), so a zoomed grid keeps its lines where they are."""
+    f = np.asarray(frequency_hz, dtype=float)
+    if f.size < 2:
+        at = float(f[0]) if f.size else 0.0
+        return np.arange(f.size), at, at
+    gaps = np.diff(f)
+    edges = np.concatenate([[f[0] - gaps[0] / 2], (f[:-1] + f[1:]) / 2,
+                            [f[-1] + gaps[-1] / 2]])
+    low, high = float(edges[0]), float(edges[-1])
+    positive = gaps[gaps > 0]
+    step = float(positive.min()) if positive.size else high - low
+    n = int(min(max_columns, max(f.size, np.ceil((high - low) / step))))
+    centres = low + (np.arange(n) + 0.5) * (high - low) / n
+    index = np.clip(np.searchsorted(edges, centres, side="right") - 1, 0, f.size - 1)
+    return index, low, high
+
+
 def _summary_page(text: str) -> tuple[QtWidgets.QWidget, QtWidgets.QVBoxLayout,
                                       QtWidgets.QLabel]:
     """A result page: a vertical layout that starts with a word-wrapped summary line."""
@@ -505,16 +528,20 @@ class ReplayView(QtWidgets.QWidget):
             + (f"<br><small>not excluded by the data: {ranges}</small>" if ranges else ""))
         residual = getattr(result, "residual_map", None)
         if residual is not None:
-            image = np.nan_to_num(np.asarray(residual, dtype=float))
-            # ImageItem's first axis is x: transpose rows x frequency to frequency x rows.
-            self.residual_image.setImage(image.T, autoLevels=False)
+            # NaN (not measured) stays NaN: drawn blank, not as a residual of 0
+            image = np.asarray(residual, dtype=float)
             finite = image[np.isfinite(image)]
             top = float(np.percentile(finite, 99)) if finite.size else 1.0
-            self.residual_bar.setLevels((0.0, max(top, 1e-12)))
             frequency = np.asarray(result.frequency_hz, dtype=float)
-            if frequency.size > 1:
+            # each line's column over its own frequency interval: spread evenly, a zoomed
+            # grid's 173.75 Hz column sat at 109 Hz (replay review, session 36)
+            columns, low_hz, high_hz = display_columns(frequency)
+            # ImageItem's first axis is x: transpose rows x frequency to frequency x rows.
+            self.residual_image.setImage(image[:, columns].T, autoLevels=False)
+            self.residual_bar.setLevels((0.0, max(top, 1e-12)))
+            if high_hz > low_hz:
                 self.residual_image.setRect(QtCore.QRectF(
-                    frequency[0], 0, frequency[-1] - frequency[0], image.shape[0]))
+                    low_hz, 0, high_hz - low_hz, image.shape[0]))
             labels = list(getattr(result, "row_labels", []))
             axis = self.residual_plot.getAxis("left")
             axis.setTicks([[(i + 0.5, text) for i, text in enumerate(labels)]])

@@ -69,3 +69,22 @@ def test_the_displacement_channels_are_named_in_the_title_not_over_the_traces(qt
     panel.set_channels(["ch1 → PSIS_L"])  # a new setup renames
     assert "PSIS_L" in panel.getPlotItem().titleLabel.text
     assert "sacrum" not in panel.getPlotItem().titleLabel.text
+
+
+def test_residual_map_columns_sit_at_their_own_frequencies():
+    # replay review, session 36: the map's columns were spread evenly over the band, so on
+    # the demo's zoomed grid the 173.75 Hz line was drawn at 109 Hz
+    from pelvislab.app.gui_replay import display_columns
+
+    f = np.concatenate([np.arange(30.0, 170.0, 10.0), np.arange(170.0, 180.0, 0.5),
+                        np.arange(180.0, 301.0, 10.0)])
+    index, low, high = display_columns(f)
+    assert (low, high) == (25.0, 305.0)
+    centres = low + (np.arange(index.size) + 0.5) * (high - low) / index.size
+    for line in (0, np.flatnonzero(f == 173.5)[0], f.size - 1):
+        shown = centres[index == line]
+        assert shown.min() >= f[line] - 5.0 and shown.max() <= f[line] + 5.0, (f[line], shown)
+        assert f[line] - 0.5 <= shown.mean() <= f[line] + 0.5
+    assert set(index.tolist()) == set(range(f.size))  # every line shown
+    one, lo1, hi1 = display_columns(np.array([50.0]))
+    assert one.tolist() == [0] and lo1 == hi1 == 50.0
