@@ -1095,6 +1095,13 @@ def prepare_session(protocol_path: Path | str, out_path: Path | str,
             skip = [s.key for s in reader.steps(with_echoes=False)]
             problems = reader.damaged + reader.incomplete
             previous_run = reader.status
+            source = reader.attrs.get("reprocessed_from")
+            if source is not None:
+                # its steps were re-tracked with other options: new steps tracked as
+                # recorded would mix the two in one FRF (replay review, session 36)
+                source = source.decode() if isinstance(source, bytes) else str(source)
+                raise ValueError(f"--resume: {out} was reprocessed from {source}; resume "
+                                 "that session and reprocess it again")
             recorded = reader.attrs.get("subject_id", "")
             recorded = recorded.decode() if isinstance(recorded, bytes) else str(recorded)
         # one subject per file: continuing it with another ID would mix two subjects'
@@ -1276,6 +1283,8 @@ def reprocess_session(source: Path | str, target: Path | str, tracking_options: 
                         p.attrs["std_m"] = float(np.nan if c.phasor_std_m is None
                                                  else c.phasor_std_m)
                 g.create_dataset("force_phasor_n", data=np.complex128(step.force_phasor_n))
+                # judged again with these options (it kept the recording's verdict)
+                g.attrs["quality_ok"] = all(bool(c.quality.get("ok")) for c in step.channels)
                 done.append(step)
                 if progress is not None:
                     progress(n + 1, len(names))

@@ -550,3 +550,34 @@ def test_console_progress_bar_on_a_terminal(tmp_path):
     text = stream.getvalue()
     assert "\r[" in text and "8/8 steps" in text and "ETA" in text
     assert "prompt (auto-continue)" in text
+
+
+def test_a_reprocessed_session_is_judged_again_and_not_resumed(tmp_path):
+    # replay review, session 36: reprocess copied each step's quality_ok as recorded, and
+    # its copy of /runs ("aborted") let `run --resume` append steps tracked with the
+    # recording's options to a file re-tracked with others
+    import h5py
+
+    from pelvislab.app.commands._common import incomplete_session_warning
+
+    bench = make_bench()
+    with prepare(tmp_path, bench) as session:
+        def stop_after_two(event):
+            if isinstance(event, r.StepFinished) and event.step.index == 1:
+                session.runner.abort("stopped for the test")
+        session.runner.subscribe(stop_after_two)
+        assert session.run().status == "aborted"
+    src, out = tmp_path / "s.h5", tmp_path / "r.h5"
+    # the protocol measures 3 pairs (a and b driven at a, b at c) in 2 x 2 /frf cells
+    assert "(2 of the 3 planned FRFs hold data; --resume the run" in \
+        incomplete_session_warning(src)
+    with h5py.File(src, "r+") as f:
+        for name in f["steps"]:
+            f["steps"][name].attrs["quality_ok"] = False  # as if judged bad when recorded
+    assert r.reprocess_session(src, out)[0] == 2
+    with h5py.File(out, "r") as f:
+        assert [bool(f["steps"][n].attrs["quality_ok"]) for n in f["steps"]] == [True, True]
+    assert f"resume its source session {src} and reprocess that" in \
+        incomplete_session_warning(out)
+    with pytest.raises(ValueError, match=f"was reprocessed from {src}; resume that session"):
+        r.prepare_session(tmp_path / "p.toml", out, bench=make_bench(), resume=True)

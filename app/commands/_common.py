@@ -41,13 +41,35 @@ def incomplete_session_warning(path: str | Path) -> str | None:
             if status == "completed":
                 return None
             H = handle["frf/H"][()]
+            source = handle.attrs.get("reprocessed_from")
+            toml = handle["protocol"].attrs.get("toml") if "protocol" in handle else None
     except Exception:  # unreadable files get their own error from the command's reader
         return None
     measured = np.isfinite(H).reshape(H.shape[0], -1).any(axis=0)
-    planned = H.shape[1] * H.shape[2]
+    planned = _planned_frf_count(toml) or H.shape[1] * H.shape[2]
+    if source is not None:
+        source = source.decode() if isinstance(source, bytes) else str(source)
+        how = (f"resume its source session {source} and reprocess that: a reprocessed "
+               "file is not resumed")
+    else:
+        how = "--resume the run to complete it"
     return (f"{path}: its last run ended {status!r}, not completed: the analysis uses the "
             f"lines measured so far ({int(measured.sum())} of the {planned} planned FRFs "
-            "hold data; --resume the run to complete it)")
+            f"hold data; {how})")
+
+
+def _planned_frf_count(toml: object) -> int | None:
+    """The number of (output, input) pairs the session's protocol measures (the demo: 8
+    of its 5 x 2 /frf cells), or None when the stored protocol cannot be read."""
+    from pelvislab.acquisition.protocol import parse_protocol
+
+    try:
+        text = toml.decode() if isinstance(toml, bytes) else str(toml)
+        protocol = parse_protocol(text)
+    except Exception:
+        return None
+    return len({(point, setup.excitation) for setup in protocol.setups
+                for point in setup.transducers.values()})
 
 
 def not_implemented(command: str) -> Handler:
