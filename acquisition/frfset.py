@@ -317,7 +317,12 @@ def read_frf(path: str | Path, name: str = "frf") -> FrfSet:
     try:
         handle = h5py.File(path, "r")
     except OSError as exc:
-        raise FrfFileError(f"{path} is not a readable HDF5 file ({exc})") from None
+        reason = " ".join(str(exc).split())[:160]
+        if "unable to lock file" in reason.lower():  # HDF5's lock: a writer has it open
+            # (said "not a readable HDF5 file", as if damaged: replay review, session 36)
+            raise FrfFileError(f"{path} is in use by another process (a run in progress?); "
+                               f"try again when it has finished: {reason}") from None
+        raise FrfFileError(f"{path} is not a readable HDF5 file ({reason})") from None
     with handle:
         if name not in handle:
             raise FrfFileError(f"{path} holds no /{name} group (no FRFs measured yet?)")

@@ -1288,6 +1288,11 @@ def reprocess_session(source: Path | str, target: Path | str, tracking_options: 
                 done.append(step)
                 if progress is not None:
                     progress(n + 1, len(names))
+            if not done:  # an empty copy is no reprocessing (it exited 0: review, session 36)
+                raise ValueError(f"{source} holds no complete step to reprocess"
+                                 + (f" ({len(reader.damaged + reader.incomplete)} damaged or "
+                                    "incomplete)" if reader.damaged or reader.incomplete
+                                    else "") + "; nothing written")
             layout = reader.frf_layout()
             if layout is not None:
                 frf = frf_from_steps(done, *layout)

@@ -70,6 +70,11 @@ def test_reader_says_when_a_run_holds_the_file(tmp_path, protocol):  # noqa: F81
         assert holder.stdout.readline().strip() == "open"
         with pytest.raises(SessionFileError, match="in use by another process"):
             SessionReader(path)
+        # and identify/ema/export-uff's reader (it said "not a readable HDF5 file")
+        from pelvislab.acquisition.frfset import FrfFileError, read_frf
+
+        with pytest.raises(FrfFileError, match="in use by another process"):
+            read_frf(path)
     finally:
         holder.communicate("", timeout=30)
 
@@ -136,3 +141,17 @@ def test_a_plan_larger_than_the_header_goes_dense_without_stalling(tmp_path):
         assert time.perf_counter() - started < 30.0  # ~0.1 s measured
     with h5py.File(tmp_path / "g.h5", "r") as f:
         assert len(f["steps"]) == MAX_COMPACT_LINKS + 50
+
+
+def test_reprocess_refuses_a_session_without_steps(tmp_path, protocol):  # noqa: F811
+    # a run stopped at its first prompt: reprocess wrote an empty session and exited 0
+    # (replay review, session 36)
+    from pelvislab.acquisition.runner import reprocess_session
+
+    path = tmp_path / "s.h5"
+    with SessionWriter.create(path, protocol, BENCH, "test"):
+        pass
+    with pytest.raises(ValueError, match="holds no complete step to reprocess"):
+        reprocess_session(path, tmp_path / "r.h5")
+    assert not (tmp_path / "r.h5").exists()
+    assert not list(tmp_path.glob(".r.h5.*"))
