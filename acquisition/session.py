@@ -897,6 +897,15 @@ class SessionReader:
         a = runs[names[-1]].attrs
         return (_text(a.get("status", "unknown")), _text(a.get("reason", "")))
 
+    @property
+    def outputs_confirmed_off(self) -> bool | None:
+        """Whether the last run's end confirmed every output off (``/runs`` attribute);
+        None when not recorded (a killed run, or a file from before session 31)."""
+        runs = self._h5.get("runs")
+        names = sorted(runs) if runs is not None else []
+        value = runs[names[-1]].attrs.get("outputs_confirmed_off") if names else None
+        return None if value is None else bool(value)
+
     def log_lines(self) -> list[str]:
         """The session log."""
         if "log" not in self._h5:

@@ -313,11 +313,16 @@ class ReplayView(QtWidgets.QWidget):
         self.close_session()
         self.reader, self.path, self.steps = reader, Path(path), steps
         status, reason = reader.status
-        text = f"{Path(path).name}: {len(steps)} steps, run {status}"
+        # "running" in a file nobody writes: the process ended without closing it
+        shown = ("did not end (the process was killed?)" if status == "running"
+                 else status)
+        text = f"{Path(path).name}: {len(steps)} steps, run {shown}"
         if isinstance(reader, _FrfOnlyFile):
             text = f"{Path(path).name}: FRF-only file (no steps to replay)"
         if reason:
             text += f" ({reason})"
+        if getattr(reader, "outputs_confirmed_off", None) is False:
+            text += "; its outputs were NOT CONFIRMED OFF at its end"
         if reader.damaged:
             text += f"; {len(reader.damaged)} damaged step(s) skipped"
         self.file_label.setText(text)

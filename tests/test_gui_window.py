@@ -211,3 +211,29 @@ def test_the_bench_table_shows_model_and_serial_with_the_whole_identity_as_toolt
     assert table.item(1, 1).toolTip() == idn
     assert short_identity("a,,b,c") == "a"  # not an *IDN? answer: its first field
     assert short_identity(",x") == ",x"
+
+
+def test_the_replay_says_how_the_last_run_ended_in_words(operator_window, tmp_path):
+    # replay review, session 36: a killed run showed as "run running", and outputs not
+    # confirmed off at a run's end were not mentioned
+    import numpy as np
+
+    from pelvislab.acquisition.protocol import parse_protocol
+    from pelvislab.acquisition.session import SessionWriter
+    from pelvislab.tests.test_session_format import BENCH, POINTS, TEXT, make_step
+
+    protocol = parse_protocol(TEXT, "t.toml", None, POINTS)
+    rng = np.random.default_rng(0)
+    window = operator_window()
+    killed, unsafe = tmp_path / "k.h5", tmp_path / "u.h5"
+    with SessionWriter.create(killed, protocol, BENCH, "test") as w:
+        w.start_run(BENCH)
+        w.append_step(make_step(protocol, 0, 80.0, rng))  # then the process "dies"
+    with SessionWriter.create(unsafe, protocol, BENCH, "test") as w:
+        w.start_run(BENCH)
+        w.append_step(make_step(protocol, 0, 80.0, rng))
+        w.finish_run("aborted", "operator STOP", unsafe=["drive: OUTP OFF not confirmed"])
+    assert window.open_replay(killed) is True
+    assert "did not end (the process was killed?)" in window.replay.file_label.text()
+    assert window.open_replay(unsafe) is True
+    assert "NOT CONFIRMED OFF" in window.replay.file_label.text()
