@@ -75,3 +75,19 @@ def test_unknown_parameter_is_named(tmp_path: Path, capsys: pytest.CaptureFixtur
     code = main(["identify", str(src), "--params", "k_nope", "--json", str(tmp_path / "o.json")])
     assert code == 1
     assert "k_nope" in capsys.readouterr().err
+
+
+def test_eq610_weights_default_to_the_thesis_ratio(tmp_path: Path) -> None:
+    # thesis ch. 6.2/7 (L1358, L1470): a/b = 0.1; --a-b defaulted to 1 for every residual
+    # (thesis fidelity review, session 36)
+    src = tmp_path / "frf.h5"
+    _frf_file(src, {"k_pubh": 1.2})
+    ratios = {}
+    for residual, extra in (("eq610", []), ("log", []), ("eq610", ["--a-b", "3"])):
+        out = tmp_path / f"{residual}{len(extra)}.json"
+        assert main(["identify", str(src), "--params", "k_pubh", "--residual", residual,
+                     *extra, "--json", str(out)]) == 0
+        doc = json.loads(out.read_text())
+        ratios[(residual, len(extra))] = doc["a_over_b"]
+        assert doc["parameters"]["k_pubh"]["value"] == pytest.approx(1.2e5, rel=1e-6)
+    assert ratios == {("eq610", 0): 0.1, ("log", 0): 1.0, ("eq610", 2): 3.0}

@@ -18,6 +18,10 @@ from pelvislab.app.commands._common import (
     write_json,
 )
 
+#: a/b of eq. 6.10 when not given: the thesis' choice after its ch. 6.2 study (smaller
+#: ratios identified stiffness and damping better), used for ch. 7's updating.
+EQ610_A_OVER_B = 0.1
+
 
 def register(subparsers: argparse._SubParsersAction) -> None:
     """Add ``identify`` to the CLI."""
@@ -41,8 +45,10 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                    help="also identify the eq. 7.2-7.3 factors f_k and f_c (ch. 7 version B)")
     p.add_argument("--residual", choices=("auto", "log", "std", "eq610"), default="auto",
                    help="misfit: auto = std when the file has H_std, else log")
-    p.add_argument("--a-b", type=float, default=1.0, metavar="RATIO",
-                   help="ratio a/b of real to imaginary weights (eq. 6.10 / log residuals)")
+    p.add_argument("--a-b", type=float, default=None, metavar="RATIO",
+                   help="ratio a/b of real to imaginary weights (eq. 6.10: default 0.1, the "
+                   "thesis' choice in ch. 6-7; log residual: log-magnitude to phase, "
+                   "default 1)")
     p.add_argument("--starts", type=int, default=None, metavar="N",
                    help="maximum number of starts of the global strategy")
     p.add_argument("--seed", type=int, default=0, help="random seed of the multi-start")
@@ -79,7 +85,7 @@ class IdentificationReport:
 def identify_file(path: str | Path, method: str = "frf", params: list[str] | None = None,
                   model_path: str | Path | None = None,
                   progress: Callable[[str], None] | None = None, *, symmetric: bool = False,
-                  version_b: bool = False, residual: str = "auto", a_b: float = 1.0,
+                  version_b: bool = False, residual: str = "auto", a_b: float | None = None,
                   starts: int | None = None, seed: int = 0) -> IdentificationReport:
     """Identify the pelvis model's parameters from the /frf of ``path`` (session or FRF-only).
 
@@ -142,6 +148,10 @@ def identify_file(path: str | Path, method: str = "frf", params: list[str] | Non
                 f"{n_residuals // 2} FRF value(s), cannot identify {n_free} parameters "
                 "(needs >= 3 lines and at least as many real and imaginary parts as "
                 "parameters); measure more lines or free fewer parameters (--params)")
+        if a_b is None:
+            # eq. 6.10 with the thesis' weights a/b = 0.1 (ch. 6.2, used in ch. 7); the
+            # default was 1 for every residual (thesis fidelity review, session 36)
+            a_b = EQ610_A_OVER_B if kind == "eq610" else 1.0
         if not a_b > 0:
             raise ValueError("--a-b must be > 0")
         spec = ResidualSpec(kind, a=a_b / (1 + a_b), b=1 / (1 + a_b))
@@ -151,7 +161,7 @@ def identify_file(path: str | Path, method: str = "frf", params: list[str] | Non
             strategy=strategy, version_b=version_b, start_freq_dep=(f_k, f_c),
             progress=progress,
         )
-        extra = {"method": "frf"}
+        extra = {"method": "frf", "a_over_b": float(a_b)}
     else:
         raise ValueError(f"unknown method {method!r}; use frf or modal")
     doc = result.as_dict()
@@ -186,7 +196,8 @@ def _identify(args: argparse.Namespace) -> int:
     progress = _progress(sys.stderr.isatty() or args.verbose > 0)
     report = identify_file(
         args.session, args.method, free, args.model, progress, symmetric=args.symmetric,
-        version_b=args.version_b, residual=args.residual, a_b=float(args.a_b),
+        version_b=args.version_b, residual=args.residual,
+        a_b=None if args.a_b is None else float(args.a_b),
         starts=args.starts, seed=args.seed)
     write_json(out, report.to_json())
     for note in report.document.get("notes", []):
