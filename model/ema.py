@@ -974,8 +974,9 @@ def _spacing_hint(frequency_hz: np.ndarray) -> str:
     """Why lightly damped modes may go unseen on this grid (text for the notes).
 
     A mode shows in stepped-sine lines only when its half-power bandwidth 2ζf_n spans
-    about one line spacing Δf or more, i.e. ζ ≳ Δf / (2 f_n); thesis appendix E's damping
-    ratios are 0.02-0.5 %, so a 10 Hz grid resolves none of them."""
+    about one line spacing Δf or more, i.e. ζ ≳ Δf / (2 f_n); the appendix E model's
+    damping ratios are 0.009-0.52 % (0.018-0.52 % up to 303.6 Hz; computed from the model,
+    not a thesis figure), so a 10 Hz grid resolves none of them."""
     f = np.sort(np.asarray(frequency_hz, float))
     df = _line_spacing_hz(f)
     if not df > 0:
