@@ -80,6 +80,20 @@ def display_columns(frequency_hz: np.ndarray, max_columns: int = 4000
     return index, low, high
 
 
+def identification_summary(document: dict[str, Any]) -> str:
+    """One line (HTML) on an identification's JSON: converged or not and why, the misfit."""
+    rms = document.get("rms_residual")
+    misfit = "" if rms is None else (
+        f"rms residual {rms:.3g}" + (" (in noise σ)" if document.get("residual") == "std"
+                                     else " (relative)"))
+    if document.get("converged"):
+        head = "<b>converged</b>"
+    else:
+        head = "<b style='color:#b71c1c'>NOT converged</b>: " + html.escape(
+            str(document.get("message", "")).strip("; "))
+    return head + (f" — {misfit}" if misfit else "")
+
+
 def _summary_page(text: str) -> tuple[QtWidgets.QWidget, QtWidgets.QVBoxLayout,
                                       QtWidgets.QLabel]:
     """A result page: a vertical layout that starts with a word-wrapped summary line."""
@@ -187,8 +201,14 @@ class ReplayView(QtWidgets.QWidget):
         self.frf = FrfPanel()
         self.tabs.addTab(self.frf, "FRFs")
 
-        ident_page = QtWidgets.QWidget()
-        ident_layout = QtWidgets.QHBoxLayout(ident_page)
+        # the verdict on the fit first: the thesis' optimiser could not be trusted, and a
+        # table of values alone reads as a result (review of session 36: the pane never
+        # said "not converged")
+        ident_page, ident_outer, self.ident_summary = _summary_page(
+            "run the identification to see the parameters")
+        self.ident_summary.setTextFormat(QtCore.Qt.TextFormat.RichText)
+        ident_layout = QtWidgets.QHBoxLayout()
+        ident_outer.addLayout(ident_layout, 1)
         self.param_table = QtWidgets.QTableWidget(0, 3)
         self.param_table.setHorizontalHeaderLabels(("parameter", "value", "std"))
         self.param_table.verticalHeader().setVisible(False)
@@ -343,6 +363,7 @@ class ReplayView(QtWidgets.QWidget):
         """Empty the identification, gap and modes panes."""
         self.param_table.setRowCount(0)
         self.ident_frf.clear_curves()
+        self.ident_summary.setText("run the identification to see the parameters")
         self.gap_summary.setText("run the diagnosis to see where model and data differ")
         self.residual_image.clear()
         self.candidate_table.setRowCount(0)
@@ -461,6 +482,7 @@ class ReplayView(QtWidgets.QWidget):
     def show_identification(self, report: Any) -> None:
         """Parameters with their standard errors; measured vs model FRFs."""
         document = report.to_json()
+        self.ident_summary.setText(identification_summary(document))
         params = document.get("parameters", {})
         self.param_table.setRowCount(len(params))
         units = document.get("units", {})  # by prefix: m_ kg, k_ N/m, c_ N s/m, f_ 1

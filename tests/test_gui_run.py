@@ -251,6 +251,13 @@ def test_replay_identification_shows_parameters_and_model_frfs(operator_window, 
     assert {"k_io_R (N/m)", "c_pub (N s/m)", "m_sacrum (kg)"} <= names
     assert replay.ident_frf._model, "no model FRF drawn"
     assert replay.tabs.currentIndex() == 2
+    # the fit's verdict is said (the pane showed values only, converged or not)
+    assert replay.ident_summary.text().startswith("<b>converged</b> — rms residual")
+    from pelvislab.app.gui_replay import identification_summary
+
+    failed = identification_summary({"converged": False, "message": "; a <b>ound",
+                                     "rms_residual": 0.2, "residual": "log"})
+    assert "NOT converged</b>: a &lt;b&gt;ound — rms residual 0.2 (relative)" in failed
 
 
 def test_replay_gap_diagnosis_shows_verdict_map_and_candidates(operator_window, qtbot,
