@@ -46,7 +46,7 @@ FREQ_DEP_NAMES = ("f_k", "f_c")
 
 #: Residuals count as structured along frequency when their lag-1 correlation exceeds
 #: this many standard deviations of white noise's (1/sqrt(pairs)); measured (session 36,
-#: face-up 5-300 Hz at 5 Hz, 1770 pairs): white noise |r1| <= 0.047 in 9 fits, a local
+#: face-up 5-300 Hz at 5 Hz, 1770 pairs): white noise |r1| <= 0.047 in 11 fits, a local
 #: minimum 0.27, version-B data fitted as A 0.34, asymmetric data fitted symmetric 0.26,
 #: the thesis' sensor errors (2 mm, 10 deg) 0.08-0.19.
 WHITENESS_SIGMAS = 4.0
