@@ -164,7 +164,10 @@ def estimate_phasor(signal: np.ndarray, time_s: np.ndarray, frequency_hz: float,
     X1 = values[0]
     with np.errstate(divide="ignore", invalid="ignore"):
         dist = np.abs(harm) / abs(X1) if abs(X1) > 0 else np.full(2, np.nan)
-    thd = float(np.sqrt(np.nansum(np.abs(harm) ** 2)) / abs(X1)) if abs(X1) > 0 else np.nan
+    # NaN, not 0, when no harmonic is estimable (all at or above Nyquist): 0 read as "no
+    # distortion" whatever the motion held (review, session 36)
+    thd = (float(np.sqrt(np.nansum(np.abs(harm) ** 2)) / abs(X1))
+           if abs(X1) > 0 and np.isfinite(harm).any() else np.nan)
     return Phasor(
         frequency_hz=float(frequency_hz), value=X1, std=stds[0], amplitude_std=amp_std,
         phase_std_rad=ph_std, harmonics=harm, harmonics_std=harm_std, distortion=dist,

@@ -111,6 +111,22 @@ def test_finer_step_warns_about_keeping_still():
     assert any("keep still" in w and "45" in w for w in p.warnings)
 
 
+def test_lines_where_a_harmonic_aliases_onto_the_drive_frequency_are_warned():
+    # tracking review, session 36: at prf/3 the 2nd harmonic, sampled once per pulse,
+    # lands on the fundamental (a 10 % harmonic: amplitude 9.5 % off, nothing flagged)
+    data = base()
+    data["ultrasound"]["pulses"] = 2000  # 0.4 s at 5 kHz: 2.5 Hz bins
+    data["sweep"] = {"frequencies_hz": [80.0, 1250.0, 1666.0, 1700.0, 2000.0],
+                     "drive_vpp": 1.0}
+    p = parse(data)
+    from pelvislab.acquisition.protocol import harmonic_aliases
+
+    assert harmonic_aliases(p) == [(1250.0, 3), (1666.0, 2)]
+    assert any("1250 Hz (harmonic 3), 1666 Hz (harmonic 2)" in w for w in p.warnings)
+    data["sweep"]["frequencies_hz"] = [80.0, 300.0, 1700.0]
+    assert not harmonic_aliases(parse(data))
+
+
 def test_down_order_and_list():
     data = base()
     data["sweep"] = {"frequencies_hz": [280.0, 80.0, 180.0], "order": "down", "drive_vpp": 1.0}

@@ -49,6 +49,13 @@ def test_harmonic_distortion_measured():
 def test_third_harmonic_above_nyquist_is_nan():
     p = estimate_phasor(_sine(1.0, 1000.0), T, 1000.0)
     assert np.isfinite(p.harmonics[0]) and np.isnan(p.harmonics[1])
+    assert np.isfinite(p.thd)  # from the 2nd harmonic alone
+
+
+def test_thd_is_nan_when_no_harmonic_can_be_estimated():
+    # tracking review, session 36: 0.0 ("no distortion") above prf/4, whatever the motion
+    p = estimate_phasor(_sine(1.0, 1400.0) + _sine(0.3, 2800.0), T, 1400.0)
+    assert np.isnan(p.harmonics).all() and np.isnan(p.thd)
 
 
 @pytest.mark.parametrize("f_hz", [80.0, 81.3])
