@@ -40,6 +40,27 @@ def test_known_displacement_recovered_near_cramer_rao():
     assert 4.5e6 < res.center_frequency_hz < 5.5e6
 
 
+def test_a_misread_trigger_offset_loses_its_echo_with_the_reason():
+    # tracking review, session 36: one segment's offset at 1e-6 s moved the phase 44 deg,
+    # offsets in samples read as seconds gave metres; both "ok", unflagged
+    rng = np.random.default_rng(7)
+    n = 300
+    d = _sine_displacement(n, 1e-6)
+    codes, off = synth_echoes(_arrival(d), snr_db=35.0, rng=rng)
+    bad = off.copy()
+    bad[100], bad[200] = 1e-6, np.nan
+    res = track_echoes(codes, bad, FS, C)
+    assert res.lost[100] and res.lost[200] and res.lost.sum() == 2
+    assert any("1 segment(s) with a trigger offset more than 8 samples" in w
+               for w in res.warnings)
+    assert not any("correlation below" in w for w in res.warnings)  # it was "2 echo(es)"
+    clean = track_echoes(codes, off, FS, C)  # the other echoes as without the misreads
+    ok = ~res.lost
+    np.testing.assert_allclose(res.displacement_m[ok], clean.displacement_m[ok], atol=1e-12)
+    in_samples = track_echoes(codes, off * FS, FS, C)  # offsets in samples, not seconds
+    assert in_samples.lost.mean() > 0.9
+
+
 def test_sign_positive_toward_transducer():
     n = 50
     d = np.linspace(0.0, 5e-6, n)  # bone approaches: echoes arrive earlier and earlier
