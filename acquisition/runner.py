@@ -79,6 +79,8 @@ pulse on (harmonic convention of design 4.1).
 """
 QUALITY_MIN_CORRELATION = 0.8
 QUALITY_MAX_LOST_FRACTION = 0.05
+QUALITY_MIN_PERIODS = 1.0
+"""Tracked echoes spanning less of the drive than this (periods) give no usable phasor."""
 
 
 # --------------------------------------------------------------------------- events
@@ -313,7 +315,17 @@ def process_channel(channel: ChannelData, frequency_hz: float, options: Any = No
         channel.phasor_m = None
         channel.phasor_std_m = None
         quality["message"] = f"phasor failed: {exc}"
-    ok = (channel.phasor_m is not None
+    # the protocol asks for 2 or more periods per record; a digitizer that returned fewer
+    # segments (a truncated acquisition) gave 13 mm for 1 um from 8 pulses, "ok" (tracking
+    # review, session 36)
+    span_periods = (float(frequency_hz * np.ptp(time_s[good])) if good.sum() >= 2 else 0.0)
+    quality["periods_tracked"] = span_periods
+    short = channel.phasor_m is not None and span_periods < QUALITY_MIN_PERIODS
+    if short:
+        quality["message"] = (f"the tracked echoes span {span_periods:.2g} period(s) of the "
+                              f"drive, under the {QUALITY_MIN_PERIODS:g} a phasor needs "
+                              f"({disp.size} segments recorded: a truncated acquisition?)")
+    ok = (channel.phasor_m is not None and not short
           and quality["correlation_median"] >= QUALITY_MIN_CORRELATION
           and quality["lost_fraction"] <= QUALITY_MAX_LOST_FRACTION)
     quality["ok"] = bool(ok)

@@ -33,3 +33,16 @@ def test_good_step_keeps_a_plain_ok_message():
     channel = process_channel(_channel(d), 80.0)
     assert channel.quality["ok"] is True
     assert channel.quality["message"] == "ok"
+
+
+def test_a_record_shorter_than_a_drive_period_is_not_ok():
+    # tracking review, session 36: a truncated acquisition of 20 pulses (0.32 periods at
+    # 80 Hz) gave 18 um for 1 um, "ok"
+    d = 1e-6 * np.sin(2 * np.pi * 80.0 * np.arange(20) / PRF)
+    channel = process_channel(_channel(d), 80.0)
+    assert channel.quality["ok"] is False
+    assert "span 0.3 period(s) of the drive" in channel.quality["message"]
+    assert "truncated acquisition" in channel.quality["message"]
+    whole = process_channel(_channel(1e-6 * np.sin(2 * np.pi * 80.0 * np.arange(80) / PRF)),
+                            80.0)  # 80 pulses: 1.26 periods
+    assert whole.quality["ok"] is True, whole.quality
