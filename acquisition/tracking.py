@@ -817,6 +817,15 @@ def track_echoes(codes: np.ndarray, trigger_offset_s: np.ndarray | None, sample_
     G = stop - start
     if G < 16:
         raise ValueError(f"gate ({start}, {stop}) is too short to track an echo")
+    # Segments without signal (a digitizer that returned empty segments) or with samples
+    # that are not numbers: lost, and said so (they were "left the recorded window: lower
+    # the drive level", and one NaN sample lost every echo: tracking review, session 36).
+    # A live segment's noise is never constant over the gate: every 4th sample suffices.
+    not_finite = (~np.isfinite(codes).all(axis=1) if codes.dtype.kind == "f"
+                  else np.zeros(n, dtype=bool))
+    if np.any(not_finite):
+        codes = np.where(not_finite[:, None], 0.0, codes)
+    empty = not_finite | (np.ptp(codes[:, start:stop:4], axis=1) == 0)
 
     first = np.asarray(codes[: max(1, opts.initial_reference_echoes), start:stop], dtype=float)
     first_mean = first.mean(axis=0)
@@ -842,7 +851,7 @@ def track_echoes(codes: np.ndarray, trigger_offset_s: np.ndarray | None, sample_
     n_reref = 0
     padded = None
     pad = G + 2 * L
-    if np.any(lost_edge) and opts.rereference:
+    if np.any(lost_edge & ~empty) and opts.rereference:
         # Drift beyond the lag range: let the gate follow the echo (predicted per echo), in
         # a zero-padded record so that an echo partly past the record's edge stays tracked.
         padded = _pad_record(codes, pad)
@@ -850,8 +859,9 @@ def track_echoes(codes: np.ndarray, trigger_offset_s: np.ndarray | None, sample_
             padded, pad, m, start, G, L, ref0, opts, band)
         warnings.append(f"echo drifted beyond +-{L} samples: gate followed it over "
                         f"{int(np.ptp(shift))} samples")
-    elif np.any(lost_edge):
-        warnings.append(f"{int(lost_edge.sum())} echo(es) left the +-{L}-sample lag range")
+    elif np.any(lost_edge & ~empty):
+        warnings.append(f"{int((lost_edge & ~empty).sum())} echo(es) left the +-{L}-sample "
+                        "lag range")
     failed = lost_edge & (shift != 0)
     if np.any(failed):
         # Edges of echoes that have left the record do not mean the prediction failed.
@@ -903,6 +913,7 @@ def track_echoes(codes: np.ndarray, trigger_offset_s: np.ndarray | None, sample_
                     f"{typical:.2f} after large motion (possibly a carrier period off): "
                     "marked lost")
             lost_edge = lost_edge | off_lobe
+        outside &= ~empty  # said below, for what it is
         if np.any(outside):
             late = outside & (first > start)
             side = ("after the record's end (echo arrives later than the record lasts)"
@@ -918,6 +929,14 @@ def track_echoes(codes: np.ndarray, trigger_offset_s: np.ndarray | None, sample_
                 "lost. The motion is larger than the record: lower the drive level, or "
                 "lengthen the record / move the record delay to centre the echo")
         lost_edge = lost_edge | outside
+
+    if np.any(empty):
+        warnings.append(
+            f"{int(empty.sum())} segment(s) hold no signal (every sample the same"
+            + (f"; {int(not_finite.sum())} with samples that are not numbers"
+               if np.any(not_finite) else "")
+            + "): empty digitizer segments? marked lost")
+        lost_edge = lost_edge | empty
 
     period = 2.0 * np.pi / ref.omega
     hops = _peak_hops(delay, opts.hop_threshold_periods * period)

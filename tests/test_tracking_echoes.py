@@ -61,6 +61,30 @@ def test_a_misread_trigger_offset_loses_its_echo_with_the_reason():
     assert in_samples.lost.mean() > 0.9
 
 
+def test_empty_segments_are_lost_as_empty_not_as_motion():
+    # tracking review, session 36: zeroed segments were "left the recorded window: lower
+    # the drive level", and one NaN sample in float codes lost every echo
+    rng = np.random.default_rng(8)
+    n = 300
+    d = _sine_displacement(n, 1e-6)
+    codes, off = synth_echoes(_arrival(d), snr_db=35.0, rng=rng)
+    clean = track_echoes(codes, off, FS, C)
+    dead = codes.copy()
+    dead[250:] = 0
+    res = track_echoes(dead, off, FS, C)
+    assert res.lost[250:].all() and not res.lost[:250].any()
+    assert any("50 segment(s) hold no signal" in w for w in res.warnings)
+    assert not any("left the recorded window" in w for w in res.warnings)
+    floats = codes.astype(float)
+    floats[40, 123] = np.nan
+    res = track_echoes(floats, off, FS, C)
+    assert res.lost.sum() == 1 and res.lost[40]
+    assert any("1 with samples that are not numbers" in w for w in res.warnings)
+    ok = ~res.lost
+    # (the zeroed segment still enters the reference's average: 0.1 nm here)
+    np.testing.assert_allclose(res.displacement_m[ok], clean.displacement_m[ok], atol=1e-9)
+
+
 def test_sign_positive_toward_transducer():
     n = 50
     d = np.linspace(0.0, 5e-6, n)  # bone approaches: echoes arrive earlier and earlier
