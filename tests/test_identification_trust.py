@@ -88,8 +88,25 @@ def test_noise_above_the_declared_level_misses_the_floor_and_widens_the_std():
 
 
 def test_the_noise_floor_follows_the_number_of_residuals():
-    assert noise_floor_rms(3540, 18) == pytest.approx(1.047, abs=1e-3)
-    assert noise_floor_rms(40, 4) > noise_floor_rms(4000, 4) > 1.0
+    assert noise_floor_rms(3540, 18) == pytest.approx(1.044, abs=1e-3)
+    # the limit is on chi2/dof (within 4 sigma of 1), the floor on sqrt(chi2 / residuals):
+    # at 20 lines and 18 parameters chi2/dof may reach 1 + 4 sqrt(2/22) = 2.21, not 4.0
+    # (review of session 36's diff)
+    for m, p in ((40, 18), (3540, 18), (400, 4)):
+        dof = m - p
+        chi2_per_dof = noise_floor_rms(m, p) ** 2 * m / dof
+        assert chi2_per_dof == pytest.approx(1 + 4 * np.sqrt(2 / dof))
+
+
+def test_an_exact_fit_is_converged_also_without_a_stop_target():
+    # Strategy() (no stop_rms) judged the rounding residual of an exact fit as structured
+    p = chain_problem(4, seed=2)
+    f = np.arange(2.0, 80.0, 1.0)
+    for kind in ("log", "eq610"):
+        res = identify_frf(p, f, synth(p, p.nominal, f), start=p.nominal * 1.2,
+                           residual=ResidualSpec(kind), strategy=Strategy(max_starts=1))
+        assert res.extra["rms_residual"] < 1e-10
+        assert res.converged, res.message
 
 
 def test_a_parameter_on_its_bound_is_named_and_has_no_std():
@@ -101,8 +118,16 @@ def test_a_parameter_on_its_bound_is_named_and_has_no_std():
                        strategy=Strategy(max_starts=1, stop_rms=1e-8))
     assert res.extra["on_bound"] == ["c"]
     assert np.isnan(res.std[p.names.index("c")])
-    assert "c (std null" in res.message and not res.converged
+    assert "c (std null; the others' std hold it there)" in res.message
+    assert not res.converged
     assert res.as_dict()["parameters"]["c"]["std"] is None
+    # the others' std are those of a fit with c held where it ended (its column left out)
+    held = identify_frf(p, f, synth(p, true, f), free=[n for n in p.names if n != "c"],
+                        start=res.values, residual=ResidualSpec("log"),
+                        strategy=Strategy(max_starts=1, stop_rms=1e-8))
+    others = [p.names.index(n) for n in held.names]
+    np.testing.assert_allclose(res.std[others], held.std, rtol=0.02)
+    assert np.isnan(res.correlation[p.names.index("c")]).all()
 
 
 def test_a_weak_direction_known_to_worse_than_an_e_fold_is_not_resolved():
