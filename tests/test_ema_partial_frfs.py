@@ -47,3 +47,25 @@ def test_lines_on_both_sides_and_one_near_the_mode():
     around = frfs_around_modes(f, measured, poles_from_modal(np.array([150.0]),
                                                              np.array([0.01])))
     assert around[0, :, 0].tolist() == [True, False, False]
+
+
+def test_the_reach_follows_the_lines_around_the_mode_not_the_whole_grid():
+    # review of session 36's diff: the demo's grid (10 Hz lines, 0.5 Hz zoom windows) has
+    # a 0.5 Hz median spacing, and a complete session's 105 Hz mode got no FRF at all
+    f = np.unique(np.concatenate([np.arange(30.0, 301.0, 10.0), np.arange(172.0, 178.01, 0.25),
+                                  np.arange(226.0, 238.01, 0.5)]))  # protocols/demo.toml
+    assert np.median(np.diff(f)) == 0.5
+    measured = np.ones((f.size, 4, 2), dtype=bool)
+    poles = poles_from_modal(np.array([105.0, 174.9]), np.array([0.008, 0.002]))
+    assert frfs_around_modes(f, measured, poles).all()
+
+
+def test_an_input_without_frfs_around_a_mode_has_no_participation():
+    from pelvislab.model.ema import shapes_from_residues
+
+    residues = np.ones((1, 3, 2), dtype=complex)
+    measured = np.ones((1, 3, 2), dtype=bool)
+    measured[0, :, 1] = False  # input 1 measured nowhere around this mode
+    shapes, part = shapes_from_residues(residues, measured)
+    assert np.isfinite(shapes[:, 0]).all()
+    assert np.isfinite(part[0, 0]) and np.isnan(part[0, 1])  # was 0: "does not excite it"
