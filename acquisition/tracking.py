@@ -802,6 +802,12 @@ def track_echoes(codes: np.ndarray, trigger_offset_s: np.ndarray | None, sample_
     if L < _FINE_HALF + 2:
         raise ValueError(f"max_lag_samples must be >= {_FINE_HALF + 2}")
     warnings: list[str] = []
+    # samples that are not numbers (float codes only): zeroed before the gate is found (a
+    # NaN among the first echoes had spread the auto gate over the record), lost below
+    not_finite = (~np.isfinite(codes).all(axis=1) if codes.dtype.kind == "f"
+                  else np.zeros(n, dtype=bool))
+    if np.any(not_finite):
+        codes = np.where(not_finite[:, None], 0.0, codes)
 
     if opts.gate is None:
         gate = auto_gate(codes, fs, threshold=opts.gate_threshold,
@@ -821,13 +827,11 @@ def track_echoes(codes: np.ndarray, trigger_offset_s: np.ndarray | None, sample_
     # that are not numbers: lost, and said so (they were "left the recorded window: lower
     # the drive level", and one NaN sample lost every echo: tracking review, session 36).
     # A live segment's noise is never constant over the gate: every 4th sample suffices.
-    not_finite = (~np.isfinite(codes).all(axis=1) if codes.dtype.kind == "f"
-                  else np.zeros(n, dtype=bool))
-    if np.any(not_finite):
-        codes = np.where(not_finite[:, None], 0.0, codes)
     empty = not_finite | (np.ptp(codes[:, start:stop:4], axis=1) == 0)
 
-    first = np.asarray(codes[: max(1, opts.initial_reference_echoes), start:stop], dtype=float)
+    initial = np.arange(min(n, max(1, opts.initial_reference_echoes)))
+    initial = initial[~empty[initial]] if np.any(~empty[initial]) else initial
+    first = np.asarray(codes[initial, start:stop], dtype=float)  # empty segments left out
     first_mean = first.mean(axis=0)
     if np.ptp(first_mean) == 0:
         raise ValueError(f"the gate ({start}, {stop}) of the first echoes is flat: no echo to "
