@@ -899,12 +899,15 @@ class SessionReader:
 
     @property
     def outputs_confirmed_off(self) -> bool | None:
-        """Whether the last run's end confirmed every output off (``/runs`` attribute);
-        None when not recorded (a killed run, or a file from before session 31)."""
+        """False when any run's end could not confirm every output off (``/runs``
+        attribute; a resumed session keeps its earlier runs' record), True when every run
+        that recorded it confirmed them, None when none did (killed runs, or a file from
+        before session 31)."""
         runs = self._h5.get("runs")
-        names = sorted(runs) if runs is not None else []
-        value = runs[names[-1]].attrs.get("outputs_confirmed_off") if names else None
-        return None if value is None else bool(value)
+        values = [runs[k].attrs.get("outputs_confirmed_off") for k in sorted(runs)] \
+            if runs is not None else []
+        known = [bool(v) for v in values if v is not None]
+        return None if not known else all(known)
 
     def log_lines(self) -> list[str]:
         """The session log."""

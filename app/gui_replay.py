@@ -342,7 +342,7 @@ class ReplayView(QtWidgets.QWidget):
         if reason:
             text += f" ({reason})"
         if getattr(reader, "outputs_confirmed_off", None) is False:
-            text += "; its outputs were NOT CONFIRMED OFF at its end"
+            text += "; outputs NOT CONFIRMED OFF at the end of a run"
         if reader.damaged:
             text += f"; {len(reader.damaged)} damaged step(s) skipped"
         self.file_label.setText(text)

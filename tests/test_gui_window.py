@@ -237,3 +237,15 @@ def test_the_replay_says_how_the_last_run_ended_in_words(operator_window, tmp_pa
     assert "did not end (the process was killed?)" in window.replay.file_label.text()
     assert window.open_replay(unsafe) is True
     assert "NOT CONFIRMED OFF" in window.replay.file_label.text()
+    # a later run that ended safely does not hide it (a resumed session)
+    from pelvislab.acquisition.session import SessionReader
+
+    window.replay.close_session()  # the replay holds the file open
+    with SessionWriter.resume(unsafe) as w:
+        w.start_run(BENCH)
+        w.append_step(make_step(protocol, 0, 90.0, rng))
+        w.finish_run("completed")
+    with SessionReader(unsafe) as reader:
+        assert reader.status[0] == "completed" and reader.outputs_confirmed_off is False
+    assert window.open_replay(unsafe) is True
+    assert "NOT CONFIRMED OFF at the end of a run" in window.replay.file_label.text()
