@@ -91,3 +91,8 @@ def test_eq610_weights_default_to_the_thesis_ratio(tmp_path: Path) -> None:
         ratios[(residual, len(extra))] = doc["a_over_b"]
         assert doc["parameters"]["k_pubh"]["value"] == pytest.approx(1.2e5, rel=1e-6)
     assert ratios == {("eq610", 0): 0.1, ("log", 0): 1.0, ("eq610", 2): 3.0}
+    _frf_file(tmp_path / "std.h5", {"k_pubh": 1.2}, with_std=True)
+    out = tmp_path / "std.json"
+    assert main(["identify", str(tmp_path / "std.h5"), "--params", "k_pubh", "--json",
+                 str(out)]) == 0
+    assert "a_over_b" not in json.loads(out.read_text())  # std: weighted by H_std alone

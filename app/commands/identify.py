@@ -161,7 +161,9 @@ def identify_file(path: str | Path, method: str = "frf", params: list[str] | Non
             strategy=strategy, version_b=version_b, start_freq_dep=(f_k, f_c),
             progress=progress,
         )
-        extra = {"method": "frf", "a_over_b": float(a_b)}
+        extra = {"method": "frf"}
+        if kind in ("eq610", "log"):  # the weights of the std residual are its H_std
+            extra["a_over_b"] = float(a_b)
     else:
         raise ValueError(f"unknown method {method!r}; use frf or modal")
     doc = result.as_dict()
