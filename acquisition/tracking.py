@@ -810,7 +810,10 @@ def track_echoes(codes: np.ndarray, trigger_offset_s: np.ndarray | None, sample_
         codes = np.where(not_finite[:, None], 0.0, codes)
 
     if opts.gate is None:
-        gate = auto_gate(codes, fs, threshold=opts.gate_threshold,
+        # found on the first echoes that hold a signal (empty first segments made it fail)
+        head = np.flatnonzero(np.ptp(codes[:64], axis=1) != 0)
+        gate = auto_gate(codes[head] if head.size else codes, fs,
+                         threshold=opts.gate_threshold,
                          margin_samples=opts.gate_margin_samples, band_hz=opts.band_hz)
         start, stop = max(gate[0], L), min(gate[1], m - L)
         if (start, stop) != gate:
@@ -831,9 +834,11 @@ def track_echoes(codes: np.ndarray, trigger_offset_s: np.ndarray | None, sample_
     probe = np.linspace(start, stop - 1, 16).astype(int)
     empty = not_finite | (np.ptp(codes[:, probe], axis=1) == 0)
 
-    initial = np.arange(min(n, max(1, opts.initial_reference_echoes)))
-    initial = initial[~empty[initial]] if np.any(~empty[initial]) else initial
-    first = np.asarray(codes[initial, start:stop], dtype=float)  # empty segments left out
+    # the first echoes that hold a signal (empty segments left out of the reference)
+    initial = np.flatnonzero(~empty)[: max(1, opts.initial_reference_echoes)]
+    if initial.size == 0:
+        initial = np.arange(min(n, max(1, opts.initial_reference_echoes)))
+    first = np.asarray(codes[initial, start:stop], dtype=float)
     first_mean = first.mean(axis=0)
     if np.ptp(first_mean) == 0:
         raise ValueError(f"the gate ({start}, {stop}) of the first echoes is flat: no echo to "
