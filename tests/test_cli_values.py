@@ -78,3 +78,32 @@ def test_gap_benchmark_makes_no_folder_for_options_it_refuses(tmp_path, capsys):
     out = tmp_path / "new_folder" / "b.json"
     assert main(["gap", "benchmark", "--json", str(out), "--kinds", "nope"]) == 1
     assert not out.parent.exists()
+
+
+def test_a_real_bench_waits_for_the_operator_at_prompts_by_default(tmp_path, capsys):
+    # first-day review, session 36: `run --bench` on a real bench auto-continued, so the
+    # shaker drove on at once and every setup's data went under landmarks nobody had
+    # placed a transducer on
+    import argparse
+
+    from pelvislab.app.commands.run import wait_for_operator
+    from pelvislab.tests.test_drivers_bench import GOOD
+
+    real = tmp_path / "lab.toml"
+    real.write_text(GOOD)
+    sim = tmp_path / "sim.toml"
+    sim.write_text(GOOD.replace('name = "lab 3"', 'name = "dry"\nsimulated = true'))
+
+    def args(bench, wait=False, auto=False):
+        return argparse.Namespace(bench=bench, wait_prompts=wait, auto_continue=auto)
+
+    assert wait_for_operator(args(str(real))) is True
+    assert wait_for_operator(args(str(real), auto=True)) is False
+    assert wait_for_operator(args(None)) is False
+    assert wait_for_operator(args(str(sim))) is False
+    assert wait_for_operator(args(None, wait=True)) is True
+    # the two options exclude each other
+    with pytest.raises(SystemExit) as stop:
+        main(["run", "protocols/demo.toml", "--out", str(tmp_path / "s.h5"),
+              "--wait-prompts", "--auto-continue"])
+    assert stop.value.code == 2 and "not allowed with argument" in capsys.readouterr().err

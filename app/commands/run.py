@@ -39,8 +39,13 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--bench", metavar="BENCH.toml", help="bench file; default: simulated bench")
     p.add_argument("--resume", action="store_true",
                    help="continue the interrupted session in --out (same protocol)")
-    p.add_argument("--wait-prompts", action="store_true",
-                   help="wait for Enter at each operator prompt (default: auto-continue)")
+    prompts = p.add_mutually_exclusive_group()
+    prompts.add_argument("--wait-prompts", action="store_true",
+                         help="wait for Enter at each operator prompt (the default on a real "
+                         "bench; the simulated bench auto-continues)")
+    prompts.add_argument("--auto-continue", action="store_true",
+                         help="answer the operator prompts automatically also on a real bench "
+                         "(only for a rig whose transducers need no repositioning)")
     p.add_argument("--subject-id", metavar="ID", help="pseudonymous subject ID for this "
                    "session (overrides the protocol's subject.id)")
     p.add_argument("--quiet", action="store_true", help="no progress output")
@@ -91,7 +96,9 @@ class ConsoleProgress:
         if self.runner.aborted:
             return
         if not answer:
-            self.runner.abort("operator prompt: no answer (stdin closed)")
+            self.runner.abort("operator prompt: no answer (stdin closed; a rig whose "
+                              "transducers need no repositioning can run with "
+                              "--auto-continue)")
         else:
             self.runner.confirm()
 
@@ -156,6 +163,7 @@ def run_command(args: argparse.Namespace) -> int:
     from pelvislab.acquisition.runner import prepare_session
     from pelvislab.app.cli import package_version
 
+    args.wait_prompts = wait_for_operator(args)
     prepared = prepare_session(args.protocol, args.out, args.bench, resume=args.resume,
                                auto_continue=not args.wait_prompts,
                                software_version=package_version(),
@@ -166,6 +174,20 @@ def run_command(args: argparse.Namespace) -> int:
     finally:  # also when closing the session raised
         for sig, handler in restore.items():
             signal.signal(sig, handler)
+
+
+def wait_for_operator(args: argparse.Namespace) -> bool:
+    """Whether the run waits for Enter at each operator prompt: on a real bench unless
+    ``--auto-continue``, on the simulated bench only with ``--wait-prompts``. A real bench
+    auto-continued: the shaker drove on at once after the instruments opened, and every
+    setup's data went under landmarks nobody had placed a transducer on (a first-day
+    review, session 36)."""
+    from pelvislab.drivers.bench import BenchConfig
+
+    if args.wait_prompts:
+        return True
+    simulated = args.bench is None or BenchConfig.load(args.bench).simulated
+    return not simulated and not args.auto_continue
 
 
 def _run_and_report(args: argparse.Namespace, prepared: Any, restore: dict[int, Any]) -> int:
