@@ -214,11 +214,18 @@ class BenchLimits:
     name: str = "simulated bench"
     max_samples_per_channel: int = DP235_MAX_SAMPLES_PER_CHANNEL
     """Digitizer acquisition memory per channel (samples): one record, all segments."""
+    trigger_load_ohm: float | None = None
+    """The trigger generator's declared load (ohm, inf = high-Z); None: not known."""
+    max_trigger_vpp: float | None = None
+    """The bench limit on the trigger generator (V pk-pk), as its driver applies it."""
 
     @classmethod
     def from_config(cls, config: Any) -> BenchLimits:
         """Limits of a :class:`pelvislab.drivers.bench.BenchConfig`."""
-        return cls(max_drive_vpp=float(config.max_drive_vpp), name=str(config.name))
+        return cls(max_drive_vpp=float(config.generator_limit_vpp("drive")),
+                   name=str(config.name),
+                   trigger_load_ohm=config.generator_load_ohm("trigger"),
+                   max_trigger_vpp=config.generator_limit_vpp("trigger"))
 
 
 @dataclass(frozen=True)
@@ -651,6 +658,20 @@ def parse_protocol(text: str, source: str = "<string>", limits: BenchLimits | No
                   f"(1/prf_hz = {1e6 / ultrasound.prf_hz:.4g} us)")
         if tw is not None and tw >= 1.0 / prf:  # type: ignore[operator]
             p.add("ultrasound.trigger_width_s", "must be shorter than the pulse period 1/prf_hz")
+        if limits.trigger_load_ohm is not None or limits.max_trigger_vpp is not None:
+            # the trigger generator's own rules and the bench limit, as its driver applies
+            # them: the run failed on them after the bench had opened, when `protocol
+            # check` had said ok (a first-day review, session 36)
+            from pelvislab.drivers.agilent33220a import check_amplitude_offset
+            from pelvislab.drivers.interfaces import LimitError
+
+            load = (limits.trigger_load_ohm if limits.trigger_load_ohm is not None
+                    else math.inf)
+            try:
+                check_amplitude_offset(th, th / 2.0, load, limits.max_trigger_vpp)
+            except LimitError as exc:
+                p.add("ultrasound.trigger_high_v",
+                      f"the trigger pulse 0-{th:g} V on {limits.name}: {exc}")
         if hp is not None and lp is not None and hp >= lp:
             p.add("ultrasound.high_pass_hz", "must be below ultrasound.low_pass_hz")
         if hp is not None and hp >= fs / 2:  # type: ignore[operator]

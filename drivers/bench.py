@@ -149,6 +149,26 @@ class BenchConfig:
         """Speed of sound (m/s) to use for digitizer ``channel`` (1-based)."""
         return float(self.channel_speed_of_sound_m_s.get(channel, self.speed_of_sound_m_s))
 
+    def generator_limit_vpp(self, role: str) -> float | None:
+        """The bench limit (V pk-pk) on generator ``role`` (``drive`` or ``trigger``): the
+        lower of ``[limits]`` and the instrument section's ``max_vpp`` (a section's value
+        replaced the trigger's ``[limits]`` one, loosening the limit the docs call
+        tighter: a first-day review, session 36)."""
+        section = self.drive if role == "drive" else self.trigger
+        bench = self.max_drive_vpp if role == "drive" else self.max_trigger_vpp
+        own = None if section is None else section.options.get("max_vpp")
+        limits = [float(v) for v in (bench, own) if v is not None]
+        return min(limits) if limits else None
+
+    def generator_load_ohm(self, role: str) -> float | None:
+        """The load (ohm; inf = high-Z) generator ``role`` is set up for, None when the
+        bench file names no such instrument (the simulated bench)."""
+        section = self.drive if role == "drive" else self.trigger
+        load = None if section is None else section.options.get("load_ohm")
+        if load is None:
+            return None
+        return math.inf if isinstance(load, str) else float(load)  # strings: "inf" (checked)
+
     # ------------------------------------------------------------------ builders
     @classmethod
     def default(cls) -> BenchConfig:
@@ -482,11 +502,9 @@ def _open_instrument(cfg: InstrumentConfig, bench: BenchConfig) -> Any:
     if cfg.driver == "agilent33220a":
         from pelvislab.drivers.agilent33220a import Agilent33220A
 
-        if cfg.role == "drive":
-            limit = min(bench.max_drive_vpp, float(opts.pop("max_vpp", bench.max_drive_vpp)))
-        else:
-            limit = opts.pop("max_vpp", bench.max_trigger_vpp)
-        return Agilent33220A.open(cfg.resource, max_vpp=limit, **opts)
+        opts.pop("max_vpp", None)
+        return Agilent33220A.open(cfg.resource, max_vpp=bench.generator_limit_vpp(cfg.role),
+                                  **opts)
     if cfg.driver == "acqiris":
         from pelvislab.drivers.acqiris import AcqirisDigitizer
 

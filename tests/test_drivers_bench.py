@@ -216,6 +216,36 @@ def test_a_pulser_safe_state_reports_its_own_failures_not_another_threads():
     bench.close()
 
 
+def test_a_protocol_is_checked_against_the_trigger_generator_before_anything_opens(tmp_path):
+    # first-day review, session 36: with the docs' max_trigger_vpp = 5 (peak 2.5 V) the
+    # default 0-5 V trigger pulse passed `protocol check` and failed every run after the
+    # bench had opened; 6 V into 50 ohm too (the 33220A gives 5 V peak there); and a
+    # section's max_vpp replaced [limits]' value instead of tightening it
+    from pelvislab.acquisition.protocol import BenchLimits, ProtocolError, load_protocol
+
+    def limits(text):
+        return BenchLimits.from_config(BenchConfig.load(write(tmp_path, text)))
+
+    tight = GOOD.replace("max_drive_vpp = 2.5", "max_drive_vpp = 2.5\nmax_trigger_vpp = 5.0")
+    with pytest.raises(ProtocolError, match="trigger_high_v: the trigger pulse 0-5 V on lab 3"
+                       ".*exceeds the bench limit 2.5 V"):
+        load_protocol("protocols/demo.toml", limits(tight))
+    assert load_protocol("protocols/demo.toml", limits(tight.replace(
+        "max_trigger_vpp = 5.0", "max_trigger_vpp = 10.0")))
+    six = (tmp_path / "six.toml")
+    six.write_text(Path("protocols/demo.toml").read_text().replace(
+        "[ultrasound]", "[ultrasound]\ntrigger_high_v = 6.0", 1))
+    with pytest.raises(ProtocolError, match="exceeds 5 V for a 50 ohm load"):
+        load_protocol(six, limits(GOOD))
+    looser = GOOD.replace("max_drive_vpp = 2.5", "max_drive_vpp = 2.5\nmax_trigger_vpp = 6.0"
+                          ).replace("load_ohm = 50", "load_ohm = 50\nmax_vpp = 20.0", 1)
+    assert BenchConfig.load(write(tmp_path, looser)).generator_limit_vpp("trigger") == 6.0
+    drive = GOOD.replace('load_ohm = "inf"', 'load_ohm = "inf"\nmax_vpp = 0.05')
+    assert limits(drive).max_drive_vpp == 0.05
+    with pytest.raises(ProtocolError, match="above the bench limit 0.05 V pk-pk"):
+        load_protocol("protocols/demo.toml", limits(drive))
+
+
 def test_open_bench_none_without_sim_gives_clear_error(monkeypatch):
     import builtins
 
