@@ -308,6 +308,16 @@ class BenchConfig:
         )
         if not simulated and not pulsers:
             raise err("pulsers", "missing: at least one [[pulsers]] table")
+        for i, pulser in enumerate(pulsers):
+            # the run configures pulsers by their order (the first feeds digitizer channel
+            # 1): a `channel` saying otherwise was accepted and ignored, leaving a channel's
+            # pulser unconfigured (a first-day review, session 36)
+            channel = pulser.options.get("channel")
+            if channel is not None and channel != i + 1:
+                raise err(f"pulsers[{i}].channel",
+                          f"{channel}: the [[pulsers]] tables are matched to the digitizer "
+                          f"channels by their order (table {i + 1} feeds channel {i + 1}); "
+                          "put them in channel order, or leave `channel` out")
 
         return cls(
             name=name,

@@ -246,6 +246,17 @@ def test_a_protocol_is_checked_against_the_trigger_generator_before_anything_ope
         load_protocol("protocols/demo.toml", limits(drive))
 
 
+def test_a_pulser_channel_must_match_its_place_in_the_file(tmp_path):
+    # first-day review, session 36: `channel = 2` on the only pulser was accepted and
+    # ignored (pulsers are configured by their order), leaving channel 2 unconfigured
+    ordered = GOOD.replace('resource = "loop://"', 'resource = "loop://"\nchannel = 1', 1)
+    assert BenchConfig.load(write(tmp_path, ordered)).pulsers[0].options["channel"] == 1
+    swapped = GOOD.replace('resource = "loop://"', 'resource = "loop://"\nchannel = 2', 1)
+    with pytest.raises(BenchConfigError, match=r"pulsers\[0\]\.channel: 2: the \[\[pulsers\]\] "
+                       "tables are matched to the digitizer channels by their order"):
+        BenchConfig.load(write(tmp_path, swapped))
+
+
 def test_open_bench_none_without_sim_gives_clear_error(monkeypatch):
     import builtins
 
