@@ -389,20 +389,30 @@ class OperatorWindow(QtWidgets.QMainWindow):
     def _refresh_bench_status(self) -> None:
         """Show which instruments play which role (simulated unless a bench file is given)."""
         simulated = self.bench_path is None
+        config = None
+        if not simulated:
+            from pelvislab.drivers.bench import BenchConfig
+
+            try:
+                config = BenchConfig.load(self.bench_path)
+                simulated = config.simulated
+            except Exception as exc:
+                self.simulated_badge.setVisible(False)
+                self._set_bench_rows([("bench file", f"invalid: {exc}", str(self.bench_path))])
+                return
         self.simulated_badge.setVisible(simulated)
-        rows: list[tuple[str, str, str]] = []
         if simulated:
             rows = [("trigger", "simulated 33220A", "sim"), ("drive", "simulated 33220A", "sim"),
                     ("digitizer", "simulated DP235", "sim"), ("pulsers", "simulated 5077PR", "sim")]
         else:
-            try:
-                from pelvislab.drivers.bench import BenchConfig
-
-                config = BenchConfig.load(self.bench_path)
-                rows = [(role, "not connected yet", str(res))
-                        for role, res in getattr(config, "resources", {}).items()]
-            except Exception as exc:
-                rows = [("bench file", f"invalid: {exc}", str(self.bench_path))]
+            # the bench file's instruments, before any is contacted (the table was empty:
+            # it read a `resources` attribute BenchConfig does not have; first-day review,
+            # session 36)
+            named = [("trigger", config.trigger), ("drive", config.drive),
+                     ("digitizer", config.digitizer)]
+            named += [(f"pulser {i + 1}", p) for i, p in enumerate(config.pulsers)]
+            rows = [(role, "not contacted yet", section.resource)
+                    for role, section in named if section is not None]
         self._set_bench_rows(rows)
 
     def _set_bench_rows(self, rows: list[tuple[str, str, str]]) -> None:

@@ -249,3 +249,38 @@ def test_the_replay_says_how_the_last_run_ended_in_words(operator_window, tmp_pa
         assert reader.status[0] == "completed" and reader.outputs_confirmed_off is False
     assert window.open_replay(unsafe) is True
     assert "NOT CONFIRMED OFF at the end of a run" in window.replay.file_label.text()
+
+
+def test_a_bench_file_shows_its_instruments_before_start(qtbot, tmp_path):
+    # first-day review, session 36: with a bench file the table was empty (it read an
+    # attribute the bench configuration does not have), and a `simulated = true` file got
+    # no SIMULATED badge
+    from pelvislab.app.gui_main import OperatorWindow
+    from pelvislab.tests.test_drivers_bench import GOOD
+
+    real = tmp_path / "lab.toml"
+    real.write_text(GOOD)
+    window = OperatorWindow(bench_path=real)
+    qtbot.addWidget(window)
+    table = window.bench_table
+    rows = [(table.item(r, 0).text(), table.item(r, 1).text(), table.item(r, 2).toolTip())
+            for r in range(table.rowCount())]
+    assert rows == [("trigger", "not contacted yet", "USB0::1::2::A::INSTR"),
+                    ("drive", "not contacted yet", "USB0::1::2::B::INSTR"),
+                    ("digitizer", "not contacted yet", "PCI::INSTR0"),
+                    ("pulser 1", "not contacted yet", "loop://"),
+                    ("pulser 2", "not contacted yet", "loop://")]
+    assert window.simulated_badge.isHidden()
+    dry = tmp_path / "dry.toml"
+    dry.write_text(GOOD.replace('name = "lab 3"', 'name = "dry"\nsimulated = true'))
+    window2 = OperatorWindow(bench_path=dry)
+    qtbot.addWidget(window2)
+    assert not window2.simulated_badge.isHidden()
+
+
+def test_gui_with_a_missing_bench_file_is_refused(tmp_path):
+    from pelvislab.app.cli import main
+
+    assert main(["gui", "--bench", str(tmp_path / "none.toml"), "--screenshot",
+                 str(tmp_path / "x.png")]) == 1
+    assert not (tmp_path / "x.png").exists()

@@ -39,6 +39,12 @@ def run(args: argparse.Namespace) -> int:
         raise ValueError("--after goes with --screenshot (the wait before rendering)")
     if args.out and not args.start:
         raise ValueError("--out goes with --start (the session file the started run writes)")
+    if args.bench:
+        # a missing or invalid bench file is the command's error, not a cut table row with
+        # Start still enabled (first-day review, session 36)
+        from pelvislab.drivers.bench import BenchConfig
+
+        BenchConfig.load(args.bench)
     start = Path(args.start) if args.start else None
     if start is not None and not start.is_file():
         raise FileNotFoundError(f"no such protocol file: {start}")
