@@ -554,20 +554,30 @@ def open_bench(path: Path | None) -> Bench:
         return _open_simulated(config)
 
     opened: list[Any] = []
+    current: InstrumentConfig | None = None
     try:
         assert config.trigger is not None and config.drive is not None  # validated in load
         assert config.digitizer is not None
+        current = config.trigger
         trigger = _open_instrument(config.trigger, config)
         opened.append(trigger)
+        current = config.drive
         drive = _open_instrument(config.drive, config)
         opened.append(drive)
+        current = config.digitizer
         digitizer = _open_instrument(config.digitizer, config)
         opened.append(digitizer)
         pulsers = []
         for p in config.pulsers:
+            current = p
             pulsers.append(_open_instrument(p, config))
             opened.append(pulsers[-1])
-    except BaseException:
+    except BaseException as exc:
+        if isinstance(exc, Exception) and current is not None and len(exc.args) == 1 \
+                and isinstance(exc.args[0], str):
+            # which instrument of which bench file (a VISA address alone did not say it:
+            # a first-day review, session 36); the exception keeps its type
+            exc.args = (f"{path}: [{current.role}] {current.resource}: {exc.args[0]}",)
         for inst in reversed(opened):
             try:
                 inst.close()

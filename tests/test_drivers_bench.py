@@ -257,6 +257,26 @@ def test_a_pulser_channel_must_match_its_place_in_the_file(tmp_path):
         BenchConfig.load(write(tmp_path, swapped))
 
 
+def test_an_instrument_that_fails_to_open_is_named_by_role_and_bench_file(tmp_path, recwarn):
+    # first-day review, session 36: "'USB0::...' answers *IDN? with ''" named neither the
+    # role nor the bench file, and pyvisa added a second, confusing warning line
+    from pelvislab.drivers.interfaces import DriverError
+
+    yaml = Path(__file__).resolve().parents[1] / "sim_instruments" / "agilent_33220a.yaml"
+    text = GOOD.replace('resource = "USB0::1::2::A::INSTR"',
+                        'resource = "USB0::0x0957::0x0407::MY44000001::INSTR"\n'
+                        f'visa_library = "{yaml}@sim"').replace(
+        'resource = "USB0::1::2::B::INSTR"',
+        'resource = "USB0::0x0957::0x0407::MY99999999::INSTR"\n'
+        f'visa_library = "{yaml}@sim"')
+    path = write(tmp_path, text)
+    with pytest.raises(DriverError) as failed:
+        open_bench(path)
+    assert str(failed.value).startswith(
+        f"{path}: [drive] USB0::0x0957::0x0407::MY99999999::INSTR: ")
+    assert not [w for w in recwarn if "termination" in str(w.message)]
+
+
 def test_open_bench_none_without_sim_gives_clear_error(monkeypatch):
     import builtins
 
