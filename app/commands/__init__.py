@@ -4,6 +4,17 @@ A handler takes the parsed ``argparse.Namespace`` and returns an exit code (or N
 Heavy imports (numpy, h5py, Qt) happen inside handlers so that ``--help`` stays fast.
 """
 
-from pelvislab.app.commands import demo, ema, gap, gui, identify, model_cmd, protocol, run, uff
+from pelvislab.app.commands import (
+    bench,
+    demo,
+    ema,
+    gap,
+    gui,
+    identify,
+    model_cmd,
+    protocol,
+    run,
+    uff,
+)
 
-COMMAND_MODULES = (run, protocol, gui, model_cmd, identify, ema, gap, uff, demo)
+COMMAND_MODULES = (run, protocol, bench, gui, model_cmd, identify, ema, gap, uff, demo)

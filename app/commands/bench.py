@@ -1,0 +1,76 @@
+"""``pelvislab bench check``: contact every instrument of a bench file, drive nothing.
+
+A lab's first contact with its instruments (a first-day review, session 36: the only
+hardware test had been a run, which drives the shaker). Opening is the same as a run's
+(``drivers.bench.open_bench``): the generators are identified before anything else is sent
+and their outputs switched off; then each identity, resource and reference lock is printed
+and the bench is made safe and closed.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+EXIT_FAULT = 3
+EXIT_UNSAFE = 5
+
+
+def register(subparsers: argparse._SubParsersAction) -> None:
+    """Add ``bench`` to the CLI."""
+    p = subparsers.add_parser("bench", help="bench file tools")
+    sub = p.add_subparsers(dest="bench_command", metavar="ACTION")
+    sub.required = True
+    c = sub.add_parser(
+        "check", help="contact every instrument of a bench file; outputs stay off",
+        description="Open each instrument of the bench file in a run's order (trigger, "
+        "drive, digitizer, pulsers), print its identity, resource and 10 MHz reference "
+        "lock, then switch every output off and close. Nothing is driven. Exit 1 for a "
+        "bad bench file, 3 naming the instrument that did not answer as expected, 5 when an "
+        "output could not be confirmed off.")
+    c.add_argument("file", metavar="BENCH.toml", help="bench file (docs/bench-file.md)")
+    c.set_defaults(handler=check_command)
+
+
+def _lock_text(instrument: object) -> str:
+    ask = getattr(instrument, "reference_locked", None)
+    if ask is None:
+        return ""
+    locked = ask()
+    return {True: "reference locked", False: "REFERENCE NOT LOCKED",
+            None: "reference lock not reported"}[locked]
+
+
+def check_command(args: argparse.Namespace) -> int:
+    """Open, list, make safe, close; the exit code says what failed."""
+    from pelvislab.drivers.bench import open_bench
+    from pelvislab.drivers.interfaces import DriverError
+
+    path = Path(args.file)
+    if not path.is_file():
+        raise FileNotFoundError(f"bench file not found: {path}")
+    try:
+        bench = open_bench(path)
+    except DriverError as exc:
+        print(f"pelvislab bench check: instrument fault: {' '.join(str(exc).split())}",
+              file=sys.stderr)
+        return EXIT_FAULT
+    with bench:
+        print(f"{bench.config.name}{' (SIMULATED)' if bench.simulated else ''}")
+        roles = [("trigger", bench.trigger), ("drive", bench.drive),
+                 ("digitizer", bench.digitizer)]
+        roles += [(f"pulser {i + 1}", p) for i, p in enumerate(bench.pulsers)]
+        for role, instrument in roles:
+            lock = _lock_text(instrument)
+            print(f"  {role:10s} {getattr(instrument, 'identity', '?')}  "
+                  f"[{getattr(instrument, 'resource', '')}]" + (f"  {lock}" if lock else ""))
+        unsafe = bench.safe_state()
+    if unsafe:
+        for message in unsafe:
+            print(f"pelvislab bench check: {message}", file=sys.stderr)
+        print("pelvislab bench check: OUTPUTS NOT CONFIRMED OFF: switch the shaker amplifier "
+              "off by hand", file=sys.stderr)
+        return EXIT_UNSAFE
+    print("ok: every instrument answered; outputs off")
+    return 0

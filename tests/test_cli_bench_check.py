@@ -1,0 +1,52 @@
+"""``pelvislab bench check``: every instrument contacted, nothing driven (first-day review,
+session 36: the only hardware test had been a run, which drives the shaker)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from pelvislab.app.cli import main
+
+SIM_YAML = Path(__file__).resolve().parents[1] / "sim_instruments" / "agilent_33220a.yaml"
+
+
+def test_a_simulated_bench_file_lists_every_instrument(tmp_path, capsys):
+    bench = tmp_path / "dry.toml"
+    bench.write_text('[bench]\nname = "dry run"\nsimulated = true\n[limits]\n'
+                     'max_drive_vpp = 2.0\n[calibration]\ndrive_newton_per_volt = 8.0\n')
+    assert main(["bench", "check", str(bench)]) == 0
+    out = capsys.readouterr().out
+    assert out.startswith("dry run (SIMULATED)\n")
+    for role in ("trigger", "drive", "digitizer", "pulser 1", "pulser 2"):
+        assert f"  {role} " in out
+    assert "33220A" in out and "reference locked" in out
+    assert out.rstrip().endswith("ok: every instrument answered; outputs off")
+
+
+def test_an_instrument_that_does_not_answer_is_named_with_its_role(tmp_path, capsys):
+    bench = tmp_path / "lab.toml"
+    bench.write_text(f"""
+[bench]
+name = "lab"
+[limits]
+max_drive_vpp = 1.0
+[calibration]
+drive_newton_per_volt = 8.0
+[trigger]
+resource = "USB0::0x0957::0x0407::MY44000001::INSTR"
+load_ohm = 50
+visa_library = "{SIM_YAML}@sim"
+[drive]
+resource = "USB0::0x0957::0x0407::MY99999999::INSTR"
+load_ohm = "inf"
+visa_library = "{SIM_YAML}@sim"
+[digitizer]
+resource = "PCI::INSTR0"
+[[pulsers]]
+resource = "loop://"
+""")
+    assert main(["bench", "check", str(bench)]) == 3
+    err = capsys.readouterr().err
+    assert err.startswith(f"pelvislab bench check: instrument fault: {bench}: [drive] "
+                          "USB0::0x0957::0x0407::MY99999999::INSTR: ")
+    assert main(["bench", "check", str(tmp_path / "none.toml")]) == 1
