@@ -221,9 +221,20 @@ class BenchLimits:
 
     @classmethod
     def from_config(cls, config: Any) -> BenchLimits:
-        """Limits of a :class:`pelvislab.drivers.bench.BenchConfig`."""
-        return cls(max_drive_vpp=float(config.generator_limit_vpp("drive")),
-                   name=str(config.name),
+        """Limits of a :class:`pelvislab.drivers.bench.BenchConfig`: the drive limit is
+        also capped at what the drive generator gives into its declared load (a bench
+        limit of 50 Vpp passed the check; the 33220A gives at most 20 Vpp into high-Z:
+        a first-day review, session 36)."""
+        from pelvislab.drivers.agilent33220a import amplitude_limits_vpp
+
+        max_drive = float(config.generator_limit_vpp("drive"))
+        name = str(config.name)
+        load = config.generator_load_ohm("drive")
+        if load is not None and amplitude_limits_vpp(load)[1] < max_drive:
+            max_drive = amplitude_limits_vpp(load)[1]
+            into = "high-Z" if math.isinf(load) else f"{load:g} ohm"
+            name += f"; the 33220A gives at most {max_drive:g} Vpp into {into}"
+        return cls(max_drive_vpp=max_drive, name=name,
                    trigger_load_ohm=config.generator_load_ohm("trigger"),
                    max_trigger_vpp=config.generator_limit_vpp("trigger"))
 

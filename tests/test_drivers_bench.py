@@ -244,6 +244,11 @@ def test_a_protocol_is_checked_against_the_trigger_generator_before_anything_ope
     assert limits(drive).max_drive_vpp == 0.05
     with pytest.raises(ProtocolError, match="above the bench limit 0.05 V pk-pk"):
         load_protocol("protocols/demo.toml", limits(drive))
+    # a bench limit above what the generator gives into its load: capped, and said
+    big = GOOD.replace("max_drive_vpp = 2.5", "max_drive_vpp = 50.0")
+    assert limits(big).max_drive_vpp == 20.0
+    assert "at most 20 Vpp into high-Z" in limits(big).name
+    assert limits(big.replace('load_ohm = "inf"', "load_ohm = 50")).max_drive_vpp == 10.0
 
 
 def test_a_pulser_channel_must_match_its_place_in_the_file(tmp_path):
