@@ -36,7 +36,10 @@ LARGE_BUTTON_CSS = "font-size: 16pt; font-weight: bold; padding: 10px;"
 STOP_CSS = LARGE_BUTTON_CSS + "background: #c62828; color: white;"
 # the run's state, readable from the exam bed: (text, background, text colour)
 STATE_STYLES = {
-    "ready": ("READY — outputs off", "#cfd8dc", "black"),
+    # no instrument contacted yet: their outputs are not known (a generator left on by
+    # another program stays so until Start opens the bench and switches it off; a
+    # first-day review, session 36)
+    "ready": ("READY — not started", "#cfd8dc", "black"),
     "starting": ("STARTING — outputs off", "#cfd8dc", "black"),
     "running": ("RUNNING — OUTPUTS ON", "#2e7d32", "white"),
     "waiting": ("WAITING — outputs off", "#fdd835", "black"),

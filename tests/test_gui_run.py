@@ -80,7 +80,8 @@ def test_the_state_banner_and_set_up_follow_the_run(operator_window, qtbot, tmp_
     # GUI review, session 35: running, waiting, paused and aborted looked alike; the
     # set-up stayed editable (its file choosers, modal, then hid STOP)
     window = operator_window()
-    assert window.state_banner.text() == "READY — outputs off"
+    # nothing contacted yet: the outputs' state is not claimed (first-day review, session 36)
+    assert window.state_banner.text() == "READY — not started"
     _start(window, tmp_path, protocol="demo")
     assert not window.setup_box.isEnabled()
     qtbot.waitUntil(window.confirm_button.isVisible, timeout=30_000)
