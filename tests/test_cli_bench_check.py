@@ -23,7 +23,7 @@ def test_a_simulated_bench_file_lists_every_instrument(tmp_path, capsys):
     assert out.rstrip().endswith("ok: every instrument answered; outputs off")
 
 
-def test_an_instrument_that_does_not_answer_is_named_with_its_role(tmp_path, capsys):
+def _lab_with_a_silent_drive(tmp_path):
     bench = tmp_path / "lab.toml"
     bench.write_text(f"""
 [bench]
@@ -45,8 +45,24 @@ resource = "PCI::INSTR0"
 [[pulsers]]
 resource = "loop://"
 """)
+    return bench
+
+
+def test_an_instrument_that_does_not_answer_is_named_with_its_role(tmp_path, capsys):
+    bench = _lab_with_a_silent_drive(tmp_path)
     assert main(["bench", "check", str(bench)]) == 3
     err = capsys.readouterr().err
     assert err.startswith(f"pelvislab bench check: instrument fault: {bench}: [drive] "
                           "USB0::0x0957::0x0407::MY99999999::INSTR: ")
     assert main(["bench", "check", str(tmp_path / "none.toml")]) == 1
+
+
+def test_run_on_a_bench_that_does_not_open_is_an_instrument_fault(tmp_path, capsys):
+    # first-day review, session 36: it exited 1 ("bad input")
+    bench = _lab_with_a_silent_drive(tmp_path)
+    out = tmp_path / "s.h5"
+    assert main(["run", "protocols/demo.toml", "--out", str(out), "--bench", str(bench),
+                 "--auto-continue"]) == 3
+    err = capsys.readouterr().err
+    assert err.startswith(f"pelvislab run: instrument fault: {bench}: [drive] ")
+    assert f"nothing written to {out}" in err and not out.exists()

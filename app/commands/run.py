@@ -162,12 +162,21 @@ def run_command(args: argparse.Namespace) -> int:
     """``pelvislab run``."""
     from pelvislab.acquisition.runner import prepare_session
     from pelvislab.app.cli import package_version
+    from pelvislab.drivers.interfaces import DriverError
 
     args.wait_prompts = wait_for_operator(args)
-    prepared = prepare_session(args.protocol, args.out, args.bench, resume=args.resume,
-                               auto_continue=not args.wait_prompts,
-                               software_version=package_version(),
-                               subject_id=args.subject_id)
+    try:
+        prepared = prepare_session(args.protocol, args.out, args.bench, resume=args.resume,
+                                   auto_continue=not args.wait_prompts,
+                                   software_version=package_version(),
+                                   subject_id=args.subject_id)
+    except DriverError as exc:
+        # an instrument that does not open is an instrument fault (exit 3), not bad input
+        # (a missing VISA backend exited 1: a first-day review, session 36); the bench
+        # was made safe and closed, no session file was written
+        print(f"pelvislab run: instrument fault: {' '.join(str(exc).split())}; nothing "
+              f"written to {args.out}", file=sys.stderr)
+        return EXIT_FAULT
     restore: dict[int, Any] = {}  # signal handlers to put back once the summary is out
     try:
         return _run_and_report(args, prepared, restore)
