@@ -218,6 +218,9 @@ class BenchLimits:
     """The trigger generator's declared load (ohm, inf = high-Z); None: not known."""
     max_trigger_vpp: float | None = None
     """The bench limit on the trigger generator (V pk-pk), as its driver applies it."""
+    drive_limit_note: str = ""
+    """Why ``max_drive_vpp`` is below the bench file's limit, when it is (appended to the
+    drive messages)."""
 
     @classmethod
     def from_config(cls, config: Any) -> BenchLimits:
@@ -228,13 +231,13 @@ class BenchLimits:
         from pelvislab.drivers.agilent33220a import amplitude_limits_vpp
 
         max_drive = float(config.generator_limit_vpp("drive"))
-        name = str(config.name)
+        note = ""
         load = config.generator_load_ohm("drive")
         if load is not None and amplitude_limits_vpp(load)[1] < max_drive:
             max_drive = amplitude_limits_vpp(load)[1]
             into = "high-Z" if math.isinf(load) else f"{load:g} ohm"
-            name += f"; the 33220A gives at most {max_drive:g} Vpp into {into}"
-        return cls(max_drive_vpp=max_drive, name=name,
+            note = f": the 33220A gives at most {max_drive:g} Vpp into {into}"
+        return cls(max_drive_vpp=max_drive, name=str(config.name), drive_limit_note=note,
                    trigger_load_ohm=config.generator_load_ohm("trigger"),
                    max_trigger_vpp=config.generator_limit_vpp("trigger"))
 
@@ -506,7 +509,8 @@ def _drive_profile(sw: Mapping[str, Any], limits: BenchLimits,
                          f"{MIN_DRIVE_VPP:g} V pk-pk (33220A, high-Z load)")
         elif v > limits.max_drive_vpp:
             p.add(where, f"level {v:g} V pk-pk is above the bench limit "
-                         f"{limits.max_drive_vpp:g} V pk-pk ({limits.name})")
+                         f"{limits.max_drive_vpp:g} V pk-pk ({limits.name}"
+                         f"{limits.drive_limit_note})")
         if i and not f > rows[i - 1][0]:
             p.add(where, f"frequencies must increase strictly ({f:g} Hz after "
                          f"{rows[i - 1][0]:g} Hz)")
@@ -738,7 +742,8 @@ def parse_protocol(text: str, source: str = "<string>", limits: BenchLimits | No
                                  "sweep.drive_profile)")
     elif drive is not None and drive > limits.max_drive_vpp:
         p.add("sweep.drive_vpp", f"{drive:g} V pk-pk is above the bench limit "
-                                 f"{limits.max_drive_vpp:g} V pk-pk ({limits.name})")
+                                 f"{limits.max_drive_vpp:g} V pk-pk ({limits.name}"
+                                 f"{limits.drive_limit_note})")
     elif drive is not None and drive < MIN_DRIVE_VPP:
         p.add("sweep.drive_vpp", f"{drive:g} V pk-pk is below the generator minimum "
                                  f"{MIN_DRIVE_VPP:g} V pk-pk (33220A, high-Z load)")

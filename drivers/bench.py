@@ -118,6 +118,11 @@ class InstrumentConfig:
     """Driver keyword options (validated names and types)."""
 
 
+SIMULATED_TRIGGER_LOAD_OHM = 50.0
+"""The simulated bench's trigger generator load when its bench file names none (its drive:
+high-Z), as ``sim_instruments.bench`` opens them."""
+
+
 @dataclass(frozen=True)
 class BenchConfig:
     """A parsed bench file (or the default simulated bench)."""
@@ -161,11 +166,14 @@ class BenchConfig:
         return min(limits) if limits else None
 
     def generator_load_ohm(self, role: str) -> float | None:
-        """The load (ohm; inf = high-Z) generator ``role`` is set up for, None when the
-        bench file names no such instrument (the simulated bench)."""
+        """The load (ohm; inf = high-Z) generator ``role`` is set up for: the section's
+        ``load_ohm``; on a simulated bench without it, the simulator's (trigger 50 ohm,
+        drive high-Z)."""
         section = self.drive if role == "drive" else self.trigger
         load = None if section is None else section.options.get("load_ohm")
         if load is None:
+            if self.simulated:
+                return math.inf if role == "drive" else SIMULATED_TRIGGER_LOAD_OHM
             return None
         return math.inf if isinstance(load, str) else float(load)  # strings: "inf" (checked)
 

@@ -50,7 +50,7 @@ from pathlib import Path
 from typing import Any
 
 from pelvislab.drivers.agilent33220a import Agilent33220A
-from pelvislab.drivers.bench import Bench, BenchConfig
+from pelvislab.drivers.bench import SIMULATED_TRIGGER_LOAD_OHM, Bench, BenchConfig
 from pelvislab.model.pelvis import PelvisModel, default_model, load_model
 from pelvislab.sim_instruments.echo import Acoustics
 from pelvislab.sim_instruments.faults import FaultBook
@@ -169,12 +169,12 @@ def open_simulated_bench(config: BenchConfig | None = None, **sim_options: Any) 
             else:
                 inner = ScpiResponder(state, resource.split("::")[3])
             transport = SimTransport(role, inner, state, clock, faults, threading.RLock())
-            if role == "drive":
-                load = options.get("load_ohm", "inf")
-                limit = min(cfg.max_drive_vpp, float(options.get("max_vpp", cfg.max_drive_vpp)))
-            else:
-                load = options.get("load_ohm", 50.0)
-                limit = options.get("max_vpp", cfg.max_trigger_vpp)
+            # the loads and limits the protocol check uses (BenchConfig's): the lower of
+            # [limits] and the section's max_vpp (a section's value replaced the
+            # trigger's [limits] one here: review of session 36's diff)
+            load = options.get("load_ohm", "inf" if role == "drive"
+                               else SIMULATED_TRIGGER_LOAD_OHM)
+            limit = cfg.generator_limit_vpp(role)
             gen = Agilent33220A(transport, resource, load_ohm=_load(load), max_vpp=limit,
                                 external_reference=bool(options.get("external_reference", True)))
             gen.transport_sim = transport  # type: ignore[attr-defined]

@@ -247,8 +247,19 @@ def test_a_protocol_is_checked_against_the_trigger_generator_before_anything_ope
     # a bench limit above what the generator gives into its load: capped, and said
     big = GOOD.replace("max_drive_vpp = 2.5", "max_drive_vpp = 50.0")
     assert limits(big).max_drive_vpp == 20.0
-    assert "at most 20 Vpp into high-Z" in limits(big).name
+    assert limits(big).drive_limit_note == ": the 33220A gives at most 20 Vpp into high-Z"
+    assert limits(big).name == "lab 3"  # the trigger's messages do not carry it
     assert limits(big.replace('load_ohm = "inf"', "load_ohm = 50")).max_drive_vpp == 10.0
+    # a simulated bench file without instrument sections: the simulator's loads (trigger
+    # 50 ohm, drive high-Z), as it opens them (review of the diff: checked as unknown)
+    dry = limits('[bench]\nname = "dry"\nsimulated = true\n[limits]\nmax_drive_vpp = 50\n'
+                 'max_trigger_vpp = 20\n[calibration]\ndrive_newton_per_volt = 8.0\n')
+    assert (dry.trigger_load_ohm, dry.max_drive_vpp) == (50.0, 20.0)
+    eight = tmp_path / "eight.toml"
+    eight.write_text(Path("protocols/demo.toml").read_text().replace(
+        "[ultrasound]", "[ultrasound]\ntrigger_high_v = 8.0", 1))
+    with pytest.raises(ProtocolError, match="exceeds 5 V for a 50 ohm load"):
+        load_protocol(eight, dry)
 
 
 def test_a_pulser_channel_must_match_its_place_in_the_file(tmp_path):
