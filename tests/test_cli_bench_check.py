@@ -17,10 +17,45 @@ def test_a_simulated_bench_file_lists_every_instrument(tmp_path, capsys):
     assert main(["bench", "check", str(bench)]) == 0
     out = capsys.readouterr().out
     assert out.startswith("dry run (SIMULATED)\n")
-    for role in ("trigger", "drive", "digitizer", "pulser 1", "pulser 2"):
+    for role in ("trigger", "drive", "digitizer", "pulsers[0]", "pulsers[1]"):
         assert f"  {role} " in out
     assert "33220A" in out and "reference locked" in out
     assert out.rstrip().endswith("ok: every instrument answered; outputs off")
+
+
+def _dry(tmp_path):
+    bench = tmp_path / "dry.toml"
+    bench.write_text('[bench]\nname = "dry run"\nsimulated = true\n[limits]\n'
+                     'max_drive_vpp = 2.0\n[calibration]\ndrive_newton_per_volt = 8.0\n')
+    return bench
+
+
+def test_an_instrument_failing_after_it_opened_is_named_and_the_bench_made_safe(
+        tmp_path, capsys, monkeypatch):
+    # review of the latest commits: it escaped as a generic error (exit 1), unnamed
+    from pelvislab.drivers.agilent33220a import Agilent33220A
+    from pelvislab.drivers.interfaces import InstrumentTimeoutError
+
+    def silent(self):
+        raise InstrumentTimeoutError("no answer to PHAS:UNL:ERR:STAT?")
+
+    monkeypatch.setattr(Agilent33220A, "reference_locked", silent)
+    assert main(["bench", "check", str(_dry(tmp_path))]) == 3
+    err = capsys.readouterr().err
+    assert "instrument fault: " in err and "[trigger] " in err and "no answer" in err
+
+
+def test_outputs_not_confirmed_off_are_exit_5(tmp_path, capsys, monkeypatch):
+    from pelvislab.drivers.bench import Bench
+
+    def unconfirmed(self):
+        self.safe_state_errors.append("drive: OUTP OFF not confirmed")
+        return ["drive: OUTP OFF not confirmed"]
+
+    monkeypatch.setattr(Bench, "safe_state", unconfirmed)
+    assert main(["bench", "check", str(_dry(tmp_path))]) == 5
+    err = capsys.readouterr().err
+    assert "drive: OUTP OFF not confirmed" in err and "OUTPUTS NOT CONFIRMED OFF" in err
 
 
 def _lab_with_a_silent_drive(tmp_path):

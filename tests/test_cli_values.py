@@ -107,3 +107,19 @@ def test_a_real_bench_waits_for_the_operator_at_prompts_by_default(tmp_path, cap
         main(["run", "protocols/demo.toml", "--out", str(tmp_path / "s.h5"),
               "--wait-prompts", "--auto-continue"])
     assert stop.value.code == 2 and "not allowed with argument" in capsys.readouterr().err
+
+
+def test_run_waits_at_prompts_when_wait_for_operator_says_so(tmp_path, monkeypatch, capsys):
+    # review of the latest commits: only the helper was tested, not that run uses it
+    import io
+    import sys
+
+    from pelvislab.app.commands import run as run_cmd
+
+    monkeypatch.setattr(run_cmd, "wait_for_operator", lambda args: True)
+    monkeypatch.setattr(sys, "stdin", io.StringIO(""))  # nobody to press Enter
+    out = tmp_path / "s.h5"
+    assert main(["run", "protocols/demo.toml", "--out", str(out)]) == 4
+    err = capsys.readouterr().err
+    assert "operator prompt: no answer (stdin closed)" in err
+    assert "--auto-continue" not in err  # a hint for real benches only

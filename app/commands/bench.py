@@ -56,21 +56,35 @@ def check_command(args: argparse.Namespace) -> int:
         print(f"pelvislab bench check: instrument fault: {' '.join(str(exc).split())}",
               file=sys.stderr)
         return EXIT_FAULT
-    with bench:
+    fault = None
+    try:
         print(f"{bench.config.name}{' (SIMULATED)' if bench.simulated else ''}")
         roles = [("trigger", bench.trigger), ("drive", bench.drive),
                  ("digitizer", bench.digitizer)]
-        roles += [(f"pulser {i + 1}", p) for i, p in enumerate(bench.pulsers)]
+        roles += [(f"pulsers[{i}]", p) for i, p in enumerate(bench.pulsers)]
         for role, instrument in roles:
-            lock = _lock_text(instrument)
+            try:
+                lock = _lock_text(instrument)
+            except DriverError as exc:  # answered at open, not now: a fault, named
+                fault = f"{path}: [{role}] {getattr(instrument, 'resource', '')}: {exc}"
+                break
             print(f"  {role:10s} {getattr(instrument, 'identity', '?')}  "
                   f"[{getattr(instrument, 'resource', '')}]" + (f"  {lock}" if lock else ""))
-        unsafe = bench.safe_state()
+    finally:
+        # the safe state's and the close's failures, whatever happened above
+        seen = len(bench.safe_state_errors)
+        bench.close()
+        unsafe = bench.safe_state_errors[seen:]
+    if fault is not None:
+        print(f"pelvislab bench check: instrument fault: {' '.join(fault.split())}",
+              file=sys.stderr)
     if unsafe:
         for message in unsafe:
             print(f"pelvislab bench check: {message}", file=sys.stderr)
         print("pelvislab bench check: OUTPUTS NOT CONFIRMED OFF: switch the shaker amplifier "
               "off by hand", file=sys.stderr)
         return EXIT_UNSAFE
+    if fault is not None:
+        return EXIT_FAULT
     print("ok: every instrument answered; outputs off")
     return 0

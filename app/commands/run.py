@@ -96,9 +96,10 @@ class ConsoleProgress:
         if self.runner.aborted:
             return
         if not answer:
-            self.runner.abort("operator prompt: no answer (stdin closed; a rig whose "
-                              "transducers need no repositioning can run with "
-                              "--auto-continue)")
+            real = not getattr(getattr(self.runner, "bench", None), "simulated", True)
+            self.runner.abort("operator prompt: no answer (stdin closed"
+                              + ("; a rig whose transducers need no repositioning can run "
+                                 "with --auto-continue)" if real else ")"))
         else:
             self.runner.confirm()
 
