@@ -19,18 +19,23 @@ def _channel(displacement_m: np.ndarray) -> ChannelData:
                        speed_of_sound_m_s=C, output=None)
 
 
+def _processed_sine(amplitude_m: float, frequency_hz: float, n_pulses: int = 2000
+                    ) -> ChannelData:
+    """A channel tracking a sine motion of the bone, processed as a run step's."""
+    d = amplitude_m * np.sin(2 * np.pi * frequency_hz * np.arange(n_pulses) / PRF)
+    return process_channel(_channel(d), frequency_hz)
+
+
 def test_echo_leaving_the_record_is_named_in_the_quality_message():
     # 900 um peak-to-peak at 5 Hz: the echo leaves the 1 us record at both extremes.
-    d = 450e-6 * np.sin(2 * np.pi * 5.0 * np.arange(2000) / PRF)
-    channel = process_channel(_channel(d), 5.0)
+    channel = _processed_sine(450e-6, 5.0)
     assert channel.quality["ok"] is False
     assert "left the recorded window" in channel.quality["message"]
     assert "left the recorded window" in channel.quality["tracking_warnings"]
 
 
 def test_good_step_keeps_a_plain_ok_message():
-    d = 1e-6 * np.sin(2 * np.pi * 80.0 * np.arange(2000) / PRF)
-    channel = process_channel(_channel(d), 80.0)
+    channel = _processed_sine(1e-6, 80.0)
     assert channel.quality["ok"] is True
     assert channel.quality["message"] == "ok"
 
@@ -38,11 +43,9 @@ def test_good_step_keeps_a_plain_ok_message():
 def test_a_record_shorter_than_a_drive_period_is_not_ok():
     # tracking review, session 36: a truncated acquisition of 20 pulses (0.32 periods at
     # 80 Hz) gave 18 um for 1 um, "ok"
-    d = 1e-6 * np.sin(2 * np.pi * 80.0 * np.arange(20) / PRF)
-    channel = process_channel(_channel(d), 80.0)
+    channel = _processed_sine(1e-6, 80.0, n_pulses=20)
     assert channel.quality["ok"] is False
     assert "span 0.3 period(s) of the drive" in channel.quality["message"]
     assert "truncated acquisition" in channel.quality["message"]
-    whole = process_channel(_channel(1e-6 * np.sin(2 * np.pi * 80.0 * np.arange(80) / PRF)),
-                            80.0)  # 80 pulses: 1.26 periods
+    whole = _processed_sine(1e-6, 80.0, n_pulses=80)  # 1.26 periods
     assert whole.quality["ok"] is True, whole.quality
