@@ -76,6 +76,54 @@ def drive_force_phasor(frequency_hz: float, drive_amplitude_vpp: float,
                   offset=0.0, residual_rms=0.0, n_used=0, method="calibration")
 
 
+def drive_calibration_at(frequency_hz: float | np.ndarray,
+                         table_frequency_hz: Sequence[float] | np.ndarray,
+                         table_newton_per_volt: Sequence[complex] | np.ndarray) -> np.ndarray:
+    """Drive-chain calibration (N per V peak, complex) at ``frequency_hz`` from a table
+    measured at ``table_frequency_hz`` (Hz, strictly increasing, at least two rows).
+
+    Between rows, log|N/V| and the unwrapped phase are interpolated linearly in frequency
+    (a transfer function's magnitude and phase vary smoothly; interpolating real and
+    imaginary parts would dip the magnitude where the phase turns). No extrapolation: a
+    frequency outside the table (beyond a relative 1e-9) raises ValueError, since an
+    amplifier/shaker chain's roll-off beyond what was measured is not known.
+    """
+    f_tab = np.asarray(table_frequency_hz, dtype=float)
+    g_tab = np.asarray(table_newton_per_volt, dtype=complex)
+    if f_tab.ndim != 1 or f_tab.shape != g_tab.shape or len(f_tab) < 2:
+        raise ValueError("a drive calibration table needs at least two rows of "
+                         "(frequency_hz, N/V) of equal length")
+    if not (np.all(np.isfinite(f_tab)) and np.all(np.diff(f_tab) > 0)):
+        raise ValueError("the drive calibration's frequencies must be finite and increase "
+                         "strictly")
+    if not (np.all(np.isfinite(g_tab)) and np.all(g_tab != 0)):
+        raise ValueError("the drive calibration's values must be finite and non-zero")
+    f = np.asarray(frequency_hz, dtype=float)
+    lo, hi = f_tab[0], f_tab[-1]
+    tol = 1e-9 * hi
+    outside = ~((f >= lo - tol) & (f <= hi + tol))
+    if np.any(outside):
+        bad = np.atleast_1d(f)[np.atleast_1d(outside)]
+        raise ValueError(f"{bad[0]:g} Hz is outside the drive calibration's range "
+                         f"{lo:g}-{hi:g} Hz (not extrapolated)")
+    fc = np.clip(f, lo, hi)
+    log_mag = np.interp(fc, f_tab, np.log(np.abs(g_tab)))
+    phase = np.interp(fc, f_tab, np.unwrap(np.angle(g_tab)))
+    return np.exp(log_mag + 1j * phase)
+
+
+def calibrated_newton_per_volt(frequency_hz: float, newton_per_volt: complex,
+                               table_frequency_hz: Sequence[float] = (),
+                               table_newton_per_volt: Sequence[complex] = ()) -> complex:
+    """The drive chain's N/V at ``frequency_hz``: the table's value
+    (:func:`drive_calibration_at`) when a table is given, else the one constant
+    ``newton_per_volt`` (a bench file's ``drive_newton_per_volt``)."""
+    if len(table_frequency_hz):
+        return complex(drive_calibration_at(frequency_hz, table_frequency_hz,
+                                            table_newton_per_volt))
+    return complex(newton_per_volt)
+
+
 def bone_sampling_delay_s(record_delay_s: float, tracking: TrackingResult) -> float:
     """When a pulse samples the bone, s after the pulse leaves (the trigger): half the echo's
     round trip, ``(record_delay_s + tracking.echo_time_s) / 2``.

@@ -221,6 +221,9 @@ class BenchLimits:
     drive_limit_note: str = ""
     """Why ``max_drive_vpp`` is below the bench file's limit, when it is (appended to the
     drive messages)."""
+    drive_calibration_range_hz: tuple[float, float] | None = None
+    """(lowest, highest) frequency of the bench's per-frequency drive calibration (Hz);
+    None: one constant N/V, valid at every frequency."""
 
     @classmethod
     def from_config(cls, config: Any) -> BenchLimits:
@@ -239,7 +242,9 @@ class BenchLimits:
             note = f": the 33220A gives at most {max_drive:g} Vpp into {into}"
         return cls(max_drive_vpp=max_drive, name=str(config.name), drive_limit_note=note,
                    trigger_load_ohm=config.generator_load_ohm("trigger"),
-                   max_trigger_vpp=config.generator_limit_vpp("trigger"))
+                   max_trigger_vpp=config.generator_limit_vpp("trigger"),
+                   drive_calibration_range_hz=getattr(config, "drive_calibration_range_hz",
+                                                      None))
 
 
 @dataclass(frozen=True)
@@ -778,6 +783,17 @@ def parse_protocol(text: str, source: str = "<string>", limits: BenchLimits | No
         sweep = Sweep(ordered, order, drive, settle, settle_periods, periods,  # type: ignore
                       repeats, profile or (), drive_mode or "fixed", max_disp,
                       min_drive if min_drive is not None else MIN_DRIVE_VPP)
+        calibrated = limits.drive_calibration_range_hz
+        if calibrated is not None:
+            lo, hi = calibrated
+            tol = 1e-9 * hi  # as the interpolation's own edge (frf_lines)
+            outside = [f for f in freqs if not lo - tol <= f <= hi + tol]
+            if outside:
+                p.add("sweep.stop_hz" if "stop_hz" in sw else "sweep.frequencies_hz",
+                      f"{len(outside)} of {len(freqs)} frequencies ({min(outside):g}-"
+                      f"{max(outside):g} Hz) lie outside the drive calibration of "
+                      f"{limits.name} ({lo:g}-{hi:g} Hz), which is not extrapolated: "
+                      "calibrate the drive chain over the sweep, or narrow the sweep")
         if ultrasound is not None:
             nyquist = ultrasound.prf_hz / 2
             if max(freqs) >= nyquist:

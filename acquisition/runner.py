@@ -33,6 +33,7 @@ from typing import Any
 
 import numpy as np
 
+from pelvislab.acquisition.frf_lines import calibrated_newton_per_volt
 from pelvislab.acquisition.protocol import PlannedStep, Protocol, Setup
 from pelvislab.acquisition.session import (
     STATUS_COMPLETE,
@@ -753,7 +754,6 @@ class Runner:
                 bench.pulsers[ch - 1].configure(us.gain_db, us.pulse_energy, us.damping_ohm,
                                                 us.high_pass_hz, us.low_pass_hz)
         cfg = bench.config
-        force_per_volt = complex(cfg.drive_newton_per_volt)
         n_setups = len(proto.setups)
         configured: tuple[int, tuple[int, ...]] = (-1, ())
         t_run = self._clock()
@@ -801,6 +801,9 @@ class Runner:
                 if (step.n_pulses, setup_channels) != configured:
                     self._configure(step, setup_channels)
                     configured = (step.n_pulses, setup_channels)
+                force_per_volt = calibrated_newton_per_volt(
+                    step.frequency_hz, cfg.drive_newton_per_volt,
+                    cfg.drive_calibration_frequency_hz, cfg.drive_calibration_newton_per_volt)
                 data = self._acquire(step, setup, force_per_volt, started_at, level)
                 if proto.sweep.drive_mode == "auto":
                     data, level = self._auto_range(step, setup, force_per_volt, data, level)
@@ -1173,14 +1176,17 @@ def prepare_session(protocol_path: Path | str, out_path: Path | str,
                            previous_run=previous_run)
 
 
-BENCH_KEYS_THAT_SHAPE_THE_DATA = ("simulated", "drive_newton_per_volt", "speed_of_sound_m_s")
+BENCH_KEYS_THAT_SHAPE_THE_DATA = ("simulated", "drive_newton_per_volt",
+                                  "drive_calibration_frequency_hz",
+                                  "drive_calibration_newton_per_volt", "speed_of_sound_m_s")
 
 
 def bench_differences(recorded: dict[str, Any], current: dict[str, Any]) -> list[str]:
     """What differs between a session's ``/bench`` and the bench now open, among what
-    shapes the measured FRF: simulated or real, the drive chain's force calibration (N/V)
-    and the speed of sound (also per channel). Instrument identities may change (a
-    repaired instrument) without changing the data."""
+    shapes the measured FRF: simulated or real, the drive chain's force calibration (N/V,
+    one constant, NaN for a per-frequency table, or the table) and the speed of sound
+    (also per channel). Instrument identities may change (a repaired instrument) without
+    changing the data."""
     def norm(value: Any) -> Any:
         if isinstance(value, np.generic):
             value = value.item()
@@ -1199,8 +1205,14 @@ def bench_differences(recorded: dict[str, Any], current: dict[str, Any]) -> list
         a, b = value(recorded, key), value(current, key)
         if a is None:  # not recorded (an older file): nothing to compare with
             continue
-        same = (a == b if not isinstance(a, (float, complex)) or b is None
-                else np.isclose(a, b, rtol=1e-9, atol=0.0))
+        if b is None:
+            same = False
+        elif isinstance(a, (float, complex, np.ndarray)):
+            a_arr, b_arr = np.atleast_1d(a), np.atleast_1d(np.asarray(b))
+            same = a_arr.shape == b_arr.shape and bool(np.all(np.isclose(
+                a_arr, b_arr, rtol=1e-9, atol=0.0, equal_nan=True)))
+        else:
+            same = a == b
         if not same:
             out.append(f"{key}: {a!r} in the session, {b!r} now")
     return out

@@ -808,6 +808,13 @@ def bench_description(bench: Any) -> dict[str, Any]:
         "speed_of_sound_m_s": float(cfg.speed_of_sound_m_s),
         "reference_clock_hz": float(cfg.reference_clock_hz),
     }
+    table_hz = tuple(getattr(cfg, "drive_calibration_frequency_hz", ()))
+    if table_hz:
+        # the per-frequency calibration in full: the FRFs' denominators, re-derivable
+        out["drive_calibration_frequency_hz"] = np.asarray(table_hz, dtype=float)
+        out["drive_calibration_newton_per_volt"] = np.asarray(
+            cfg.drive_calibration_newton_per_volt, dtype=np.complex128)
+        out["drive_calibration_file"] = str(cfg.drive_calibration_source or "")
     for ch, c in dict(cfg.channel_speed_of_sound_m_s).items():
         out[f"speed_of_sound_m_s_ch{ch}"] = float(c)
     roles = [("trigger", bench.trigger), ("drive", bench.drive), ("digitizer", bench.digitizer)]

@@ -11,6 +11,7 @@ section 2 to instruments and resources::
 
     [calibration]
     drive_newton_per_volt = "8.5-0.4j"   # drive volts -> force (N/V); number, "a+bj", {re, im}
+    # or, per frequency: drive_calibration_file = "drive_cal.csv" (docs/bench-file.md)
     speed_of_sound_m_s = 1540.0          # default for every digitizer channel
     [calibration.channel_speed_of_sound_m_s]
     2 = 1560.0                           # per-channel override (channel number as key)
@@ -135,7 +136,15 @@ class BenchConfig:
     digitizer: InstrumentConfig | None = None
     pulsers: tuple[InstrumentConfig, ...] = ()
     drive_newton_per_volt: complex = complex(1.0, 0.0)
-    """Calibrated drive chain: force phasor (N) per drive-voltage phasor (V, amplitude)."""
+    """Calibrated drive chain: force phasor (N) per drive-voltage phasor (V, amplitude); NaN
+    when the chain is calibrated per frequency (``drive_calibration_*``)."""
+    drive_calibration_frequency_hz: tuple[float, ...] = ()
+    """Frequencies (Hz, increasing) of a per-frequency drive calibration; empty: the one
+    constant ``drive_newton_per_volt`` applies at every frequency."""
+    drive_calibration_newton_per_volt: tuple[complex, ...] = ()
+    """The drive chain's N/V at each of ``drive_calibration_frequency_hz``."""
+    drive_calibration_source: Path | None = None
+    """The calibration file the table was read from."""
     max_drive_vpp: float = DEFAULT_MAX_DRIVE_VPP
     """Hard limit on the shaker-drive amplitude, V pk-pk; enforced in the driver."""
     max_trigger_vpp: float | None = None
@@ -153,6 +162,13 @@ class BenchConfig:
     def speed_of_sound_for(self, channel: int) -> float:
         """Speed of sound (m/s) to use for digitizer ``channel`` (1-based)."""
         return float(self.channel_speed_of_sound_m_s.get(channel, self.speed_of_sound_m_s))
+
+    @property
+    def drive_calibration_range_hz(self) -> tuple[float, float] | None:
+        """(lowest, highest) frequency (Hz) of a per-frequency drive calibration; None when
+        one constant applies at every frequency."""
+        table = self.drive_calibration_frequency_hz
+        return (float(table[0]), float(table[-1])) if table else None
 
     def generator_limit_vpp(self, role: str) -> float | None:
         """The bench limit (V pk-pk) on generator ``role`` (``drive`` or ``trigger``): the
@@ -233,16 +249,37 @@ class BenchConfig:
         cal = _table(data, "calibration", err)
         _check_keys(
             cal,
-            {"drive_newton_per_volt", "speed_of_sound_m_s", "channel_speed_of_sound_m_s",
-             "reference_clock_hz"},
+            {"drive_newton_per_volt", "drive_calibration_file", "speed_of_sound_m_s",
+             "channel_speed_of_sound_m_s", "reference_clock_hz"},
             "calibration", err,
         )
-        if "drive_newton_per_volt" not in cal:
+        table_hz: tuple[float, ...] = ()
+        table_n_per_v: tuple[complex, ...] = ()
+        table_source: Path | None = None
+        if "drive_newton_per_volt" in cal and "drive_calibration_file" in cal:
+            raise err("calibration.drive_calibration_file",
+                      "give either drive_newton_per_volt (one constant) or "
+                      "drive_calibration_file (per frequency), not both")
+        if "drive_calibration_file" in cal:
+            raw_file = cal["drive_calibration_file"]
+            if not isinstance(raw_file, str) or not raw_file.strip():
+                raise err("calibration.drive_calibration_file",
+                          "must be the path of a CSV file (relative to the bench file)")
+            table_source = Path(raw_file)
+            if not table_source.is_absolute() and source is not None:
+                table_source = Path(source).parent / table_source
+            table_hz, table_n_per_v = _read_drive_calibration(
+                table_source, lambda msg: err("calibration.drive_calibration_file", msg))
+            n_per_v = complex(math.nan, math.nan)
+        elif "drive_newton_per_volt" not in cal:
             raise err("calibration.drive_newton_per_volt",
-                      "missing: the drive chain calibration (N per V) is needed for the FRFs")
-        n_per_v = _complex(cal["drive_newton_per_volt"], "calibration.drive_newton_per_volt", err)
-        if n_per_v == 0 or not cmath.isfinite(n_per_v):
-            raise err("calibration.drive_newton_per_volt", "must be finite and non-zero")
+                      "missing: the drive chain calibration (N per V, or a "
+                      "drive_calibration_file per frequency) is needed for the FRFs")
+        else:
+            n_per_v = _complex(cal["drive_newton_per_volt"], "calibration.drive_newton_per_volt",
+                               err)
+            if n_per_v == 0 or not cmath.isfinite(n_per_v):
+                raise err("calibration.drive_newton_per_volt", "must be finite and non-zero")
         c_default = _positive(cal.get("speed_of_sound_m_s", DEFAULT_SPEED_OF_SOUND_M_S),
                               "calibration.speed_of_sound_m_s", err)
         per_channel: dict[int, float] = {}
@@ -335,6 +372,9 @@ class BenchConfig:
             digitizer=roles["digitizer"],
             pulsers=pulsers,
             drive_newton_per_volt=n_per_v,
+            drive_calibration_frequency_hz=table_hz,
+            drive_calibration_newton_per_volt=table_n_per_v,
+            drive_calibration_source=table_source,
             max_drive_vpp=max_drive_vpp,
             max_trigger_vpp=max_trigger_vpp,
             speed_of_sound_m_s=c_default,
@@ -392,6 +432,64 @@ def _complex(value: Any, key: str, err: _ErrFactory) -> complex:
                 raise err(f"{key}.{part}", f"must be a number, got {v!r}")
         return complex(float(re_), float(im_))
     raise err(key, f"must be a number, a string like \"8.5-0.4j\" or {{re, im}}, got {value!r}")
+
+
+DRIVE_CALIBRATION_COLUMNS = {
+    ("frequency_hz", "newton_per_volt_re", "newton_per_volt_im"): "re/im",
+    ("frequency_hz", "newton_per_volt_abs", "newton_per_volt_phase_deg"): "abs/phase",
+}
+"""The header lines a drive calibration file may have, and what its columns hold."""
+
+
+def _read_drive_calibration(path: Path, err: Callable[[str], BenchConfigError]
+                            ) -> tuple[tuple[float, ...], tuple[complex, ...]]:
+    """A drive calibration CSV: ``#`` comment lines, a header naming the columns (one of
+    :data:`DRIVE_CALIBRATION_COLUMNS`), then one row per frequency (Hz, increasing
+    strictly, at least two rows): the chain's N per V peak as real and imaginary parts, or
+    as magnitude and phase (degrees). Every problem names the file and line."""
+    import csv
+
+    if not path.is_file():
+        raise err(f"file not found: {path}")
+    try:
+        text = path.read_text(encoding="utf-8")
+    except (OSError, UnicodeDecodeError) as exc:
+        raise err(f"{path}: cannot be read: {exc}") from None
+    kind = None
+    freqs: list[float] = []
+    values: list[complex] = []
+    for line_no, row in enumerate(csv.reader(text.splitlines()), start=1):
+        cells = [c.strip() for c in row]
+        if not cells or not any(cells) or cells[0].startswith("#"):
+            continue
+        where = f"{path}:{line_no}"
+        if kind is None:
+            kind = DRIVE_CALIBRATION_COLUMNS.get(tuple(c.lower() for c in cells))
+            if kind is None:
+                heads = " or ".join(",".join(h) for h in DRIVE_CALIBRATION_COLUMNS)
+                raise err(f"{where}: the first line must name the columns: {heads}")
+            continue
+        if len(cells) != 3:
+            raise err(f"{where}: 3 values expected, got {len(cells)}")
+        try:
+            f_hz, a, b = (float(c) for c in cells)
+        except ValueError:
+            raise err(f"{where}: not numbers: {','.join(cells)}") from None
+        if not (math.isfinite(f_hz) and f_hz > 0):
+            raise err(f"{where}: frequency must be finite and > 0 Hz, got {cells[0]}")
+        if freqs and not f_hz > freqs[-1]:
+            raise err(f"{where}: frequencies must increase strictly ({f_hz:g} Hz after "
+                      f"{freqs[-1]:g} Hz)")
+        value = (complex(a, b) if kind == "re/im"
+                 else a * cmath.exp(1j * math.radians(b)))
+        if not cmath.isfinite(value) or value == 0 or (kind == "abs/phase" and a <= 0):
+            raise err(f"{where}: the N/V value must be finite and non-zero")
+        freqs.append(f_hz)
+        values.append(value)
+    if kind is None or len(freqs) < 2:
+        raise err(f"{path}: needs a header line and at least two rows "
+                  "(frequency_hz, N/V); the calibration is not extrapolated")
+    return tuple(freqs), tuple(values)
 
 
 def _load_ohm(value: Any, key: str, err: _ErrFactory) -> float:

@@ -16,8 +16,9 @@ its sine, i.e. sine phase 0) triggers generator #1's burst of N pulses at the PR
 fires both pulsers and triggers the digitizer. So the first pulse of every record sits at
 drive phase 0: the drive voltage is v(t) = (Vpp/2) sin(w t), whose phasor at the first pulse
 is V = -i Vpp/2 (x(t) = Re(X e^{+iwt}), design 4.1), and the force phasor is
-``drive_newton_per_volt * V``. With ``trigger_source="internal"`` the bursts start at a random
-drive phase (a bench without the SYNC link).
+``drive_newton_per_volt * V`` (or its per-frequency table's value). With
+``trigger_source="internal"`` the bursts start at a random drive phase (a bench without the
+SYNC link).
 
 Clock: ``fast`` pacing never sleeps: the world's time is virtual, advanced by every
 acquisition's duration and by the runner's settle waits (``world.clock.wait``), so runs are
@@ -335,6 +336,20 @@ class World:
         inputs = Points((ex.bone,), [ex.position_m], [direction], (ex.name,))
         return chans, outputs, inputs
 
+    def newton_per_volt(self, frequency_hz: float) -> complex:
+        """The simulated drive chain's true N/V at ``frequency_hz``: the bench's constant,
+        or its per-frequency table (held at the end values outside it: the simulated
+        chain exists at every frequency; the runner refuses to extrapolate)."""
+        from pelvislab.acquisition.frf_lines import calibrated_newton_per_volt
+
+        cfg = self.config
+        table = tuple(getattr(cfg, "drive_calibration_frequency_hz", ()))
+        f = float(frequency_hz)
+        if table:
+            f = min(max(f, table[0]), table[-1])
+        return calibrated_newton_per_volt(f, cfg.drive_newton_per_volt, table,
+                                          getattr(cfg, "drive_calibration_newton_per_volt", ()))
+
     def frf(self, frequency_hz: float) -> dict[int, complex]:
         """True receptance (m/N) from the excitation to each channel's landmark along its
         beam, with every FRF effect (cached per frequency and layout)."""
@@ -367,7 +382,7 @@ class World:
         (so that displacement per drive volt is the piezo's calibration)."""
         ph = self.phantom
         # the piezo moves in phase with the drive voltage: s V = (s / cal) (cal V)
-        per_newton = ph.piezo_m_per_v / complex(self.config.drive_newton_per_volt)
+        per_newton = ph.piezo_m_per_v / self.newton_per_volt(frequency_hz)
         drive_dir = inputs.direction[0]
         out = np.zeros(len(outputs.bone), complex)
         for i, bone in enumerate(outputs.bone):
@@ -519,7 +534,7 @@ class World:
         amplitude = drive.amplitude_vpp / 2.0 if on else 0.0
         # sine phase phase0 at the first pulse: v = A sin(w t + phase0) = Re(A e^{i(phase0-pi/2)})
         volts = amplitude * complex(math.cos(phase0 - math.pi / 2), math.sin(phase0 - math.pi / 2))
-        force = complex(self.config.drive_newton_per_volt) * volts
+        force = self.newton_per_volt(f) * volts
         H = self.frf(f) if on else {}
         t_pulse = np.arange(n_segments) / prf
         w = 2 * math.pi * f

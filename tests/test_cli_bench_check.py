@@ -16,7 +16,8 @@ def test_a_simulated_bench_file_lists_every_instrument(tmp_path, capsys):
                      'max_drive_vpp = 2.0\n[calibration]\ndrive_newton_per_volt = 8.0\n')
     assert main(["bench", "check", str(bench)]) == 0
     out = capsys.readouterr().out
-    assert out.startswith("dry run (SIMULATED)\n")
+    assert out.startswith("dry run (SIMULATED)\n  drive calibration: 8+0j N/V at every "
+                          "frequency\n")
     for role in ("trigger", "drive", "digitizer", "pulsers[0]", "pulsers[1]"):
         assert f"  {role} " in out
     assert "33220A" in out and "reference locked" in out

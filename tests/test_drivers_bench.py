@@ -380,14 +380,24 @@ raise RuntimeError("script dies without closing the bench")
     assert marker.read_text().split() == ["off", "off"]
 
 
-def test_the_examples_in_the_bench_file_doc_parse():
+def test_the_examples_in_the_bench_file_doc_parse(tmp_path):
     import re
 
     doc = (Path(__file__).resolve().parents[1] / "docs" / "bench-file.md").read_text()
     blocks = re.findall(r"```toml\n(.*?)```", doc, flags=re.S)
-    assert len(blocks) == 2
+    assert len(blocks) == 3
     real = BenchConfig.from_dict(__import__("tomllib").loads(blocks[0]))
     assert not real.simulated and real.drive.options["load_ohm"] == "inf"
     assert real.drive_newton_per_volt == complex(8.5, -0.4) and len(real.pulsers) == 2
-    sim = BenchConfig.from_dict(__import__("tomllib").loads(blocks[1]))
+    # the per-frequency calibration: the real example with its [calibration] replaced
+    (csv_text,) = re.findall(r"```csv\n(.*?)```", doc, flags=re.S)
+    (tmp_path / "drive_cal.csv").write_text(csv_text)
+    per_frequency = re.sub(r"\[calibration\]\n.*?\n\n", blocks[1] + "\n", blocks[0],
+                           flags=re.S)
+    bench_file = tmp_path / "lab.toml"
+    bench_file.write_text(per_frequency)
+    table = BenchConfig.load(bench_file)
+    assert table.drive_calibration_range_hz == (5.0, 300.0)
+    assert table.drive_calibration_newton_per_volt[1] == complex(8.31, -1.42)
+    sim = BenchConfig.from_dict(__import__("tomllib").loads(blocks[2]))
     assert sim.simulated and sim.max_drive_vpp == 1.0

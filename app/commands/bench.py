@@ -12,6 +12,7 @@ from __future__ import annotations
 import argparse
 import sys
 from pathlib import Path
+from typing import Any
 
 EXIT_FAULT = 3
 EXIT_UNSAFE = 5
@@ -42,6 +43,17 @@ def _lock_text(instrument: object) -> str:
             None: "reference lock not reported"}[locked]
 
 
+def drive_calibration_text(config: Any) -> str:
+    """The bench's drive chain calibration in a few words: the constant, or the table's
+    rows, range and file."""
+    span = config.drive_calibration_range_hz
+    if span is None:
+        return f"{complex(config.drive_newton_per_volt):g} N/V at every frequency"
+    rows = len(config.drive_calibration_frequency_hz)
+    return (f"{rows} rows, {span[0]:g}-{span[1]:g} Hz (not extrapolated), from "
+            f"{config.drive_calibration_source}")
+
+
 def check_command(args: argparse.Namespace) -> int:
     """Open, list, make safe, close; the exit code says what failed."""
     from pelvislab.drivers.bench import open_bench
@@ -59,6 +71,7 @@ def check_command(args: argparse.Namespace) -> int:
     fault = None
     try:
         print(f"{bench.config.name}{' (SIMULATED)' if bench.simulated else ''}")
+        print(f"  drive calibration: {drive_calibration_text(bench.config)}")
         roles = [("trigger", bench.trigger), ("drive", bench.drive),
                  ("digitizer", bench.digitizer)]
         roles += [(f"pulsers[{i}]", p) for i, p in enumerate(bench.pulsers)]
