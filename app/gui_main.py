@@ -172,6 +172,11 @@ class OperatorWindow(QtWidgets.QMainWindow):
         form.addRow("Subject ID", self.subject_edit)
         proto_row = QtWidgets.QHBoxLayout()
         self.protocol_combo = QtWidgets.QComboBox()
+        config, _ = self._bench_config()
+        if config is not None and not config.simulated:
+            # on a real bench nothing is chosen for the operator: the demo, first in the
+            # list, is a simulator's tour (a first-day review, session 36)
+            self.protocol_combo.addItem("— choose a protocol —", None)
         for name, path in shipped_protocols().items():
             self.protocol_combo.addItem(name, str(path))
         self.protocol_combo.currentIndexChanged.connect(self._validate_protocol)
@@ -369,15 +374,31 @@ class OperatorWindow(QtWidgets.QMainWindow):
         data = self.protocol_combo.currentData()
         return Path(data) if data else None
 
+    def _bench_config(self) -> tuple[Any, str | None]:
+        """(the bench file's configuration, None) or (None, why it cannot be read); (None,
+        None) for the simulated bench without a file."""
+        if self.bench_path is None:
+            return None, None
+        from pelvislab.drivers.bench import BenchConfig
+
+        try:
+            return BenchConfig.load(self.bench_path), None
+        except Exception as exc:
+            return None, str(exc)
+
     def _validate_protocol(self) -> None:
-        from pelvislab.acquisition.protocol import load_protocol
+        from pelvislab.acquisition.protocol import BenchLimits, load_protocol
 
         path = self.protocol_path()
         if path is None:
             self.protocol_info.setText("no protocol shipped or chosen")
             return
+        # checked against this bench's limits and calibration, as Start will (with the
+        # simulator's, a protocol over the bench's drive limit read valid until Start)
+        config, _ = self._bench_config()
+        limits = BenchLimits.from_config(config) if config is not None else None
         try:
-            protocol = load_protocol(path)
+            protocol = load_protocol(path, limits)
         except Exception as exc:
             self.protocol_info.setText(f"<span style='color:#c62828'>invalid: {exc}</span>")
             return
@@ -394,15 +415,13 @@ class OperatorWindow(QtWidgets.QMainWindow):
         simulated = self.bench_path is None
         config = None
         if not simulated:
-            from pelvislab.drivers.bench import BenchConfig
-
-            try:
-                config = BenchConfig.load(self.bench_path)
-                simulated = config.simulated
-            except Exception as exc:
+            config, problem = self._bench_config()
+            if config is None:
                 self.simulated_badge.setVisible(False)
-                self._set_bench_rows([("bench file", f"invalid: {exc}", str(self.bench_path))])
+                self._set_bench_rows([("bench file", f"invalid: {problem}",
+                                       str(self.bench_path))])
                 return
+            simulated = config.simulated
         self.simulated_badge.setVisible(simulated)
         if simulated:
             rows = [("trigger", "simulated 33220A", "sim"), ("drive", "simulated 33220A", "sim"),

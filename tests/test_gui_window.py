@@ -284,3 +284,24 @@ def test_gui_with_a_missing_bench_file_is_refused(tmp_path):
     assert main(["gui", "--bench", str(tmp_path / "none.toml"), "--screenshot",
                  str(tmp_path / "x.png")]) == 1
     assert not (tmp_path / "x.png").exists()
+
+
+def test_a_real_bench_preselects_no_protocol_and_checks_against_its_limits(qtbot, tmp_path):
+    # first-day review, session 36: the demo was preselected on a real bench too, and the
+    # protocol was checked against the simulator's limits (valid until Start refused it)
+    from pelvislab.app.gui_main import OperatorWindow
+    from pelvislab.tests.test_drivers_bench import GOOD
+
+    real = tmp_path / "lab.toml"
+    real.write_text(GOOD.replace("max_drive_vpp = 2.5", "max_drive_vpp = 0.05"))
+    window = OperatorWindow(bench_path=real)
+    qtbot.addWidget(window)
+    assert window.protocol_path() is None
+    assert window.protocol_info.text() == "no protocol shipped or chosen"
+    window.protocol_combo.setCurrentIndex(window.protocol_combo.findText("demo"))
+    assert "invalid" in window.protocol_info.text()
+    assert "above the bench limit 0.05 V pk-pk (lab 3)" in window.protocol_info.text()
+    simulated = OperatorWindow()
+    qtbot.addWidget(simulated)
+    assert simulated.protocol_combo.currentText() == "demo"
+    assert "invalid" not in simulated.protocol_info.text()
