@@ -102,7 +102,12 @@ _TOP_KEYS = {"bench", "limits", "calibration", "trigger", "drive", "digitizer", 
 
 
 class BenchConfigError(ValueError):
-    """The bench file is invalid; the message names the file and the key."""
+    """The bench file is invalid; the message names the file and each offending key
+    (``problems``: every ``key: rule`` found)."""
+
+    def __init__(self, message: str, problems: list[str] | None = None) -> None:
+        super().__init__(message)
+        self.problems = list(problems) if problems is not None else [message]
 
 
 @dataclass(frozen=True)
@@ -217,77 +222,103 @@ class BenchConfig:
 
     @classmethod
     def from_dict(cls, data: Mapping[str, Any], source: Path | None = None) -> BenchConfig:
-        """Validate an already-parsed bench mapping (same layout as the TOML file)."""
+        """Validate an already-parsed bench mapping (same layout as the TOML file).
+
+        Every problem found is reported at once (one per key or instrument table; the
+        first six in the message, all in ``BenchConfigError.problems``): a file fixed one
+        error per attempt took as many runs as it had errors (a first-day review)."""
         where = str(source) if source is not None else "bench config"
+        problems: list[str] = []
 
         def err(key: str, msg: str) -> BenchConfigError:
-            return BenchConfigError(f"{where}: {key}: {msg}")
+            return BenchConfigError(f"{where}: {key}: {msg}", [f"{key}: {msg}"])
 
-        unknown = sorted(set(data) - _TOP_KEYS)
-        if unknown:
-            raise err(unknown[0], f"unknown section (expected one of {sorted(_TOP_KEYS)})")
+        def attempt(parse: Callable[[], Any], default: Any = None) -> Any:
+            # one key's (or table's) problem is noted and the rest of the file still read
+            try:
+                return parse()
+            except BenchConfigError as exc:
+                problems.extend(exc.problems or [str(exc)])
+                return default
 
-        bench = _table(data, "bench", err)
-        _check_keys(bench, {"name", "simulated"}, "bench", err)
+        for section in sorted(set(data) - _TOP_KEYS):
+            problems.append(f"{section}: unknown section (expected one of "
+                            f"{sorted(_TOP_KEYS)})")
+
+        bench = attempt(lambda: _table(data, "bench", err), {})
+        attempt(lambda: _check_keys(bench, {"name", "simulated"}, "bench", err))
         name = bench.get("name", source.stem if source is not None else "bench")
         if not isinstance(name, str):
-            raise err("bench.name", "must be a string")
+            problems.append("bench.name: must be a string")
         simulated = bench.get("simulated", False)
         if not isinstance(simulated, bool):
-            raise err("bench.simulated", "must be true or false")
+            problems.append("bench.simulated: must be true or false")
+            simulated = True  # unknown: no "missing section" noise on top of this problem
 
-        limits = _table(data, "limits", err)
-        _check_keys(limits, {"max_drive_vpp", "max_trigger_vpp"}, "limits", err)
+        limits = attempt(lambda: _table(data, "limits", err), {})
+        attempt(lambda: _check_keys(limits, {"max_drive_vpp", "max_trigger_vpp"}, "limits",
+                                    err))
+        max_drive_vpp = DEFAULT_MAX_DRIVE_VPP
         if "max_drive_vpp" not in limits:
-            raise err("limits.max_drive_vpp",
-                      "missing: a bench file must state the shaker-drive limit (V pk-pk)")
-        max_drive_vpp = _positive(limits["max_drive_vpp"], "limits.max_drive_vpp", err)
+            problems.append("limits.max_drive_vpp: missing: a bench file must state the "
+                            "shaker-drive limit (V pk-pk)")
+        else:
+            max_drive_vpp = attempt(lambda: _positive(limits["max_drive_vpp"],
+                                                      "limits.max_drive_vpp", err),
+                                    DEFAULT_MAX_DRIVE_VPP)
         max_trigger_vpp = None
         if "max_trigger_vpp" in limits:
-            max_trigger_vpp = _positive(limits["max_trigger_vpp"], "limits.max_trigger_vpp", err)
+            max_trigger_vpp = attempt(lambda: _positive(limits["max_trigger_vpp"],
+                                                        "limits.max_trigger_vpp", err))
 
-        cal = _table(data, "calibration", err)
-        _check_keys(
+        cal = attempt(lambda: _table(data, "calibration", err), {})
+        attempt(lambda: _check_keys(
             cal,
             {"drive_newton_per_volt", "drive_calibration_file", "speed_of_sound_m_s",
              "channel_speed_of_sound_m_s", "reference_clock_hz"},
             "calibration", err,
-        )
-        table_hz: tuple[float, ...] = ()
-        table_n_per_v: tuple[complex, ...] = ()
-        table_source: Path | None = None
-        if "drive_newton_per_volt" in cal and "drive_calibration_file" in cal:
-            raise err("calibration.drive_calibration_file",
-                      "give either drive_newton_per_volt (one constant) or "
-                      "drive_calibration_file (per frequency), not both")
-        if "drive_calibration_file" in cal:
-            raw_file = cal["drive_calibration_file"]
-            if not isinstance(raw_file, str) or not raw_file.strip():
+        ))
+
+        def drive_calibration() -> tuple[complex, tuple[float, ...], tuple[complex, ...],
+                                         Path | None]:
+            if "drive_newton_per_volt" in cal and "drive_calibration_file" in cal:
                 raise err("calibration.drive_calibration_file",
-                          "must be the path of a CSV file (relative to the bench file)")
-            table_source = Path(raw_file)
-            if not table_source.is_absolute() and source is not None:
-                table_source = Path(source).parent / table_source
-            table_hz, table_n_per_v = _read_drive_calibration(
-                table_source, lambda msg: err("calibration.drive_calibration_file", msg))
-            n_per_v = complex(math.nan, math.nan)
-        elif "drive_newton_per_volt" not in cal:
-            raise err("calibration.drive_newton_per_volt",
-                      "missing: the drive chain calibration (N per V, or a "
-                      "drive_calibration_file per frequency) is needed for the FRFs")
-        else:
-            n_per_v = _complex(cal["drive_newton_per_volt"], "calibration.drive_newton_per_volt",
-                               err)
+                          "give either drive_newton_per_volt (one constant) or "
+                          "drive_calibration_file (per frequency), not both")
+            if "drive_calibration_file" in cal:
+                raw_file = cal["drive_calibration_file"]
+                if not isinstance(raw_file, str) or not raw_file.strip():
+                    raise err("calibration.drive_calibration_file",
+                              "must be the path of a CSV file (relative to the bench file)")
+                table_source = Path(raw_file)
+                if not table_source.is_absolute() and source is not None:
+                    table_source = Path(source).parent / table_source
+                table_hz, table_n_per_v = _read_drive_calibration(
+                    table_source, lambda msg: err("calibration.drive_calibration_file", msg))
+                return complex(math.nan, math.nan), table_hz, table_n_per_v, table_source
+            if "drive_newton_per_volt" not in cal:
+                raise err("calibration.drive_newton_per_volt",
+                          "missing: the drive chain calibration (N per V, or a "
+                          "drive_calibration_file per frequency) is needed for the FRFs")
+            n_per_v = _complex(cal["drive_newton_per_volt"],
+                               "calibration.drive_newton_per_volt", err)
             if n_per_v == 0 or not cmath.isfinite(n_per_v):
                 raise err("calibration.drive_newton_per_volt", "must be finite and non-zero")
-        c_default = _positive(cal.get("speed_of_sound_m_s", DEFAULT_SPEED_OF_SOUND_M_S),
-                              "calibration.speed_of_sound_m_s", err)
+            return n_per_v, (), (), None
+
+        n_per_v, table_hz, table_n_per_v, table_source = attempt(
+            drive_calibration, (complex(1.0, 0.0), (), (), None))
+        c_default = attempt(lambda: _positive(
+            cal.get("speed_of_sound_m_s", DEFAULT_SPEED_OF_SOUND_M_S),
+            "calibration.speed_of_sound_m_s", err), DEFAULT_SPEED_OF_SOUND_M_S)
         per_channel: dict[int, float] = {}
         raw_pc = cal.get("channel_speed_of_sound_m_s", {})
         if not isinstance(raw_pc, Mapping):
-            raise err("calibration.channel_speed_of_sound_m_s",
-                      "must be a table {channel = m/s}")
-        for k, v in raw_pc.items():
+            problems.append("calibration.channel_speed_of_sound_m_s: must be a table "
+                            "{channel = m/s}")
+            raw_pc = {}
+
+        def channel_speed(k: str, v: Any) -> None:
             key = f"calibration.channel_speed_of_sound_m_s.{k}"
             try:
                 ch = int(k)
@@ -296,8 +327,12 @@ class BenchConfig:
             if ch < 1:
                 raise err(key, "channel must be >= 1")
             per_channel[ch] = _positive(v, key, err)
-        ref_hz = _positive(cal.get("reference_clock_hz", DEFAULT_REFERENCE_CLOCK_HZ),
-                           "calibration.reference_clock_hz", err)
+
+        for k, v in raw_pc.items():
+            attempt(lambda k=k, v=v: channel_speed(k, v))
+        ref_hz = attempt(lambda: _positive(
+            cal.get("reference_clock_hz", DEFAULT_REFERENCE_CLOCK_HZ),
+            "calibration.reference_clock_hz", err), DEFAULT_REFERENCE_CLOCK_HZ)
 
         def instrument(role: str, raw: Any, label: str) -> InstrumentConfig:
             if not isinstance(raw, Mapping):
@@ -339,31 +374,35 @@ class BenchConfig:
 
         roles: dict[str, InstrumentConfig | None] = {}
         for role in ("trigger", "drive", "digitizer"):
+            roles[role] = None
             if role in data:
-                roles[role] = instrument(role, data[role], role)
-            elif simulated:
-                roles[role] = None
-            else:
-                raise err(role, "missing section (or set [bench] simulated = true)")
+                roles[role] = attempt(lambda role=role: instrument(role, data[role], role))
+            elif not simulated:
+                problems.append(f"{role}: missing section (or set [bench] simulated = true)")
         raw_pulsers = data.get("pulsers", [])
         if not isinstance(raw_pulsers, list):
-            raise err("pulsers", "must be an array of tables ([[pulsers]])")
-        pulsers = tuple(
-            instrument("pulsers", p, f"pulsers[{i}]") for i, p in enumerate(raw_pulsers)
-        )
-        if not simulated and not pulsers:
-            raise err("pulsers", "missing: at least one [[pulsers]] table")
-        for i, pulser in enumerate(pulsers):
+            problems.append("pulsers: must be an array of tables ([[pulsers]])")
+            raw_pulsers = []
+        read_pulsers = [attempt(lambda i=i, p=p: instrument("pulsers", p, f"pulsers[{i}]"))
+                        for i, p in enumerate(raw_pulsers)]
+        pulsers = tuple(p for p in read_pulsers if p is not None)
+        if not simulated and not raw_pulsers:
+            problems.append("pulsers: missing: at least one [[pulsers]] table")
+        for i, pulser in enumerate(read_pulsers):
             # the run configures pulsers by their order (the first feeds digitizer channel
             # 1): a `channel` saying otherwise was accepted and ignored, leaving a channel's
             # pulser unconfigured (a first-day review, session 36)
-            channel = pulser.options.get("channel")
+            channel = None if pulser is None else pulser.options.get("channel")
             if channel is not None and channel != i + 1:
-                raise err(f"pulsers[{i}].channel",
-                          f"{channel}: the [[pulsers]] tables are matched to the digitizer "
-                          f"channels by their order (table {i + 1} feeds channel {i + 1}); "
-                          "put them in channel order, or leave `channel` out")
+                problems.append(
+                    f"pulsers[{i}].channel: {channel}: the [[pulsers]] tables are matched to "
+                    f"the digitizer channels by their order (table {i + 1} feeds channel "
+                    f"{i + 1}); put them in channel order, or leave `channel` out")
 
+        if problems:
+            shown = "; ".join(problems[:6])
+            more = f" (and {len(problems) - 6} more)" if len(problems) > 6 else ""
+            raise BenchConfigError(f"{where}: {shown}{more}", problems)
         return cls(
             name=name,
             simulated=simulated,

@@ -401,3 +401,28 @@ def test_the_examples_in_the_bench_file_doc_parse(tmp_path):
     assert table.drive_calibration_newton_per_volt[1] == complex(8.31, -1.42)
     sim = BenchConfig.from_dict(__import__("tomllib").loads(blocks[2]))
     assert sim.simulated and sim.max_drive_vpp == 1.0
+
+
+def test_every_problem_of_a_bench_file_is_reported_at_once(tmp_path):
+    # a first-day review: a file fixed one error per attempt took a run per error
+    text = (GOOD.replace("max_drive_vpp = 2.5", "max_drive_vpp = -1")
+            .replace('load_ohm = "inf"', "")
+            .replace('speed_of_sound_m_s = 1550.0', 'speed_of_sound_m_s = "fast"')
+            .replace('[[pulsers]]\nresource = "loop://"\n[[pulsers]]',
+                     '[[pulsers]]\nresource = "loop://"\nchannel = 2\n[[pulsers]]'))
+    with pytest.raises(BenchConfigError) as caught:
+        BenchConfig.load(write(tmp_path, text + "[extra]\n"))
+    keys = [p.split(":")[0] for p in caught.value.problems]
+    assert keys == ["extra", "limits.max_drive_vpp", "calibration.speed_of_sound_m_s",
+                    "drive.load_ohm", "pulsers[0].channel"]
+    message = str(caught.value)
+    assert message.startswith(f"{tmp_path / 'bench.toml'}: extra: unknown section")
+    assert all(p in message for p in caught.value.problems)
+    # one problem: the message as before, file: key: rule
+    with pytest.raises(BenchConfigError) as one:
+        BenchConfig.load(write(tmp_path, GOOD.replace('load_ohm = "inf"', "")))
+    assert str(one.value) == (f"{tmp_path / 'bench.toml'}: drive.load_ohm: missing: the load "
+                              "this generator drives, 50 (a 50 ohm input) or \"inf\" (high "
+                              "impedance, e.g. an amplifier); the voltage limits apply to the "
+                              "voltage shown for it")
+    assert one.value.problems == [str(one.value).split(": ", 1)[1]]
