@@ -72,3 +72,25 @@ def test_import_of_a_file_that_is_no_uff_says_what_it_is(tmp_path, capsys):
         err = capsys.readouterr().err
         assert reason in err and "truncated" not in err, err
         assert not (tmp_path / f"{name}.h5").exists()
+
+
+def test_export_with_unknown_shape_entries_counts_the_modes_written(tmp_path, capsys):
+    # `ema` writes null for a shape entry not measured around its mode: --modes refused
+    # such a file ("not a `pelvislab ema` result"), and a mode with no entry at all was
+    # counted in "(N modes)" though no dataset 55 was written for it
+    frf = sample_frfset(6)
+    write_frf(tmp_path / "s.h5", frf)
+    doc = {"outputs": [{"name": n} for n in frf.outputs.name],
+           "modes": [{"frequency_hz": 50.0, "damping_ratio": 0.02,
+                      "shape": {"re": [None, 0.5, 1.0], "im": [None, 0.0, 0.1]}},
+                     {"frequency_hz": 120.0, "damping_ratio": 0.01,
+                      "shape": {"re": [None] * 3, "im": [None] * 3}}]}
+    (tmp_path / "e.json").write_text(json.dumps(doc))
+    argv = ["export-uff", str(tmp_path / "s.h5"), str(tmp_path / "m.uff"), "--modes",
+            str(tmp_path / "e.json")]
+    assert main(argv) == 0
+    err = capsys.readouterr().err
+    assert "(1 modes)" in err and "the mode at 120 Hz is not in the file" in err
+    sets = [s for s in pyuff.UFF(str(tmp_path / "m.uff")).read_sets()
+            if s["type"] == 55]
+    assert len(sets) == 1 and len(sets[0]["node_nums"]) == 2

@@ -59,7 +59,11 @@ def _modes_from_json(path: Path, frf: object) -> object:
     try:
         names = [o["name"] for o in doc["outputs"]]
         modes = doc["modes"]
-        shapes = np.array([np.array(m["shape"]["re"]) + 1j * np.array(m["shape"]["im"])
+        def part(values: list) -> np.ndarray:
+            # `ema` writes null for an entry not measured around the mode (strict JSON)
+            return np.array([np.nan if v is None else v for v in values], dtype=float)
+
+        shapes = np.array([part(m["shape"]["re"]) + 1j * part(m["shape"]["im"])
                            for m in modes]).T.reshape(len(names), len(modes))
         freq = np.array([m["frequency_hz"] for m in modes], dtype=float)
         zeta = np.array([m["damping_ratio"] for m in modes], dtype=float)
@@ -101,7 +105,15 @@ def run_export(args: argparse.Namespace) -> int:
     if frf.H_std is not None:
         print("note: H_std is not in the UFF file (dataset 58 has no place for it): an "
               "analysis of the imported file estimates the noise instead", file=sys.stderr)
-    n_modes = 0 if modes is None else len(modes.frequency_hz)
+    n_modes = 0
+    if modes is not None:
+        # a mode without any shape entry (no FRF measured around it) gets no dataset 55
+        written = np.isfinite(np.asarray(modes.shapes)).any(axis=0)
+        n_modes = int(written.sum())
+        for f_hz, ok in zip(modes.frequency_hz, written, strict=True):
+            if not ok:
+                print(f"note: the mode at {f_hz:.6g} Hz is not in the file: no output has a "
+                      "shape entry for it (no FRF measured around it)", file=sys.stderr)
     print(f"wrote {out}: {n} datasets ({n_modes} modes)", file=sys.stderr)
     return 0
 
