@@ -80,6 +80,27 @@ def display_columns(frequency_hz: np.ndarray, max_columns: int = 4000
     return index, low, high
 
 
+def candidate_rows(report: dict[str, Any]) -> list[tuple[str, str, str, str, str]]:
+    """The gap pane's candidate table from a diagnosis report (design 4.4): per candidate
+    (effect, status, gap after, shrink, evidence), the verdict's effect first and marked
+    ``named``, the others by shrink. A candidate the verdict did not name has its shrink in
+    parentheses with why it is not named: an aborted demo file showed "100 %" for an effect
+    whose drop was not significant, beside the verdict ``none``."""
+    verdict = str(report.get("verdict", ""))
+    others = {"none": "not significant", "unexplained": "not near the noise"}
+    status_other = others.get(verdict, f"not named ({verdict} is)")
+    ranked = sorted(report.get("candidates", []),
+                    key=lambda c: (c.get("effect") != verdict, -c.get("shrink", 0.0)))
+    rows = []
+    for cand in ranked:
+        named = cand.get("effect") == verdict
+        shrink = f"{100 * cand.get('shrink', float('nan')):.0f} %"
+        rows.append((str(cand.get("effect", "")), "named" if named else status_other,
+                     f"{cand.get('gap_after', float('nan')):.3g}",
+                     shrink if named else f"({shrink})", str(cand.get("evidence", ""))))
+    return rows
+
+
 def identification_summary(document: dict[str, Any]) -> str:
     """One line (HTML) on an identification's JSON: converged or not and why, the misfit."""
     rms = document.get("rms_residual")
@@ -233,12 +254,13 @@ class ReplayView(QtWidgets.QWidget):
         self.residual_bar.setImageItem(self.residual_image,
                                        insert_in=self.residual_plot.getPlotItem())
         gap_layout.addWidget(self.residual_plot, 2)
-        self.candidate_table = QtWidgets.QTableWidget(0, 4)
+        self.candidate_table = QtWidgets.QTableWidget(0, 5)
         self.candidate_table.setHorizontalHeaderLabels(
-            ("effect", "gap after", "shrink", "evidence"))
+            ("effect", "verdict", "gap after", "shrink", "evidence"))
         self.candidate_table.horizontalHeader().setStretchLastSection(True)
-        self.candidate_table.horizontalHeader().setSectionResizeMode(
-            0, QtWidgets.QHeaderView.ResizeMode.ResizeToContents)
+        for column in (0, 1):
+            self.candidate_table.horizontalHeader().setSectionResizeMode(
+                column, QtWidgets.QHeaderView.ResizeMode.ResizeToContents)
         self.candidate_table.verticalHeader().setVisible(False)
         gap_layout.addWidget(self.candidate_table, 1)
         self.tabs.addTab(gap_page, "Gap diagnosis")
@@ -572,13 +594,14 @@ class ReplayView(QtWidgets.QWidget):
             labels = list(getattr(result, "row_labels", []))
             axis = self.residual_plot.getAxis("left")
             axis.setTicks([[(i + 0.5, text) for i, text in enumerate(labels)]])
-        candidates = sorted(report.get("candidates", []), key=lambda c: -c.get("shrink", 0.0))
-        self.candidate_table.setRowCount(len(candidates))
-        for r, cand in enumerate(candidates):
-            values = (cand.get("effect", ""), f"{cand.get('gap_after', float('nan')):.3g}",
-                      f"{100 * cand.get('shrink', float('nan')):.0f} %", cand.get("evidence", ""))
+        rows = candidate_rows(report)
+        self.candidate_table.setRowCount(len(rows))
+        for r, values in enumerate(rows):
             for c, text in enumerate(values):
-                self.candidate_table.setItem(r, c, QtWidgets.QTableWidgetItem(str(text)))
+                item = QtWidgets.QTableWidgetItem(text)
+                if values[1] != "named":  # not the verdict: greyed, its shrink in ( )
+                    item.setForeground(QtCore.Qt.GlobalColor.gray)
+                self.candidate_table.setItem(r, c, item)
         self.tabs.setCurrentIndex(3)
 
     def run_ema(self) -> None:

@@ -373,3 +373,24 @@ def test_replay_result_of_a_file_no_longer_open_is_discarded(operator_window, qt
     assert "discarded" in replay.analysis_status.text()
     assert replay.mode_table.rowCount() == 0
 
+
+
+def test_gap_candidates_say_which_the_verdict_named():
+    # an aborted demo file: "100 %" beside verdict none for a candidate not significant
+    from pelvislab.app.gui_replay import candidate_rows
+
+    def cand(effect, shrink):
+        return {"effect": effect, "gap_after": 1.0 - shrink, "shrink": shrink,
+                "evidence": f"{effect} ..."}
+
+    report = {"verdict": "none", "candidates": [cand("added_mass", 0.2),
+                                                cand("soft_tissue", 1.0)]}
+    assert candidate_rows(report) == [
+        ("soft_tissue", "not significant", "0", "(100 %)", "soft_tissue ..."),
+        ("added_mass", "not significant", "0.8", "(20 %)", "added_mass ...")]
+    report["verdict"] = "added_mass"
+    rows = candidate_rows(report)
+    assert rows[0][:4] == ("added_mass", "named", "0.8", "20 %")
+    assert rows[1][:4] == ("soft_tissue", "not named (added_mass is)", "0", "(100 %)")
+    report["verdict"] = "unexplained"
+    assert {r[1] for r in candidate_rows(report)} == {"not near the noise"}
