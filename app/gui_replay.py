@@ -80,6 +80,11 @@ def display_columns(frequency_hz: np.ndarray, max_columns: int = 4000
     return index, low, high
 
 
+PARAM_TABLE_MIN_WIDTH_PX = 340
+"""The identification pane's parameter table before a fit fills it (px); then as wide as
+its contents."""
+
+
 def candidate_rows(report: dict[str, Any]) -> list[tuple[str, str, str, str, str]]:
     """The gap pane's candidate table from a diagnosis report (design 4.4): per candidate
     (effect, status, gap after, shrink, evidence), the verdict's effect first and marked
@@ -233,7 +238,7 @@ class ReplayView(QtWidgets.QWidget):
         self.param_table = QtWidgets.QTableWidget(0, 3)
         self.param_table.setHorizontalHeaderLabels(("parameter", "value", "std"))
         self.param_table.verticalHeader().setVisible(False)
-        self.param_table.setFixedWidth(340)
+        self.param_table.setFixedWidth(PARAM_TABLE_MIN_WIDTH_PX)
         self.param_table.horizontalHeader().setSectionResizeMode(
             0, QtWidgets.QHeaderView.ResizeMode.ResizeToContents)
         self.ident_frf = FrfPanel()
@@ -516,6 +521,12 @@ class ReplayView(QtWidgets.QWidget):
             std = entry.get("std")
             self.param_table.setItem(r, 2, QtWidgets.QTableWidgetItem(
                 "" if std is None else f"{std:.2g}"))
+        # as wide as its contents (the std column sat behind a horizontal scrollbar)
+        table = self.param_table
+        table.resizeColumnsToContents()
+        width = sum(table.columnWidth(c) for c in range(table.columnCount()))
+        width += 2 * table.frameWidth() + table.verticalScrollBar().sizeHint().width()
+        table.setFixedWidth(width)
         self.ident_frf.clear_curves()
         frf = getattr(report, "frf", None)
         model_H = getattr(report, "model_H", None)

@@ -6,7 +6,7 @@ from __future__ import annotations
 import time
 
 import pytest
-from PySide6 import QtCore
+from PySide6 import QtCore, QtWidgets
 
 from pelvislab.acquisition.session import SessionReader
 
@@ -107,7 +107,6 @@ def test_the_state_banner_and_set_up_follow_the_run(operator_window, qtbot, tmp_
 def test_esc_stops_the_run_while_a_modal_dialog_is_open(operator_window, qtbot, tmp_path):
     # GUI review, session 35: with a file chooser or a message box open during a run, Esc
     # only closed the dialog and the shaker kept driving
-    from PySide6 import QtWidgets
 
     window = operator_window()
     out = _demo_past_its_first_prompt(window, qtbot, tmp_path)
@@ -252,6 +251,10 @@ def test_replay_identification_shows_parameters_and_model_frfs(operator_window, 
     assert {"k_io_R (N/m)", "c_pub (N s/m)", "m_sacrum (kg)"} <= names
     assert replay.ident_frf._model, "no model FRF drawn"
     assert replay.tabs.currentIndex() == 2
+    # every column in view (the std column sat behind a horizontal scrollbar)
+    qtbot.waitUntil(lambda: replay.param_table.isVisible(), timeout=5_000)
+    QtWidgets.QApplication.processEvents()
+    assert replay.param_table.horizontalScrollBar().maximum() == 0
     # the fit's verdict is said (the pane showed values only, converged or not)
     assert replay.ident_summary.text().startswith("<b>converged</b> — rms residual")
     from pelvislab.app.gui_replay import identification_summary
