@@ -680,6 +680,7 @@ def _aligned_reference(g: _Groups, delay: np.ndarray, good: np.ndarray, G: int,
 def _track_block(W: np.ndarray, ref: _Reference, L: int, opts: TrackingOptions,
                  band: _Band, rebuilds: int,
                  valid: tuple[np.ndarray, np.ndarray] | None = None,
+                 calibration_windows: np.ndarray | None = None,
                  ) -> tuple[_BlockResult, _Reference, _Groups]:
     """Coarse pass, ``rebuilds`` aligned-average reference rebuilds, fine pass.
 
@@ -687,7 +688,22 @@ def _track_block(W: np.ndarray, ref: _Reference, L: int, opts: TrackingOptions,
     the border of the lag range (they left the gate). ``valid``: per row, the window columns
     [lo, hi) that lie inside the record (windows cut from a zero-padded record); echoes cut by
     the record's edge get the energy-normalised correlation and are kept out of references.
+    calibration_windows: (k, G + 2L) windows of echoes wholly inside the record, taken
+        elsewhere in it, each at its own gate; used only when ``W`` holds fewer than
+        ``_CUT_CALIBRATION_MIN_ECHOES`` whole echoes and at least one cut echo (with
+        ``valid``): they are then tracked along with ``W`` so that :func:`_cut_calibration`
+        measures the cut echoes' offset on them. They stay out of reference rebuilds and of
+        the returned result (n rows); the returned groups hold them too.
     """
+    n_own = W.shape[0]
+    if valid is not None and calibration_windows is not None and calibration_windows.size:
+        whole_own = (valid[0] <= 0) & (valid[1] >= W.shape[1])
+        if (not whole_own.all()
+                and np.count_nonzero(whole_own) < _CUT_CALIBRATION_MIN_ECHOES):
+            k = calibration_windows.shape[0]
+            W = np.concatenate([W, calibration_windows.astype(W.dtype, copy=False)])
+            valid = (np.concatenate([valid[0], np.zeros(k, dtype=valid[0].dtype)]),
+                     np.concatenate([valid[1], np.full(k, W.shape[1], dtype=valid[1].dtype)]))
     G = ref.q.size
     delay, lag, edge = _coarse(W, ref, L, max(1, min(opts.coarse_lag_step, L)))
     edge |= np.abs(lag) > L - _FINE_HALF
@@ -698,6 +714,7 @@ def _track_block(W: np.ndarray, ref: _Reference, L: int, opts: TrackingOptions,
         good = ~edge if res is None else ~edge & (res.corr >= opts.min_correlation)
         if whole is not None:
             good = good & whole
+        good[n_own:] = False  # calibration echoes: another part of the record
         new = _aligned_reference(g, delay, good, G, band, ref.offset)
         if new is None:
             break
@@ -707,6 +724,9 @@ def _track_block(W: np.ndarray, ref: _Reference, L: int, opts: TrackingOptions,
             delay = res.delay
     res = _fine(g, ref, L, opts.estimator)
     res.edge = edge
+    if W.shape[0] > n_own:
+        res = _BlockResult(res.delay[:n_own], res.lag[:n_own], res.corr[:n_own],
+                           res.snr_db[:n_own], res.edge[:n_own])
     return res, ref, g
 
 
@@ -1275,6 +1295,11 @@ def _track_drifting(padded: np.ndarray, pad: int, m: int, start: int, G: int, L:
     carried in ``_Reference.offset`` (mean sub-sample residual of the echoes it was averaged
     from), the gate's move in ``offset_gate``. References are built from echoes wholly inside
     the record only.
+
+    A block shares one gate, so when its window reaches past the record's edge every echo in
+    it is cut and none is left to calibrate the cut-echo path on (:func:`_cut_calibration`):
+    such a block is calibrated on the good echoes of the latest block that lay wholly inside
+    the record (re-tracked with the current reference).
     """
     codes = padded
     n, M = padded.shape
@@ -1288,6 +1313,10 @@ def _track_drifting(padded: np.ndarray, pad: int, m: int, start: int, G: int, L:
     offset_gate = 0
     n_reref = 0
     rho_ref: float | None = None
+    # Windows of the latest whole block's good echoes. Without them a block cut by the
+    # record's edge had no zero for its in-record delays: blocks came out ~1.5 samples off
+    # (reference echo itself cut by the record's start; docs/tracking.md).
+    calibration: np.ndarray | None = None
     step = max(1, min(opts.coarse_lag_step, L))
     for b0 in range(0, n, B):
         rows = slice(b0, min(n, b0 + B))
@@ -1301,7 +1330,7 @@ def _track_drifting(padded: np.ndarray, pad: int, m: int, start: int, G: int, L:
             nb = W.shape[0]
             valid = (np.full(nb, pad - lo), np.full(nb, pad + m - lo))
             whole = bool(valid[0][0] <= 0 and valid[1][0] >= W.shape[1])
-            res, _, _ = _track_block(W, ref, L, opts, band, 0, valid)
+            res, _, _ = _track_block(W, ref, L, opts, band, 0, valid, calibration)
             if attempt == 2 or not np.any(res.edge):
                 break
             if np.mean(res.edge) > 0.5:
@@ -1338,6 +1367,8 @@ def _track_drifting(padded: np.ndarray, pad: int, m: int, start: int, G: int, L:
                 delay[rows] = np.where(ok, offset_gate + res.delay + ref.offset, np.nan)
                 corr[rows], snr[rows], lost[rows] = res.corr, res.snr_db, ~ok
                 good = ok & (res.corr >= opts.min_correlation)
+        if whole and np.count_nonzero(good) >= _CUT_CALIBRATION_MIN_ECHOES:
+            calibration = W[good]  # the nearest in time: the echo shape the next blocks have
         if np.count_nonzero(good) >= 4:
             rho = float(np.median(res.corr[good]))
             if rho_ref is None:
