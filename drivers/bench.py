@@ -436,9 +436,13 @@ def _table(data: Mapping[str, Any], key: str, err: _ErrFactory) -> Mapping[str, 
 
 def _check_keys(table: Mapping[str, Any], known: set[str], prefix: str,
                 err: _ErrFactory) -> None:
-    for k in table:
-        if k not in known:
-            raise err(f"{prefix}.{k}", f"unknown key (known: {sorted(known)})")
+    """Every key of ``table`` outside ``known``, all in one error (one problem each)."""
+    unknown = [str(k) for k in table if k not in known]
+    if unknown:
+        first = err(f"{prefix}.{unknown[0]}", f"unknown key (known: {sorted(known)})")
+        first.problems = [f"{prefix}.{k}: unknown key (known: {sorted(known)})"
+                          for k in unknown]
+        raise first
 
 
 def _positive(value: Any, key: str, err: _ErrFactory) -> float:

@@ -410,14 +410,16 @@ def test_every_problem_of_a_bench_file_is_reported_at_once(tmp_path):
             .replace('speed_of_sound_m_s = 1550.0', 'speed_of_sound_m_s = "fast"')
             .replace('[[pulsers]]\nresource = "loop://"\n[[pulsers]]',
                      '[[pulsers]]\nresource = "loop://"\nchannel = 2\n[[pulsers]]'))
+    text = text.replace("[limits]\n", "[limits]\nmax_drive = 1\nmax_trig = 2\n")
     with pytest.raises(BenchConfigError) as caught:
         BenchConfig.load(write(tmp_path, text + "[extra]\n"))
     keys = [p.split(":")[0] for p in caught.value.problems]
-    assert keys == ["extra", "limits.max_drive_vpp", "calibration.speed_of_sound_m_s",
-                    "drive.load_ohm", "pulsers[0].channel"]
+    assert keys == ["extra", "limits.max_drive", "limits.max_trig", "limits.max_drive_vpp",
+                    "calibration.speed_of_sound_m_s", "drive.load_ohm", "pulsers[0].channel"]
+    assert "(and 1 more)" in str(caught.value)
     message = str(caught.value)
     assert message.startswith(f"{tmp_path / 'bench.toml'}: extra: unknown section")
-    assert all(p in message for p in caught.value.problems)
+    assert all(p in message for p in caught.value.problems[:6])
     # one problem: the message as before, file: key: rule
     with pytest.raises(BenchConfigError) as one:
         BenchConfig.load(write(tmp_path, GOOD.replace('load_ohm = "inf"', "")))
