@@ -290,7 +290,7 @@ class BenchConfig:
                 if not isinstance(raw_file, str) or not raw_file.strip():
                     raise err("calibration.drive_calibration_file",
                               "must be the path of a CSV file (relative to the bench file)")
-                table_source = Path(raw_file)
+                table_source = Path(raw_file).expanduser()
                 if not table_source.is_absolute() and source is not None:
                     table_source = Path(source).parent / table_source
                 table_hz, table_n_per_v = _read_drive_calibration(
@@ -339,7 +339,7 @@ class BenchConfig:
                 raise err(label, "must be a table")
             driver = raw.get("driver", _DEFAULT_DRIVER[role])
             allowed = _DRIVER_OPTIONS[role]
-            if driver not in allowed:
+            if not isinstance(driver, str) or driver not in allowed:
                 raise err(f"{label}.driver",
                           f"unknown driver {driver!r} for this role (known: {sorted(allowed)})")
             opts: dict[str, Any] = {}
@@ -484,33 +484,52 @@ DRIVE_CALIBRATION_COLUMNS = {
 """The header lines a drive calibration file may have, and what its columns hold."""
 
 
+MAX_CALIBRATION_PHASE_STEP_DEG = 90.0
+"""Largest phase turn (degrees) between neighbouring rows of a drive calibration: beyond it
+the interpolation's branch is a guess (a 200 degree turn read as -160 flips the force)."""
+
+
 def _read_drive_calibration(path: Path, err: Callable[[str], BenchConfigError]
                             ) -> tuple[tuple[float, ...], tuple[complex, ...]]:
     """A drive calibration CSV: ``#`` comment lines, a header naming the columns (one of
     :data:`DRIVE_CALIBRATION_COLUMNS`), then one row per frequency (Hz, increasing
     strictly, at least two rows): the chain's N per V peak as real and imaginary parts, or
-    as magnitude and phase (degrees). Every problem names the file and line."""
+    as magnitude and phase (degrees). Neighbouring rows may turn the phase by at most
+    :data:`MAX_CALIBRATION_PHASE_STEP_DEG`. Every problem names the file and line; the
+    usual spreadsheet exports (a UTF-8 byte-order mark, trailing empty cells, a non-UTF-8
+    comment) are read, and ``;``- or tab-separated files are named as such."""
     import csv
 
     if not path.is_file():
         raise err(f"file not found: {path}")
     try:
-        text = path.read_text(encoding="utf-8")
-    except (OSError, UnicodeDecodeError) as exc:
+        # "CSV UTF-8" from a spreadsheet starts with a byte-order mark; a comment in
+        # another encoding must not make the numbers unreadable
+        text = path.read_bytes().decode("utf-8-sig", errors="replace")
+    except OSError as exc:
         raise err(f"{path}: cannot be read: {exc}") from None
     kind = None
     freqs: list[float] = []
     values: list[complex] = []
-    for line_no, row in enumerate(csv.reader(text.splitlines()), start=1):
+    phases_deg: list[float] = []
+    for line_no, (line, row) in enumerate(
+            zip(text.splitlines(), csv.reader(text.splitlines()), strict=True), start=1):
         cells = [c.strip() for c in row]
-        if not cells or not any(cells) or cells[0].startswith("#"):
+        while cells and not cells[-1]:  # a trailing separator (spreadsheet exports)
+            cells.pop()
+        if not cells or cells[0].startswith("#"):
             continue
         where = f"{path}:{line_no}"
+        if ";" in line or "\t" in line:
+            sep = "';'" if ";" in line else "tabs"
+            raise err(f"{where}: separated by {sep} ({line.strip()!r}; a European "
+                      "spreadsheet?): save it comma-separated with '.' decimals")
         if kind is None:
             kind = DRIVE_CALIBRATION_COLUMNS.get(tuple(c.lower() for c in cells))
             if kind is None:
                 heads = " or ".join(",".join(h) for h in DRIVE_CALIBRATION_COLUMNS)
-                raise err(f"{where}: the first line must name the columns: {heads}")
+                raise err(f"{where}: the first line must name the columns: {heads} "
+                          f"(read: {line.strip()!r})")
             continue
         if len(cells) != 3:
             raise err(f"{where}: 3 values expected, got {len(cells)}")
@@ -527,8 +546,19 @@ def _read_drive_calibration(path: Path, err: Callable[[str], BenchConfigError]
                  else a * cmath.exp(1j * math.radians(b)))
         if not cmath.isfinite(value) or value == 0 or (kind == "abs/phase" and a <= 0):
             raise err(f"{where}: the N/V value must be finite and non-zero")
+        # the file's own phase when it gives one; re/im: the shortest turn from the last
+        phase = b if kind == "abs/phase" else math.degrees(cmath.phase(value))
+        if phases_deg:
+            turn = phase - phases_deg[-1]
+            if kind == "re/im":
+                turn = (turn + 180.0) % 360.0 - 180.0
+            if abs(turn) > MAX_CALIBRATION_PHASE_STEP_DEG:
+                raise err(f"{where}: the phase turns {turn:+.0f} deg from {freqs[-1]:g} to "
+                          f"{f_hz:g} Hz, more than {MAX_CALIBRATION_PHASE_STEP_DEG:g} deg "
+                          "between rows: too coarse to interpolate, add rows there")
         freqs.append(f_hz)
         values.append(value)
+        phases_deg.append(phase)
     if kind is None or len(freqs) < 2:
         raise err(f"{path}: needs a header line and at least two rows "
                   "(frequency_hz, N/V); the calibration is not extrapolated")

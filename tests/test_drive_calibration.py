@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import cmath
 import math
+import re
 
 import numpy as np
 import pytest
@@ -99,11 +100,31 @@ def test_magnitude_and_phase_columns(tmp_path):
      "cal.csv:2: 3 values expected, got 2"),
     ("frequency_hz,newton_per_volt_abs,newton_per_volt_phase_deg\n10,-1,0\n20,1,0\n",
      "cal.csv:2: the N/V value must be finite and non-zero"),
+    # a coarse table across a resonance: -200 deg read as +160 would flip the force
+    ("frequency_hz,newton_per_volt_abs,newton_per_volt_phase_deg\n10,1,0\n20,1,-200\n",
+     "cal.csv:3: the phase turns -200 deg from 10 to 20 Hz, more than 90 deg"),
+    ("frequency_hz,newton_per_volt_re,newton_per_volt_im\n10,1,0\n20,-1,0.1\n",
+     "cal.csv:3: the phase turns +174 deg"),
+    ("frequency_hz;newton_per_volt_re;newton_per_volt_im\n10;8,5;0\n",
+     "cal.csv:1: separated by ';' ('frequency_hz;newton_per_volt_re;newton_per_volt_im'; "
+     "a European spreadsheet?)"),
+    ("freq,re,im\n", "(read: 'freq,re,im')"),
 ])
 def test_a_bad_calibration_file_is_named_with_its_line(tmp_path, text, message):
     with pytest.raises(BenchConfigError, match="calibration.drive_calibration_file: .*"
-                                               + message.replace(".", r"\.")):
+                                               + re.escape(message)):
         BenchConfig.load(write_bench(tmp_path, text))
+
+
+def test_spreadsheet_exports_are_read(tmp_path):
+    # "CSV UTF-8" (byte-order mark), a separator after every row, a comment in cp1252
+    text = ("\ufefffrequency_hz,newton_per_volt_re,newton_per_volt_im,\r\n"
+            "10,8,0,\r\n20,7,-1,\r\n")
+    path = write_bench(tmp_path)
+    (tmp_path / "cal.csv").write_bytes(text.encode("utf-8") + "# 25 \xb0C\r\n".encode("cp1252"))
+    cfg = BenchConfig.load(path)
+    assert cfg.drive_calibration_frequency_hz == (10.0, 20.0)
+    assert cfg.drive_calibration_newton_per_volt == (8 + 0j, 7 - 1j)
 
 
 def test_constant_and_table_together_or_a_missing_file_are_refused(tmp_path):
