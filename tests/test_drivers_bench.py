@@ -428,3 +428,9 @@ def test_every_problem_of_a_bench_file_is_reported_at_once(tmp_path):
                               "impedance, e.g. an amplifier); the voltage limits apply to the "
                               "voltage shown for it")
     assert one.value.problems == [str(one.value).split(": ", 1)[1]]
+
+
+def test_a_driver_that_is_not_a_name_is_a_problem_not_a_crash(tmp_path):
+    text = GOOD.replace('[drive]\n', '[drive]\ndriver = ["agilent33220a"]\n')
+    with pytest.raises(BenchConfigError, match=r"drive\.driver: unknown driver \['agilent"):
+        BenchConfig.load(write(tmp_path, text))
