@@ -743,6 +743,16 @@ class Runner:
         us = proto.ultrasound
         channels = proto.channels
         self._n_new = 0
+        cfg = bench.config
+        # every step's force calibration, before a prompt or an output: a runner not made
+        # through parse_protocol's bench limits (its public API) failed at the first step
+        # outside the table, after the operator had placed the transducers
+        force_per_volt_by_hz = {
+            s.frequency_hz: calibrated_newton_per_volt(
+                s.frequency_hz, cfg.drive_newton_per_volt,
+                getattr(cfg, "drive_calibration_frequency_hz", ()),
+                getattr(cfg, "drive_calibration_newton_per_volt", ()))
+            for s in todo}
         remaining_est = [proto.step_duration_s(s.frequency_hz) for s in todo]
         est_done = 0.0
         with self._lock:
@@ -753,7 +763,6 @@ class Runner:
             if ch - 1 < len(bench.pulsers):
                 bench.pulsers[ch - 1].configure(us.gain_db, us.pulse_energy, us.damping_ohm,
                                                 us.high_pass_hz, us.low_pass_hz)
-        cfg = bench.config
         n_setups = len(proto.setups)
         configured: tuple[int, tuple[int, ...]] = (-1, ())
         t_run = self._clock()
@@ -801,9 +810,7 @@ class Runner:
                 if (step.n_pulses, setup_channels) != configured:
                     self._configure(step, setup_channels)
                     configured = (step.n_pulses, setup_channels)
-                force_per_volt = calibrated_newton_per_volt(
-                    step.frequency_hz, cfg.drive_newton_per_volt,
-                    cfg.drive_calibration_frequency_hz, cfg.drive_calibration_newton_per_volt)
+                force_per_volt = force_per_volt_by_hz[step.frequency_hz]
                 data = self._acquire(step, setup, force_per_volt, started_at, level)
                 if proto.sweep.drive_mode == "auto":
                     data, level = self._auto_range(step, setup, force_per_volt, data, level)

@@ -199,3 +199,24 @@ def test_bench_check_names_the_table(tmp_path, capsys):
     out = capsys.readouterr().out
     assert (f"  drive calibration: 3 rows, 20-200 Hz (not extrapolated), from "
             f"{tmp_path / 'cal.csv'}\n") in out
+
+
+def test_a_runner_made_directly_refuses_a_step_outside_the_table_before_any_prompt(tmp_path):
+    # review: a Runner built without parse_protocol's bench limits failed at the first
+    # step outside the table, after the prompt and two measured steps
+    from pelvislab.acquisition.runner import Runner, SetupStarted
+
+    cfg = BenchConfig.load(write_bench(tmp_path))
+    protocol = tmp_path / "p.toml"
+    protocol.write_text(HEAD + PROTOCOL_SWEEP.format("40.0, 160.0, 250.0"))
+    bench = sim_bench.open_simulated_bench(cfg, generators="python")
+    runner = Runner(load_protocol(protocol), bench)
+    events = []
+    runner.subscribe(events.append)
+    try:
+        final = runner.run()
+    finally:
+        bench.close()
+    assert final.status == "failed" and final.n_done == 0
+    assert "250 Hz is outside the drive calibration's range 20-200 Hz" in final.reason
+    assert not any(isinstance(e, SetupStarted) for e in events)
