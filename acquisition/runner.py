@@ -1222,7 +1222,45 @@ def bench_differences(recorded: dict[str, Any], current: dict[str, Any]) -> list
             same = a == b
         if not same:
             out.append(f"{key}: {a!r} in the session, {b!r} now")
+    # the drive calibration in words, one line (its keys' raw values read "(8+0j) in the
+    # session, (nan+nanj) now", or printed two whole tables)
+    calibration_keys = {"drive_newton_per_volt", "drive_calibration_frequency_hz",
+                        "drive_calibration_newton_per_volt"}
+    differing = [line.split(":")[0] for line in out if line.split(":")[0] in calibration_keys]
+    if differing:
+        out = [line for line in out if line.split(":")[0] not in calibration_keys]
+        now = _drive_calibration_words(current)
+        if now.startswith("a per-frequency") and _drive_calibration_words(
+                recorded).startswith("a per-frequency"):
+            now = f"another table ({_first_table_difference(recorded, current)})"
+        out.insert(0, f"drive calibration ({', '.join(differing)}): "
+                      f"{_drive_calibration_words(recorded)} in the session, {now} now")
     return out
+
+
+def _drive_calibration_words(bench: dict[str, Any]) -> str:
+    """A ``/bench`` description's drive calibration in a few words."""
+    table = np.atleast_1d(np.asarray(bench.get("drive_calibration_frequency_hz", []),
+                                     dtype=float))
+    if table.size:
+        return f"a per-frequency table ({table.size} rows, {table[0]:g}-{table[-1]:g} Hz)"
+    constant = bench.get("drive_newton_per_volt")
+    if constant is None:
+        return "none recorded"
+    return f"one constant {complex(constant):g} N/V"
+
+
+def _first_table_difference(a: dict[str, Any], b: dict[str, Any]) -> str:
+    """Where two per-frequency drive calibrations first differ, in words."""
+    fa = np.atleast_1d(np.asarray(a["drive_calibration_frequency_hz"], dtype=float))
+    fb = np.atleast_1d(np.asarray(b["drive_calibration_frequency_hz"], dtype=float))
+    ga = np.atleast_1d(np.asarray(a.get("drive_calibration_newton_per_volt", []), complex))
+    gb = np.atleast_1d(np.asarray(b.get("drive_calibration_newton_per_volt", []), complex))
+    if fa.shape != fb.shape or not np.allclose(fa, fb, rtol=1e-9, atol=0.0):
+        return f"{fb.size} rows, {fb[0]:g}-{fb[-1]:g} Hz"
+    row = int(np.argmax(~np.isclose(ga, gb, rtol=1e-9, atol=0.0))) if ga.shape == gb.shape \
+        else 0
+    return f"first different at {fa[row]:g} Hz: {ga[row]:.4g} -> {gb[row]:.4g} N/V"
 
 
 # --------------------------------------------------------------------------- reprocessing

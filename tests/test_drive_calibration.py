@@ -181,15 +181,41 @@ def test_resume_compares_the_table(tmp_path):
              "drive_calibration_frequency_hz": np.array(TABLE_HZ),
              "drive_calibration_newton_per_volt": np.array(TABLE_N_PER_V)}
     assert bench_differences(table, dict(table)) == []
-    other = dict(table, drive_calibration_newton_per_volt=np.array(TABLE_N_PER_V) * 1.1)
-    assert [d.split(":")[0] for d in bench_differences(table, other)] == [
-        "drive_calibration_newton_per_volt"]
+    values = np.array(TABLE_N_PER_V)
+    values[1] *= 1.1
+    other = dict(table, drive_calibration_newton_per_volt=values)
+    assert bench_differences(table, other) == [
+        "drive calibration (drive_calibration_newton_per_volt): a per-frequency table (3 "
+        "rows, 20-200 Hz) in the session, another table (first different at 100 Hz: "
+        "4.915-3.441j -> 5.406-3.786j N/V) now"]
     constant = {"simulated": True, "drive_newton_per_volt": 8.0, "speed_of_sound_m_s": 1540.0}
-    assert {d.split(":")[0] for d in bench_differences(table, constant)} == {
-        "drive_newton_per_volt", "drive_calibration_frequency_hz",
-        "drive_calibration_newton_per_volt"}
-    assert [d.split(":")[0] for d in bench_differences(constant, table)] == [
-        "drive_newton_per_volt"]
+    (line,) = bench_differences(table, constant)
+    assert line.endswith("a per-frequency table (3 rows, 20-200 Hz) in the session, one "
+                         "constant 8+0j N/V now")
+    assert bench_differences(constant, table) == [
+        "drive calibration (drive_newton_per_volt): one constant 8+0j N/V in the session, "
+        "a per-frequency table (3 rows, 20-200 Hz) now"]
+
+
+def test_resume_on_the_same_table_through_the_file(tmp_path):
+    cfg = BenchConfig.load(write_bench(tmp_path))
+    protocol = tmp_path / "p.toml"
+    protocol.write_text(HEAD + PROTOCOL_SWEEP.format("40.0, 160.0"))
+    out = tmp_path / "s.h5"
+    with prepare_session(protocol, out, bench=sim_bench.open_simulated_bench(
+            cfg, generators="python")) as session:
+        session.runner.abort("stopped for the test")
+        session.run()
+    with prepare_session(protocol, out, resume=True, bench=sim_bench.open_simulated_bench(
+            cfg, generators="python")) as session:
+        assert session.run().status == "completed"
+    (tmp_path / "cal.csv").write_text((tmp_path / "cal.csv").read_text().replace(
+        "20,", "10,"))
+    with pytest.raises(ValueError, match=r"drive calibration \(drive_calibration_frequency_hz"
+                                         r"\): a per-frequency table \(3 rows, 20-200 Hz\) in "
+                                         r"the session, another table \(3 rows, 10-200 Hz\)"):
+        prepare_session(protocol, out, resume=True, bench=sim_bench.open_simulated_bench(
+            BenchConfig.load(tmp_path / "bench.toml"), generators="python"))
 
 
 def test_bench_check_names_the_table(tmp_path, capsys):
