@@ -787,13 +787,18 @@ def parse_protocol(text: str, source: str = "<string>", limits: BenchLimits | No
         if calibrated is not None:
             lo, hi = calibrated
             tol = 1e-9 * hi  # as the interpolation's own edge (frf_lines)
-            outside = [f for f in freqs if not lo - tol <= f <= hi + tol]
-            if outside:
-                p.add("sweep.stop_hz" if "stop_hz" in sw else "sweep.frequencies_hz",
-                      f"{len(outside)} of {len(freqs)} frequencies ({min(outside):g}-"
-                      f"{max(outside):g} Hz) lie outside the drive calibration of "
-                      f"{limits.name} ({lo:g}-{hi:g} Hz), which is not extrapolated: "
-                      "calibrate the drive chain over the sweep, or narrow the sweep")
+            below = [f for f in freqs if f < lo - tol]
+            above = [f for f in freqs if f > hi + tol]
+            for side, key, where in ((below, "start_hz", f"below {lo:g} Hz"),
+                                     (above, "stop_hz", f"above {hi:g} Hz")):
+                if side:
+                    span = (f"{side[0]:g} Hz" if len(side) == 1
+                            else f"{min(side):g}-{max(side):g} Hz")
+                    p.add(f"sweep.{key}" if key in sw else "sweep.frequencies_hz",
+                          f"{len(side)} of {len(freqs)} frequencies ({span}) {where}, "
+                          f"outside the drive calibration of {limits.name} "
+                          f"({lo:g}-{hi:g} Hz), which is not extrapolated: calibrate the "
+                          "drive chain over the sweep, or narrow the sweep")
         if ultrasound is not None:
             nyquist = ultrasound.prf_hz / 2
             if max(freqs) >= nyquist:

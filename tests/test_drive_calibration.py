@@ -142,10 +142,22 @@ PROTOCOL_SWEEP = "[sweep]\nfrequencies_hz = [{}]\ndrive_vpp = 0.2\nperiods_per_s
 def test_a_sweep_beyond_the_calibration_is_refused_before_anything_opens(tmp_path):
     cfg = BenchConfig.load(write_bench(tmp_path))
     protocol = tmp_path / "p.toml"
-    protocol.write_text(HEAD + PROTOCOL_SWEEP.format("40.0, 250.0, 300.0"))
-    with pytest.raises(ProtocolError, match=r"2 of 3 frequencies \(250-300 Hz\) lie outside "
-                                            r"the drive calibration .*\(20-200 Hz\)"):
+    protocol.write_text(HEAD + PROTOCOL_SWEEP.format("10.0, 40.0, 250.0, 300.0"))
+    with pytest.raises(ProtocolError) as caught:
         load_protocol(protocol, BenchLimits.from_config(cfg))
+    assert caught.value.problems == [
+        "sweep.frequencies_hz: 1 of 4 frequencies (10 Hz) below 20 Hz, outside the drive "
+        "calibration of bench (20-200 Hz), which is not extrapolated: calibrate the drive "
+        "chain over the sweep, or narrow the sweep",
+        "sweep.frequencies_hz: 2 of 4 frequencies (250-300 Hz) above 200 Hz, outside the "
+        "drive calibration of bench (20-200 Hz), which is not extrapolated: calibrate the "
+        "drive chain over the sweep, or narrow the sweep"]
+    ranged = tmp_path / "ranged.toml"
+    ranged.write_text(HEAD + "[sweep]\nstart_hz = 10.0\nstop_hz = 100.0\nstep_hz = 10.0\n"
+                      "drive_vpp = 0.2\nperiods_per_step = 10\n")
+    with pytest.raises(ProtocolError, match=r"sweep\.start_hz: 1 of 10 frequencies \(10 Hz\) "
+                                            r"below 20 Hz"):
+        load_protocol(ranged, BenchLimits.from_config(cfg))
     load_protocol(protocol)  # one constant N/V: no range to keep to
     bench_path = tmp_path / "bench.toml"
     with pytest.raises(ProtocolError, match="outside the drive calibration"):
