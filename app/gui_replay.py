@@ -89,20 +89,40 @@ def candidate_rows(report: dict[str, Any]) -> list[tuple[str, str, str, str, str
     """The gap pane's candidate table from a diagnosis report (design 4.4): per candidate
     (effect, status, gap after, shrink, evidence), the verdict's effect first and marked
     ``named``, the others by shrink. A candidate the verdict did not name has its shrink in
-    parentheses with why it is not named: an aborted demo file showed "100 %" for an effect
-    whose drop was not significant, beside the verdict ``none``."""
+    parentheses and a status saying why, as far as the report tells: within the chain's
+    tolerance (``within_tolerance``), parameter updating (a null extension such as one
+    damping per dashpot: its verdict is ``none``), not needed beside ``none`` (the
+    reason says why), not near the noise beside ``unexplained``. An aborted demo file
+    showed "100 %" for an effect whose drop was not significant, beside the verdict
+    ``none``."""
+    from pelvislab.model.gap_effects import NULL_EXTENSIONS
+
     verdict = str(report.get("verdict", ""))
-    others = {"none": "not significant", "unexplained": "not near the noise"}
-    status_other = others.get(verdict, f"not named ({verdict} is)")
+    updating_explains = str(report.get("verdict_reason", "")).startswith(
+        "parameter updating explains the data")
+
+    def status(cand: dict[str, Any]) -> str:
+        effect = cand.get("effect")
+        if effect == verdict:
+            return "named"
+        if cand.get("within_tolerance"):
+            return "within the chain's tolerance"
+        if effect in NULL_EXTENSIONS:
+            return ("explains it: updating, so none" if verdict == "none" and updating_explains
+                    else "updating, not an effect")
+        return {"none": "not needed (see the reason)",
+                "unexplained": "not near the noise"}.get(verdict, f"not named ({verdict} is)")
+
     ranked = sorted(report.get("candidates", []),
                     key=lambda c: (c.get("effect") != verdict, -c.get("shrink", 0.0)))
     rows = []
     for cand in ranked:
-        named = cand.get("effect") == verdict
+        said = status(cand)
         shrink = f"{100 * cand.get('shrink', float('nan')):.0f} %"
-        rows.append((str(cand.get("effect", "")), "named" if named else status_other,
+        rows.append((str(cand.get("effect", "")), said,
                      f"{cand.get('gap_after', float('nan')):.3g}",
-                     shrink if named else f"({shrink})", str(cand.get("evidence", ""))))
+                     shrink if said == "named" else f"({shrink})",
+                     str(cand.get("evidence", ""))))
     return rows
 
 

@@ -382,18 +382,28 @@ def test_gap_candidates_say_which_the_verdict_named():
     # an aborted demo file: "100 %" beside verdict none for a candidate not significant
     from pelvislab.app.gui_replay import candidate_rows
 
-    def cand(effect, shrink):
+    def cand(effect, shrink, **extra):
         return {"effect": effect, "gap_after": 1.0 - shrink, "shrink": shrink,
-                "evidence": f"{effect} ..."}
+                "evidence": f"{effect} ...", **extra}
 
     report = {"verdict": "none", "candidates": [cand("added_mass", 0.2),
                                                 cand("soft_tissue", 1.0)]}
     assert candidate_rows(report) == [
-        ("soft_tissue", "not significant", "0", "(100 %)", "soft_tissue ..."),
-        ("added_mass", "not significant", "0.8", "(20 %)", "added_mass ...")]
+        ("soft_tissue", "not needed (see the reason)", "0", "(100 %)", "soft_tissue ..."),
+        ("added_mass", "not needed (see the reason)", "0.8", "(20 %)", "added_mass ...")]
     report["verdict"] = "added_mass"
     rows = candidate_rows(report)
     assert rows[0][:4] == ("added_mass", "named", "0.8", "20 %")
     assert rows[1][:4] == ("soft_tissue", "not named (added_mass is)", "0", "(100 %)")
     report["verdict"] = "unexplained"
     assert {r[1] for r in candidate_rows(report)} == {"not near the noise"}
+    # review: one damping per dashpot explaining the data (verdict none), and a candidate
+    # set aside as within the chain's tolerance, were both "not significant"
+    report = {"verdict": "none",
+              "verdict_reason": "parameter updating explains the data once each dashpot ...",
+              "candidates": [cand("per_dashpot_damping", 0.93),
+                             cand("sensor_misorientation", 0.5, within_tolerance="gain ...")]}
+    assert [r[1] for r in candidate_rows(report)] == [
+        "explains it: updating, so none", "within the chain's tolerance"]
+    report["verdict_reason"] = "base gap 0 <= 0.5 ..."
+    assert candidate_rows(report)[0][1] == "updating, not an effect"
