@@ -223,6 +223,11 @@ class OperatorWindow(QtWidgets.QMainWindow):
         # a VISA resource ends in what tells two generators apart (their serial numbers)
         self.bench_table.setTextElideMode(QtCore.Qt.TextElideMode.ElideMiddle)
         bench_layout.addWidget(self.bench_table)
+        # which drive calibration divides every FRF line (a constant, or a table per
+        # frequency from the bench file): seen at the bed before Start
+        self.calibration_label = QtWidgets.QLabel()
+        self.calibration_label.setWordWrap(True)
+        bench_layout.addWidget(self.calibration_label)
         side_layout.addWidget(bench_box)
         self.bench_box = bench_box
 
@@ -420,6 +425,7 @@ class OperatorWindow(QtWidgets.QMainWindow):
                 self.simulated_badge.setVisible(False)
                 self._set_bench_rows([("bench file", f"invalid: {problem}",
                                        str(self.bench_path))])
+                self.calibration_label.setText("drive calibration: (bench file invalid)")
                 return
             simulated = config.simulated
         self.simulated_badge.setVisible(simulated)
@@ -436,6 +442,7 @@ class OperatorWindow(QtWidgets.QMainWindow):
             rows = [(role, "not contacted yet", section.resource)
                     for role, section in named if section is not None]
         self._set_bench_rows(rows)
+        self._show_calibration(config)
 
     def _set_bench_rows(self, rows: list[tuple[str, str, str]]) -> None:
         self.bench_table.setRowCount(len(rows))
@@ -532,6 +539,19 @@ class OperatorWindow(QtWidgets.QMainWindow):
                          str(getattr(pulser, "resource", ""))))
         self._set_bench_rows(rows)
         self.simulated_badge.setVisible(bool(getattr(bench, "simulated", False)))
+        self._show_calibration(getattr(bench, "config", None))
+
+    def _show_calibration(self, config: Any) -> None:
+        from pelvislab.app.commands.bench import drive_calibration_text
+        from pelvislab.drivers.bench import BenchConfig
+
+        config = config if config is not None else BenchConfig.default()
+        text = drive_calibration_text(config)
+        source = getattr(config, "drive_calibration_source", None)
+        if source is not None:  # the file's name; its folder in the tooltip
+            text = text.replace(str(source), Path(source).name)
+        self.calibration_label.setText(f"drive calibration: {text}")
+        self.calibration_label.setToolTip(str(source or ""))
 
     def stop_run(self) -> None:
         """STOP: outputs off immediately, then the runner ends the run as aborted."""

@@ -305,3 +305,25 @@ def test_a_real_bench_preselects_no_protocol_and_checks_against_its_limits(qtbot
     qtbot.addWidget(simulated)
     assert simulated.protocol_combo.currentText() == "demo"
     assert "invalid" not in simulated.protocol_info.text()
+
+
+def test_the_bench_box_names_the_drive_calibration(qtbot, tmp_path):
+    from pelvislab.app.gui_main import OperatorWindow
+    from pelvislab.tests.test_drive_calibration import write_bench
+    from pelvislab.tests.test_drivers_bench import GOOD
+
+    real = tmp_path / "lab.toml"
+    real.write_text(GOOD)
+    window = OperatorWindow(bench_path=real)
+    qtbot.addWidget(window)
+    assert window.calibration_label.text() == ("drive calibration: 8.5-0.4j N/V at every "
+                                               "frequency")
+    table = OperatorWindow(bench_path=write_bench(tmp_path))
+    qtbot.addWidget(table)
+    assert table.calibration_label.text() == ("drive calibration: 3 rows, 20-200 Hz (not "
+                                              "extrapolated), from cal.csv")
+    assert table.calibration_label.toolTip() == str(tmp_path / "cal.csv")
+    simulated = OperatorWindow()
+    qtbot.addWidget(simulated)
+    assert simulated.calibration_label.text() == ("drive calibration: 1+0j N/V at every "
+                                                  "frequency")
