@@ -280,7 +280,9 @@ def _run_with_signals(prepared: Any, close: bool = False,
         return f"interrupted by {names.get(signum, f'signal {signum}')}"
 
     def on_signal(signum: int, frame: object) -> None:
-        runner.interrupt(reason(signum))
+        # the watcher thread (below) puts the outputs off; from here, between two bytecodes
+        # of whatever the run was doing (inside an instrument's lock), it could deadlock
+        runner.interrupt(reason(signum), safe_state=watcher is None)
 
     # The handler's RunInterrupted only cuts a wait short (the abort is done before it is
     # raised). Landing where no exception can propagate (a weakref callback of the import
@@ -300,6 +302,7 @@ def _run_with_signals(prepared: Any, close: bool = False,
 
     sys.unraisablehook = unraisable
     previous = {}
+    watcher: _SignalWatcher | None = None  # until it runs, the handler makes safe itself
     for sig in names:
         try:
             if sig == getattr(signal, "SIGHUP", None) and \
