@@ -778,16 +778,50 @@ def auto_gate(codes: np.ndarray, sample_rate_hz: float, *, threshold: float = 0.
     (band: ``band_hz`` or 0.4-1.6 x the centre frequency); the window extends from the peak
     until the envelope drops below ``threshold`` of it, plus ``margin_samples`` each side.
     """
+    return _auto_gate(codes, sample_rate_hz, threshold, margin_samples, n_echoes,
+                      band_hz).gate
+
+
+@dataclass(frozen=True)
+class _Gate:
+    """What :func:`_auto_gate` found (all in record samples)."""
+
+    gate: tuple[int, int]  # (start, stop), within [0, m]
+    cut_before: bool  # the envelope is not below the threshold anywhere before its peak
+    cut_after: bool  # ... nor anywhere after it: the echo is cut by that edge of the record
+    peak: int  # sample of the envelope's peak
+    half_width: tuple[int, int]  # peak - window start, window stop - peak (unclipped)
+
+
+def _auto_gate(codes: np.ndarray, fs: float, threshold: float, margin_samples: int,
+               n_echoes: int, band_hz: tuple[float, float] | None) -> _Gate:
+    """:func:`auto_gate`, telling also whether the echo is cut by the record's edges."""
     x = np.asarray(codes[:n_echoes], dtype=float)
     x = x - x.mean(axis=1, keepdims=True)
     m = x.shape[1]
     if not np.any(x):
         raise ValueError("the first echoes are flat: no echo to gate on (receiver gain? "
                          "record delay?)")
-    fc = _centre_frequency_hz(x.mean(axis=0), sample_rate_hz)
+    fc = _centre_frequency_hz(x.mean(axis=0), fs)
     band = band_hz or (0.4 * fc, 1.6 * fc)
+    env = _envelopes(x, fs, band).mean(axis=0)
+    # (one row: :func:`_envelope_window`'s rule with 1-D indexing, cheaper on every record)
+    k = int(np.argmax(env))
+    below = env < threshold * env[k]
+    left = np.nonzero(below[:k])[0]
+    right = np.nonzero(below[k:])[0]
+    start = (left[-1] + 1 if left.size else 0) - margin_samples
+    stop = (k + right[0] if right.size else m) + margin_samples
+    return _Gate((max(0, int(start)), min(m, int(stop))), not left.size, not right.size, k,
+                 (k - int(start), int(stop) - k))
+
+
+def _envelopes(x: np.ndarray, fs: float, band: tuple[float, float]) -> np.ndarray:
+    """(k, m) Hilbert envelope (units of ``x``) of each row of ``x`` (k, m), mean-free,
+    band-passed to ``band`` (Hz) with a rectangular pass band."""
+    m = x.shape[1]
     nfft = int(sp_fft.next_fast_len(2 * m))
-    f = np.fft.fftfreq(nfft, 1.0 / sample_rate_hz)
+    f = np.fft.fftfreq(nfft, 1.0 / fs)
     # Analytic band-passed signal: keep the positive pass band only, doubled.
     keep = (f >= band[0]) & (f <= band[1])
     bins = np.nonzero(keep)[0]
@@ -795,17 +829,122 @@ def auto_gate(codes: np.ndarray, sample_rate_hz: float, *, threshold: float = 0.
         # A few dozen bins (2-8 MHz of a 1000-point, 500 MS/s transform: 13): the DFT over
         # them as two small matrix products, far cheaper than the two full FFTs.
         fwd, inv = _band_dft(m, nfft, tuple(bins.tolist()))
-        env = np.abs((2.0 * (x @ fwd)) @ inv).mean(axis=0)
+        return np.abs((2.0 * (x @ fwd)) @ inv)
+    spec = np.fft.fft(x, nfft, axis=1) * np.where(keep, 2.0, 0.0)
+    return np.abs(np.fft.ifft(spec, axis=1)[:, :m])
+
+
+def _envelope_window(env: np.ndarray, threshold: float, margin_samples: int
+                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Per row of ``env`` (k, m): the window from the last sample before the peak that is
+    below ``threshold`` x the peak (+1) to the first after it, widened by ``margin_samples``
+    each side; NOT clipped to the record (samples, may be < 0 or > m). Also whether no
+    sample before / after the peak is below the threshold (the echo is cut by the record's
+    start / end: the window was extended to the record's edge)."""
+    k_rows, m = env.shape
+    k = np.argmax(env, axis=1)
+    below = env < threshold * env[np.arange(k_rows), k][:, None]
+    col = np.arange(m)[None, :]
+    before = below & (col < k[:, None])
+    after = below & (col >= k[:, None])
+    cut_before = ~before.any(axis=1)
+    cut_after = ~after.any(axis=1)
+    last_before = m - 1 - np.argmax(before[:, ::-1], axis=1)
+    first_after = np.argmax(after, axis=1)
+    start = np.where(cut_before, 0, last_before + 1) - margin_samples
+    stop = np.where(cut_after, m, first_after) + margin_samples
+    return start, stop, cut_before, cut_after
+
+
+_WHOLE_SEARCH_CHUNK = 1024
+"""Pulses whose envelopes are computed at once when looking for whole echoes (memory)."""
+
+
+def _wholest_echoes(codes: np.ndarray, rows: np.ndarray, fs: float,
+                    band: tuple[float, float], threshold: float, margin_samples: int,
+                    group: int, L: int) -> tuple[np.ndarray, float]:
+    """The pulses where the echo lies most wholly inside the record: the gate and the first
+    reference are taken from them when the first echoes are cut by the record's edge.
+
+    codes: (n, m) record; rows: the pulses to consider (live ones, acquisition order);
+    band: pass band (Hz) of the envelope; threshold, margin_samples: as in :func:`auto_gate`;
+    group: pulses per group; L: lag range (samples).
+    The envelope of each pulse in ``rows`` is averaged over consecutive groups of ``group``
+    pulses (a slow motion moves the echo by a few samples within a group). A group's echo is
+    whole when its mean envelope falls below ``threshold`` x its peak on both sides of the
+    peak inside the record. Chosen: the earliest group whose window (margin and lag range
+    included) fits in the record, else the earliest whole group, else the group whose
+    envelope is lowest (relative to its peak) at its worse side. Returns the chosen group's
+    pulses, that level (fraction of the peak; below ``threshold``: whole) and the first
+    group's level.
+    """
+    n_groups = rows.size // group
+    if n_groups == 0:
+        return rows, 1.0, 1.0
+    m = codes.shape[1]
+    level = np.ones(n_groups)
+    fits = np.zeros(n_groups, dtype=bool)
+    per_chunk = max(1, _WHOLE_SEARCH_CHUNK // group)
+    for g0 in range(0, n_groups, per_chunk):
+        g1 = min(n_groups, g0 + per_chunk)
+        x = np.asarray(codes[rows[g0 * group: g1 * group]], dtype=float)
+        x = x - x.mean(axis=1, keepdims=True)
+        env = _envelopes(x, fs, band).reshape(g1 - g0, group, m).mean(axis=1)
+        k = np.argmax(env, axis=1)
+        peak = env[np.arange(env.shape[0]), k]
+        col = np.arange(m)[None, :]
+        with np.errstate(invalid="ignore", divide="ignore"):
+            low_before = np.where(col < k[:, None], env, np.inf).min(axis=1) / peak
+            low_after = np.where(col > k[:, None], env, np.inf).min(axis=1) / peak
+        level[g0:g1] = np.nan_to_num(np.minimum(np.maximum(low_before, low_after), 1.0),
+                                     nan=1.0)
+        start, stop, cut_before, cut_after = _envelope_window(env, threshold,
+                                                              margin_samples)
+        fits[g0:g1] = ~cut_before & ~cut_after & (start >= L) & (stop <= m - L)
+        if fits[g0:g1].any():
+            break  # the earliest group that fits: no need to look further
+    whole = level < threshold
+    best = (int(np.argmax(fits)) if fits.any() else int(np.argmax(whole)) if whole.any()
+            else int(np.argmin(level)))
+    return rows[best * group: (best + 1) * group], float(level[best]), float(level[0])
+
+
+def _cut_reference_warning(first: _Gate, used: _Gate, rows: np.ndarray | None, level: float,
+                           threshold: float, m: int, L: int, fs: float) -> str:
+    """The sentence saying that the first echoes are cut by the record's edge, where the gate
+    and the reference were taken instead (``rows``; None: the first echoes all the same) and,
+    unless the echo there is whole (``level`` < ``threshold``), what to change: the record
+    delay (estimated from the echo's decayed side, taken as symmetric, plus the lag range
+    ``L``) or the record's length."""
+    side = " and ".join(s for s, cut in (("start", first.cut_before), ("end", first.cut_after))
+                        if cut)
+    head = (f"the first echoes' envelope stays above {100 * threshold:.0f} % of its peak up to "
+            f"the record's {side} (the echo, or a reflection next to it, is cut by the "
+            "record's edge)")
+    if rows is not None and level < threshold:
+        return (f"{head}: gate and reference taken from pulses {int(rows[0])}-{int(rows[-1])}, "
+                "where the echo lies wholly inside the record")
+    if rows is not None:
+        text = (f"{head}, and so in every pulse: gate and reference taken from pulses "
+                f"{int(rows[0])}-{int(rows[-1])}, where the echo lies furthest inside (its "
+                f"envelope still {100 * level:.0f} % of its peak at the record's edge)")
     else:
-        spec = np.fft.fft(x, nfft, axis=1) * np.where(keep, 2.0, 0.0)
-        env = np.abs(np.fft.ifft(spec, axis=1)[:, :m]).mean(axis=0)
-    k = int(np.argmax(env))
-    below = env < threshold * env[k]
-    left = np.nonzero(below[:k])[0]
-    right = np.nonzero(below[k:])[0]
-    start = (left[-1] + 1 if left.size else 0) - margin_samples
-    stop = (k + right[0] if right.size else m) + margin_samples
-    return max(0, int(start)), min(m, int(stop))
+        text = f"{head}, and alike in every pulse: the reference is the first echoes"
+    text += ("; how much of each echo is inside the record is judged against that "
+             "incomplete echo. ")
+    if used.cut_before and used.cut_after:
+        return text + (f"The echo is longer than the record ({m} samples = "
+                       f"{m / fs * 1e6:.2f} us): lengthen the record")
+    if used.cut_before:
+        move = used.half_width[1] + L - used.peak  # leading half as long as the trailing
+        direction = "earlier"
+    else:
+        move = used.peak + used.half_width[0] + L - m
+        direction = "later"
+    move = max(1, int(move))
+    return text + (f"Move the record delay ~{move / fs * 1e6:.2f} us ({move} samples) "
+                   f"{direction} (and lower the drive level if the echo still leaves the "
+                   "record)")
 
 
 # --------------------------------------------------------------------------------------------
@@ -852,12 +991,37 @@ def track_echoes(codes: np.ndarray, trigger_offset_s: np.ndarray | None, sample_
     if np.any(not_finite):
         codes = np.where(not_finite[:, None], 0.0, codes)
 
+    reference_rows = None  # pulses of the first reference; None = the first live ones
     if opts.gate is None:
         # found on the first echoes that hold a signal (empty first segments made it fail)
         head = np.flatnonzero(np.ptp(codes[:64], axis=1) != 0)
-        gate = auto_gate(codes[head] if head.size else codes, fs,
-                         threshold=opts.gate_threshold,
-                         margin_samples=opts.gate_margin_samples, band_hz=opts.band_hz)
+        found = _auto_gate(codes[head] if head.size else codes, fs, opts.gate_threshold,
+                           opts.gate_margin_samples, 8, opts.band_hz)
+        if found.cut_before or found.cut_after:
+            # The first echoes are cut by the record's edge. A reference built from them is
+            # a cut echo: every echo's in-record fraction (min_in_record) was judged against
+            # it and read ~100 %, so echoes with under half their energy inside the record
+            # were tracked against a truncated shape, 1.2-3.3 samples off and unflagged
+            # (docs/tracking.md). Gate and reference come from the pulses where the echo
+            # lies most wholly inside the record instead.
+            group = max(8, opts.initial_reference_echoes)
+            live = np.flatnonzero(np.ptp(codes, axis=1) != 0)
+            first = found
+            x0 = np.asarray(codes[head[:8]] if head.size else codes[:8], dtype=float)
+            fc = _centre_frequency_hz((x0 - x0.mean(axis=1, keepdims=True)).mean(axis=0), fs)
+            rows, level, level_first = _wholest_echoes(
+                codes, live, fs, opts.band_hz or (0.4 * fc, 1.6 * fc), opts.gate_threshold,
+                opts.gate_margin_samples, group, L)
+            # Taken when the echo is whole there, or at least clearly less cut than at the
+            # start (echoes cut alike everywhere, e.g. longer than the record, keep the
+            # first echoes' reference and their results).
+            if level < opts.gate_threshold or level < 0.5 * level_first:
+                found = _auto_gate(codes[rows], fs, opts.gate_threshold,
+                                   opts.gate_margin_samples, rows.size, opts.band_hz)
+                reference_rows = rows
+            warnings.append(_cut_reference_warning(first, found, reference_rows, level,
+                                                   opts.gate_threshold, m, L, fs))
+        gate = found.gate
         start, stop = max(gate[0], L), min(gate[1], m - L)
         if (start, stop) != gate:
             warnings.append(f"gate {gate} clipped to {(start, stop)} to fit the lag range")
@@ -878,7 +1042,8 @@ def track_echoes(codes: np.ndarray, trigger_offset_s: np.ndarray | None, sample_
     empty = not_finite | (np.ptp(codes[:, probe], axis=1) == 0)
 
     # the first echoes that hold a signal (empty segments left out of the reference)
-    initial = np.flatnonzero(~empty)[: max(1, opts.initial_reference_echoes)]
+    initial = (np.flatnonzero(~empty) if reference_rows is None
+               else reference_rows[~empty[reference_rows]])[: max(1, opts.initial_reference_echoes)]
     if initial.size == 0:
         initial = np.arange(min(n, max(1, opts.initial_reference_echoes)))
     first = np.asarray(codes[initial, start:stop], dtype=float)
