@@ -862,7 +862,7 @@ _WHOLE_SEARCH_CHUNK = 1024
 
 def _wholest_echoes(codes: np.ndarray, rows: np.ndarray, fs: float,
                     band: tuple[float, float], threshold: float, margin_samples: int,
-                    group: int, L: int) -> tuple[np.ndarray, float]:
+                    group: int, L: int) -> tuple[np.ndarray, float, float]:
     """The pulses where the echo lies most wholly inside the record: the gate and the first
     reference are taken from them when the first echoes are cut by the record's edge.
 
