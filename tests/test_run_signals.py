@@ -34,7 +34,8 @@ class _Runner:
     def abort(self, reason: str = "", status: str = "aborted") -> None:
         self.calls.append(("abort", time.monotonic(), reason, status))
 
-    def interrupt(self, reason: str = "") -> None:  # the real one raises RunInterrupted
+    def interrupt(self, reason: str = "", safe_state: bool = True) -> None:
+        # the real one raises RunInterrupted (and, with safe_state, puts outputs off)
         self.calls.append(("interrupt", time.monotonic(), reason, "interrupted"))
 
 
