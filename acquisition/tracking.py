@@ -791,6 +791,8 @@ class _Gate:
     cut_after: bool  # ... nor anywhere after it: the echo is cut by that edge of the record
     peak: int  # sample of the envelope's peak
     half_width: tuple[int, int]  # peak - window start, window stop - peak (unclipped)
+    level: float  # envelope's lowest point on its worse side of the peak / peak (< threshold:
+    # the echo decays inside the record on both sides; 1.0: not at all on one side)
 
 
 def _auto_gate(codes: np.ndarray, fs: float, threshold: float, margin_samples: int,
@@ -812,8 +814,12 @@ def _auto_gate(codes: np.ndarray, fs: float, threshold: float, margin_samples: i
     right = np.nonzero(below[k:])[0]
     start = (left[-1] + 1 if left.size else 0) - margin_samples
     stop = (k + right[0] if right.size else m) + margin_samples
+    # how cut the echo is (compared between gates when the first echoes are cut; two minima
+    # over one row, negligible next to the envelope)
+    low = max(float(env[:k].min()) if k > 0 else env[k], float(env[k + 1:].min())
+              if k < m - 1 else env[k])
     return _Gate((max(0, int(start)), min(m, int(stop))), not left.size, not right.size, k,
-                 (k - int(start), int(stop) - k))
+                 (k - int(start), int(stop) - k), float(low / env[k]) if env[k] > 0 else 1.0)
 
 
 def _envelopes(x: np.ndarray, fs: float, band: tuple[float, float]) -> np.ndarray:
@@ -862,21 +868,24 @@ _WHOLE_SEARCH_CHUNK = 1024
 
 def _wholest_echoes(codes: np.ndarray, rows: np.ndarray, fs: float,
                     band: tuple[float, float], threshold: float, margin_samples: int,
-                    group: int, L: int) -> tuple[np.ndarray, float, float]:
+                    group: int, L: int, near: int, tolerance: int
+                    ) -> tuple[np.ndarray, float, float]:
     """The pulses where the echo lies most wholly inside the record: the gate and the first
     reference are taken from them when the first echoes are cut by the record's edge.
 
     codes: (n, m) record; rows: the pulses to consider (live ones, acquisition order);
     band: pass band (Hz) of the envelope; threshold, margin_samples: as in :func:`auto_gate`;
-    group: pulses per group; L: lag range (samples).
+    group: pulses per group; L: lag range (samples); near, tolerance: only groups whose
+    envelope peak lies within ``tolerance`` samples of sample ``near`` (the first echoes'
+    peak) are candidates.
     The envelope of each pulse in ``rows`` is averaged over consecutive groups of ``group``
     pulses (a slow motion moves the echo by a few samples within a group). A group's echo is
     whole when its mean envelope falls below ``threshold`` x its peak on both sides of the
     peak inside the record. Chosen: the earliest group whose window (margin and lag range
     included) fits in the record, else the earliest whole group, else the group whose
     envelope is lowest (relative to its peak) at its worse side. Returns the chosen group's
-    pulses, that level (fraction of the peak; below ``threshold``: whole) and the first
-    group's level.
+    pulses, that level (fraction of the peak; below ``threshold``: whole; 1.0 when no group
+    is a candidate) and the first group's level.
     """
     n_groups = rows.size // group
     if n_groups == 0:
@@ -898,22 +907,45 @@ def _wholest_echoes(codes: np.ndarray, rows: np.ndarray, fs: float,
             low_after = np.where(col > k[:, None], env, np.inf).min(axis=1) / peak
         level[g0:g1] = np.nan_to_num(np.minimum(np.maximum(low_before, low_after), 1.0),
                                      nan=1.0)
+        if g0 == 0:
+            level_first = float(level[0])
+        # A group whose envelope peaks far from the first echoes' is another reflector (a
+        # stationary one deeper in the record was taken for the bone: the bone tracked
+        # 0.0 um, unflagged; review of 58b0cdc): not a candidate.
+        same = np.abs(k - near) <= tolerance
+        level[g0:g1] = np.where(same, level[g0:g1], 1.0)
         start, stop, cut_before, cut_after = _envelope_window(env, threshold,
                                                               margin_samples)
-        fits[g0:g1] = ~cut_before & ~cut_after & (start >= L) & (stop <= m - L)
+        fits[g0:g1] = same & ~cut_before & ~cut_after & (start >= L) & (stop <= m - L)
         if fits[g0:g1].any():
             break  # the earliest group that fits: no need to look further
     whole = level < threshold
     best = (int(np.argmax(fits)) if fits.any() else int(np.argmax(whole)) if whole.any()
             else int(np.argmin(level)))
-    return rows[best * group: (best + 1) * group], float(level[best]), float(level[0])
+    return rows[best * group: (best + 1) * group], float(level[best]), level_first
 
 
-def _cut_reference_warning(first: _Gate, used: _Gate, rows: np.ndarray | None, level: float,
+def _gate_improves(first: _Gate, regated: _Gate, threshold: float, tolerance: int) -> bool:
+    """Whether the gate found on the chosen pulses (``regated``) may replace the first
+    echoes' (``first``): its peak within ``tolerance`` samples of the first echoes' (the same
+    echo), not cut by an edge the first echoes were not cut by, and whole (level below
+    ``threshold``, fractions of the peak) or at most half as cut as the first echoes.
+    Otherwise the first echoes stay the reference (the behaviour before 58b0cdc): a gate on
+    another reflector, or more cut, is worse than the cut first echoes."""
+    if abs(regated.peak - first.peak) > tolerance:
+        return False
+    if (regated.cut_before and not first.cut_before) or (regated.cut_after
+                                                         and not first.cut_after):
+        return False
+    return regated.level < threshold or regated.level < 0.5 * first.level
+
+
+def _cut_reference_warning(first: _Gate, used: _Gate, rows: np.ndarray | None,
                            threshold: float, m: int, L: int, fs: float) -> str:
     """The sentence saying that the first echoes are cut by the record's edge, where the gate
     and the reference were taken instead (``rows``; None: the first echoes all the same) and,
-    unless the echo there is whole (``level`` < ``threshold``), what to change: the record
+    unless the echo in the gate used (``used``, found on those pulses) is whole, what to
+    change: the record
     delay (estimated from the echo's decayed side, taken as symmetric, plus the lag range
     ``L``) or the record's length."""
     side = " and ".join(s for s, cut in (("start", first.cut_before), ("end", first.cut_after))
@@ -921,7 +953,8 @@ def _cut_reference_warning(first: _Gate, used: _Gate, rows: np.ndarray | None, l
     head = (f"the first echoes' envelope stays above {100 * threshold:.0f} % of its peak up to "
             f"the record's {side} (the echo, or a reflection next to it, is cut by the "
             "record's edge)")
-    if rows is not None and level < threshold:
+    level = used.level  # of the final gate, not of the search (which may differ)
+    if rows is not None and not (used.cut_before or used.cut_after):
         return (f"{head}: gate and reference taken from pulses {int(rows[0])}-{int(rows[-1])}, "
                 "where the echo lies wholly inside the record")
     if rows is not None:
@@ -929,7 +962,8 @@ def _cut_reference_warning(first: _Gate, used: _Gate, rows: np.ndarray | None, l
                 f"{int(rows[0])}-{int(rows[-1])}, where the echo lies furthest inside (its "
                 f"envelope still {100 * level:.0f} % of its peak at the record's edge)")
     else:
-        text = f"{head}, and alike in every pulse: the reference is the first echoes"
+        text = (f"{head}, and no pulses hold the same echo clearly less cut: the reference "
+                "is the first echoes")
     text += ("; how much of each echo is inside the record is judged against that "
              "incomplete echo. ")
     if used.cut_before and used.cut_after:
@@ -942,9 +976,11 @@ def _cut_reference_warning(first: _Gate, used: _Gate, rows: np.ndarray | None, l
         move = used.peak + used.half_width[0] + L - m
         direction = "later"
     move = max(1, int(move))
-    return text + (f"Move the record delay ~{move / fs * 1e6:.2f} us ({move} samples) "
-                   f"{direction} (and lower the drive level if the echo still leaves the "
-                   "record)")
+    # ``move`` only makes the echo of the gate's own pulses whole; the motion moves the echo
+    # further in other pulses (review of 58b0cdc): a lower bound, said as such.
+    return text + (f"Move the record delay at least ~{move / fs * 1e6:.2f} us ({move} samples) "
+                   f"{direction}, more by the motion's extent (and lower the drive level if "
+                   "the echo still leaves the record)")
 
 
 # --------------------------------------------------------------------------------------------
@@ -1009,17 +1045,25 @@ def track_echoes(codes: np.ndarray, trigger_offset_s: np.ndarray | None, sample_
             first = found
             x0 = np.asarray(codes[head[:8]] if head.size else codes[:8], dtype=float)
             fc = _centre_frequency_hz((x0 - x0.mean(axis=1, keepdims=True)).mean(axis=0), fs)
+            # One band for the search and the re-gating (the chosen pulses' own centre
+            # frequency had put the re-gated peak on another reflector than the search's).
+            band0 = opts.band_hz or (0.4 * fc, 1.6 * fc)
+            # The echo moves continuously: as the same echo count only envelope peaks within
+            # the first echoes' own (unclipped) window width, at least the lag range.
+            tolerance = max(L, first.half_width[0] + first.half_width[1])
             rows, level, level_first = _wholest_echoes(
-                codes, live, fs, opts.band_hz or (0.4 * fc, 1.6 * fc), opts.gate_threshold,
-                opts.gate_margin_samples, group, L)
+                codes, live, fs, band0, opts.gate_threshold, opts.gate_margin_samples, group,
+                L, first.peak, tolerance)
             # Taken when the echo is whole there, or at least clearly less cut than at the
             # start (echoes cut alike everywhere, e.g. longer than the record, keep the
             # first echoes' reference and their results).
             if level < opts.gate_threshold or level < 0.5 * level_first:
-                found = _auto_gate(codes[rows], fs, opts.gate_threshold,
-                                   opts.gate_margin_samples, rows.size, opts.band_hz)
-                reference_rows = rows
-            warnings.append(_cut_reference_warning(first, found, reference_rows, level,
+                regated = _auto_gate(codes[rows], fs, opts.gate_threshold,
+                                     opts.gate_margin_samples, rows.size, band0)
+                if _gate_improves(first, regated, opts.gate_threshold, tolerance):
+                    found = regated
+                    reference_rows = rows
+            warnings.append(_cut_reference_warning(first, found, reference_rows,
                                                    opts.gate_threshold, m, L, fs))
         gate = found.gate
         start, stop = max(gate[0], L), min(gate[1], m - L)
@@ -1094,8 +1138,16 @@ def track_echoes(codes: np.ndarray, trigger_offset_s: np.ndarray | None, sample_
         # block-wise, rebuilding the reference whenever the correlation drops.
         if padded is None:
             padded = _pad_record(codes, pad)
+        offset0 = 0
+        if reference_rows is not None:
+            # The reference comes from mid-record: pulse 0's echo may lie 100+ samples from
+            # the reference's gate. Block 0 started there locked onto the wrong part of the
+            # echo and every later block followed on a wrong scale (max error 4.5 samples,
+            # echoes 42 % inside tracked, nothing lost; review of 58b0cdc). Start it where
+            # the path above found the first echoes.
+            offset0 = _first_offset(delay, lost_edge | empty, max(8, int(opts.block_size)))
         delay, corr, snr, lost_edge, shift, n_reref = _track_drifting(
-            padded, pad, m, start, G, L, ref, opts, band)
+            padded, pad, m, start, G, L, ref, opts, band, offset0)
         warnings.append(f"echo shape changed along the record: tracked block-wise with "
                         f"{n_reref} reference rebuild(s)")
     outside = np.zeros(n, dtype=bool)
@@ -1473,9 +1525,17 @@ def _track_predicted(padded: np.ndarray, pad: int, m: int, start: int, G: int, L
     return delay, res.corr, res.snr_db, res.edge, shift, ref, groups, whole
 
 
+def _first_offset(delay: np.ndarray, lost: np.ndarray, count: int) -> int:
+    """Gate offset (samples, rounded) at which the block-wise path starts: the median delay
+    (samples, relative to the reference's gate) of the first ``count`` echoes with a finite
+    delay that are not ``lost``; 0 when there are none."""
+    ok = np.flatnonzero(np.isfinite(delay) & ~lost)[:count]
+    return int(np.rint(np.median(delay[ok]))) if ok.size else 0
+
+
 def _track_drifting(padded: np.ndarray, pad: int, m: int, start: int, G: int, L: int,
                     ref: _Reference, opts: TrackingOptions,
-                    band: _Band) -> tuple[np.ndarray, ...]:
+                    band: _Band, offset0: int = 0) -> tuple[np.ndarray, ...]:
     """Block-wise tracking whose gate follows the echo; the reference is rebuilt at each move.
 
     ``padded``: the record with ``pad`` zeros each side; ``start``: gate start in record
@@ -1488,6 +1548,9 @@ def _track_drifting(padded: np.ndarray, pad: int, m: int, start: int, G: int, L:
     it is cut and none is left to calibrate the cut-echo path on (:func:`_cut_calibration`):
     such a block is calibrated on the good echoes of the latest block that lay wholly inside
     the record (re-tracked with the current reference).
+
+    ``offset0``: the gate offset (samples) of the first block, relative to ``start``: 0 when
+    the reference is the first echoes, else where the first echoes were found.
     """
     codes = padded
     n, M = padded.shape
@@ -1498,7 +1561,7 @@ def _track_drifting(padded: np.ndarray, pad: int, m: int, start: int, G: int, L:
     snr = np.full(n, -np.inf)
     lost = np.ones(n, dtype=bool)
     shift = np.zeros(n, dtype=int)
-    offset_gate = 0
+    offset_gate = int(offset0)
     n_reref = 0
     rho_ref: float | None = None
     # Windows of the latest whole block's good echoes. Without them a block cut by the
