@@ -205,13 +205,6 @@ class _Reference:
         env = np.abs(self.raw + 1j * _hilbert(self.spectrum, self.nfft, self.raw.size))
         return float(env.max() / self.raw_norm)
 
-    @functools.cached_property
-    def edge_level(self) -> float:
-        """Envelope at the reference's first or last sample, whichever is higher, as a
-        fraction of its peak (an automatic gate ends below 10 %; more: the echo is cut)."""
-        env = np.abs(self.raw + 1j * _hilbert(self.spectrum, self.nfft, self.raw.size))
-        return float(max(env[0], env[-1]) / env.max())
-
 
 def _hilbert(spectrum: np.ndarray, nfft: int, G: int) -> np.ndarray:
     """First ``G`` samples of the Hilbert transform of the ``nfft``-point signal whose rfft is
@@ -610,10 +603,7 @@ _CUT_CALIBRATION_ECHOES = 256
 """Echoes wholly inside the record used to calibrate the cut echoes' delays (at most)."""
 _CUT_CALIBRATION_MIN_ECHOES = 8
 _CUT_CALIBRATION_STEP = 4
-"""Cut amounts are calibrated on a grid of this many samples ..."""
-_CUT_CALIBRATION_EDGE_LEVEL = 0.1
-"""... unless the reference's envelope at its edge is above this fraction of its peak (its
-echo is cut): then on every sample."""
+"""Cut amounts are calibrated on a grid of this many samples."""
 
 
 def _cut_calibration(g: _Groups, ref: _Reference, L: int, delay: np.ndarray,
@@ -643,24 +633,11 @@ def _cut_calibration(g: _Groups, ref: _Reference, L: int, delay: np.ndarray,
     whole[cut] = False
     full = np.nonzero(whole)[0]
     if full.size < _CUT_CALIBRATION_MIN_ECHOES:
-        # Too few windows wholly inside the record; the normal pass only needs the fine
-        # block (G + 2h samples around the integer lag) to be: echoes whose block is inside
-        # have a valid normal-pass delay. When the first echoes are cut by the record's
-        # start the reference comes from the echoes furthest inside, at the extreme of the
-        # motion, and nearly every other window starts before the record: without this,
-        # echoes whose reference lies inside the record but whose window does not were
-        # 0.21 sample off the others (reference edge at 33 % of the envelope, measured).
-        first_all = L + g.lag - h
-        full = np.nonzero((lo <= first_all) & (hi >= first_all + n_block))[0]
-        if full.size < _CUT_CALIBRATION_MIN_ECHOES:
-            return correction
+        return correction
     full = full[np.linspace(0, full.size - 1, min(full.size, _CUT_CALIBRATION_ECHOES)
                             ).astype(int)]
     first = L + g.lag[cut] - h
-    # A reference cut where its envelope is high (the echo itself cut by the record's edge)
-    # has an edge term that changes fast with each sample cut off: the 4-sample grid left
-    # echoes cut by 1-3 samples up to 0.2 sample off (measured); calibrate every cut.
-    step = _CUT_CALIBRATION_STEP if ref.edge_level <= _CUT_CALIBRATION_EDGE_LEVEL else 1
+    step = _CUT_CALIBRATION_STEP
     lead = np.rint(np.clip(lo[cut] - first, 0, n_block) / step).astype(int) * step
     trail = np.rint(np.clip(first + n_block - hi[cut], 0, n_block) / step).astype(int) * step
     keys, which = np.unique(np.stack([lead, trail], axis=1), axis=0, return_inverse=True)
@@ -778,56 +755,16 @@ def auto_gate(codes: np.ndarray, sample_rate_hz: float, *, threshold: float = 0.
     (band: ``band_hz`` or 0.4-1.6 x the centre frequency); the window extends from the peak
     until the envelope drops below ``threshold`` of it, plus ``margin_samples`` each side.
     """
-    return _auto_gate(codes, sample_rate_hz, threshold, margin_samples, n_echoes,
-                      band_hz).gate
-
-
-@dataclass(frozen=True)
-class _Gate:
-    """What :func:`_auto_gate` found (all in record samples)."""
-
-    gate: tuple[int, int]  # (start, stop), within [0, m]
-    cut_before: bool  # the envelope is not below the threshold anywhere before its peak
-    cut_after: bool  # ... nor anywhere after it: the echo is cut by that edge of the record
-    peak: int  # sample of the envelope's peak
-    half_width: tuple[int, int]  # peak - window start, window stop - peak (unclipped)
-    level: float  # envelope's lowest point on its worse side of the peak / peak (< threshold:
-    # the echo decays inside the record on both sides; 1.0: not at all on one side)
-
-
-def _auto_gate(codes: np.ndarray, fs: float, threshold: float, margin_samples: int,
-               n_echoes: int, band_hz: tuple[float, float] | None) -> _Gate:
-    """:func:`auto_gate`, telling also whether the echo is cut by the record's edges."""
     x = np.asarray(codes[:n_echoes], dtype=float)
     x = x - x.mean(axis=1, keepdims=True)
     m = x.shape[1]
     if not np.any(x):
         raise ValueError("the first echoes are flat: no echo to gate on (receiver gain? "
                          "record delay?)")
-    fc = _centre_frequency_hz(x.mean(axis=0), fs)
+    fc = _centre_frequency_hz(x.mean(axis=0), sample_rate_hz)
     band = band_hz or (0.4 * fc, 1.6 * fc)
-    env = _envelopes(x, fs, band).mean(axis=0)
-    # (one row: :func:`_envelope_window`'s rule with 1-D indexing, cheaper on every record)
-    k = int(np.argmax(env))
-    below = env < threshold * env[k]
-    left = np.nonzero(below[:k])[0]
-    right = np.nonzero(below[k:])[0]
-    start = (left[-1] + 1 if left.size else 0) - margin_samples
-    stop = (k + right[0] if right.size else m) + margin_samples
-    # how cut the echo is (compared between gates when the first echoes are cut; two minima
-    # over one row, negligible next to the envelope)
-    low = max(float(env[:k].min()) if k > 0 else env[k], float(env[k + 1:].min())
-              if k < m - 1 else env[k])
-    return _Gate((max(0, int(start)), min(m, int(stop))), not left.size, not right.size, k,
-                 (k - int(start), int(stop) - k), float(low / env[k]) if env[k] > 0 else 1.0)
-
-
-def _envelopes(x: np.ndarray, fs: float, band: tuple[float, float]) -> np.ndarray:
-    """(k, m) Hilbert envelope (units of ``x``) of each row of ``x`` (k, m), mean-free,
-    band-passed to ``band`` (Hz) with a rectangular pass band."""
-    m = x.shape[1]
     nfft = int(sp_fft.next_fast_len(2 * m))
-    f = np.fft.fftfreq(nfft, 1.0 / fs)
+    f = np.fft.fftfreq(nfft, 1.0 / sample_rate_hz)
     # Analytic band-passed signal: keep the positive pass band only, doubled.
     keep = (f >= band[0]) & (f <= band[1])
     bins = np.nonzero(keep)[0]
@@ -835,152 +772,17 @@ def _envelopes(x: np.ndarray, fs: float, band: tuple[float, float]) -> np.ndarra
         # A few dozen bins (2-8 MHz of a 1000-point, 500 MS/s transform: 13): the DFT over
         # them as two small matrix products, far cheaper than the two full FFTs.
         fwd, inv = _band_dft(m, nfft, tuple(bins.tolist()))
-        return np.abs((2.0 * (x @ fwd)) @ inv)
-    spec = np.fft.fft(x, nfft, axis=1) * np.where(keep, 2.0, 0.0)
-    return np.abs(np.fft.ifft(spec, axis=1)[:, :m])
-
-
-def _envelope_window(env: np.ndarray, threshold: float, margin_samples: int
-                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """Per row of ``env`` (k, m): the window from the last sample before the peak that is
-    below ``threshold`` x the peak (+1) to the first after it, widened by ``margin_samples``
-    each side; NOT clipped to the record (samples, may be < 0 or > m). Also whether no
-    sample before / after the peak is below the threshold (the echo is cut by the record's
-    start / end: the window was extended to the record's edge)."""
-    k_rows, m = env.shape
-    k = np.argmax(env, axis=1)
-    below = env < threshold * env[np.arange(k_rows), k][:, None]
-    col = np.arange(m)[None, :]
-    before = below & (col < k[:, None])
-    after = below & (col >= k[:, None])
-    cut_before = ~before.any(axis=1)
-    cut_after = ~after.any(axis=1)
-    last_before = m - 1 - np.argmax(before[:, ::-1], axis=1)
-    first_after = np.argmax(after, axis=1)
-    start = np.where(cut_before, 0, last_before + 1) - margin_samples
-    stop = np.where(cut_after, m, first_after) + margin_samples
-    return start, stop, cut_before, cut_after
-
-
-_WHOLE_SEARCH_CHUNK = 1024
-"""Pulses whose envelopes are computed at once when looking for whole echoes (memory)."""
-
-
-def _wholest_echoes(codes: np.ndarray, rows: np.ndarray, fs: float,
-                    band: tuple[float, float], threshold: float, margin_samples: int,
-                    group: int, L: int, near: int, tolerance: int
-                    ) -> tuple[np.ndarray, float, float]:
-    """The pulses where the echo lies most wholly inside the record: the gate and the first
-    reference are taken from them when the first echoes are cut by the record's edge.
-
-    codes: (n, m) record; rows: the pulses to consider (live ones, acquisition order);
-    band: pass band (Hz) of the envelope; threshold, margin_samples: as in :func:`auto_gate`;
-    group: pulses per group; L: lag range (samples); near, tolerance: only groups whose
-    envelope peak lies within ``tolerance`` samples of sample ``near`` (the first echoes'
-    peak) are candidates.
-    The envelope of each pulse in ``rows`` is averaged over consecutive groups of ``group``
-    pulses (a slow motion moves the echo by a few samples within a group). A group's echo is
-    whole when its mean envelope falls below ``threshold`` x its peak on both sides of the
-    peak inside the record. Chosen: the earliest group whose window (margin and lag range
-    included) fits in the record, else the earliest whole group, else the group whose
-    envelope is lowest (relative to its peak) at its worse side. Returns the chosen group's
-    pulses, that level (fraction of the peak; below ``threshold``: whole; 1.0 when no group
-    is a candidate) and the first group's level.
-    """
-    n_groups = rows.size // group
-    if n_groups == 0:
-        return rows, 1.0, 1.0
-    m = codes.shape[1]
-    level = np.ones(n_groups)
-    fits = np.zeros(n_groups, dtype=bool)
-    per_chunk = max(1, _WHOLE_SEARCH_CHUNK // group)
-    for g0 in range(0, n_groups, per_chunk):
-        g1 = min(n_groups, g0 + per_chunk)
-        x = np.asarray(codes[rows[g0 * group: g1 * group]], dtype=float)
-        x = x - x.mean(axis=1, keepdims=True)
-        env = _envelopes(x, fs, band).reshape(g1 - g0, group, m).mean(axis=1)
-        k = np.argmax(env, axis=1)
-        peak = env[np.arange(env.shape[0]), k]
-        col = np.arange(m)[None, :]
-        with np.errstate(invalid="ignore", divide="ignore"):
-            low_before = np.where(col < k[:, None], env, np.inf).min(axis=1) / peak
-            low_after = np.where(col > k[:, None], env, np.inf).min(axis=1) / peak
-        level[g0:g1] = np.nan_to_num(np.minimum(np.maximum(low_before, low_after), 1.0),
-                                     nan=1.0)
-        if g0 == 0:
-            level_first = float(level[0])
-        # A group whose envelope peaks far from the first echoes' is another reflector (a
-        # stationary one deeper in the record was taken for the bone: the bone tracked
-        # 0.0 um, unflagged; review of 58b0cdc): not a candidate.
-        same = np.abs(k - near) <= tolerance
-        level[g0:g1] = np.where(same, level[g0:g1], 1.0)
-        start, stop, cut_before, cut_after = _envelope_window(env, threshold,
-                                                              margin_samples)
-        fits[g0:g1] = same & ~cut_before & ~cut_after & (start >= L) & (stop <= m - L)
-        if fits[g0:g1].any():
-            break  # the earliest group that fits: no need to look further
-    whole = level < threshold
-    best = (int(np.argmax(fits)) if fits.any() else int(np.argmax(whole)) if whole.any()
-            else int(np.argmin(level)))
-    return rows[best * group: (best + 1) * group], float(level[best]), level_first
-
-
-def _gate_improves(first: _Gate, regated: _Gate, threshold: float, tolerance: int) -> bool:
-    """Whether the gate found on the chosen pulses (``regated``) may replace the first
-    echoes' (``first``): its peak within ``tolerance`` samples of the first echoes' (the same
-    echo), not cut by an edge the first echoes were not cut by, and whole (level below
-    ``threshold``, fractions of the peak) or at most half as cut as the first echoes.
-    Otherwise the first echoes stay the reference (the behaviour before 58b0cdc): a gate on
-    another reflector, or more cut, is worse than the cut first echoes."""
-    if abs(regated.peak - first.peak) > tolerance:
-        return False
-    if (regated.cut_before and not first.cut_before) or (regated.cut_after
-                                                         and not first.cut_after):
-        return False
-    return regated.level < threshold or regated.level < 0.5 * first.level
-
-
-def _cut_reference_warning(first: _Gate, used: _Gate, rows: np.ndarray | None,
-                           threshold: float, m: int, L: int, fs: float) -> str:
-    """The sentence saying that the first echoes are cut by the record's edge, where the gate
-    and the reference were taken instead (``rows``; None: the first echoes all the same) and,
-    unless the echo in the gate used (``used``, found on those pulses) is whole, what to
-    change: the record
-    delay (estimated from the echo's decayed side, taken as symmetric, plus the lag range
-    ``L``) or the record's length."""
-    side = " and ".join(s for s, cut in (("start", first.cut_before), ("end", first.cut_after))
-                        if cut)
-    head = (f"the first echoes' envelope stays above {100 * threshold:.0f} % of its peak up to "
-            f"the record's {side} (the echo, or a reflection next to it, is cut by the "
-            "record's edge)")
-    level = used.level  # of the final gate, not of the search (which may differ)
-    if rows is not None and not (used.cut_before or used.cut_after):
-        return (f"{head}: gate and reference taken from pulses {int(rows[0])}-{int(rows[-1])}, "
-                "where the echo lies wholly inside the record")
-    if rows is not None:
-        text = (f"{head}, and so in every pulse: gate and reference taken from pulses "
-                f"{int(rows[0])}-{int(rows[-1])}, where the echo lies furthest inside (its "
-                f"envelope still {100 * level:.0f} % of its peak at the record's edge)")
+        env = np.abs((2.0 * (x @ fwd)) @ inv).mean(axis=0)
     else:
-        text = (f"{head}, and no pulses hold the same echo clearly less cut: the reference "
-                "is the first echoes")
-    text += ("; how much of each echo is inside the record is judged against that "
-             "incomplete echo. ")
-    if used.cut_before and used.cut_after:
-        return text + (f"The echo is longer than the record ({m} samples = "
-                       f"{m / fs * 1e6:.2f} us): lengthen the record")
-    if used.cut_before:
-        move = used.half_width[1] + L - used.peak  # leading half as long as the trailing
-        direction = "earlier"
-    else:
-        move = used.peak + used.half_width[0] + L - m
-        direction = "later"
-    move = max(1, int(move))
-    # ``move`` only makes the echo of the gate's own pulses whole; the motion moves the echo
-    # further in other pulses (review of 58b0cdc): a lower bound, said as such.
-    return text + (f"Move the record delay at least ~{move / fs * 1e6:.2f} us ({move} samples) "
-                   f"{direction}, more by the motion's extent (and lower the drive level if "
-                   "the echo still leaves the record)")
+        spec = np.fft.fft(x, nfft, axis=1) * np.where(keep, 2.0, 0.0)
+        env = np.abs(np.fft.ifft(spec, axis=1)[:, :m]).mean(axis=0)
+    k = int(np.argmax(env))
+    below = env < threshold * env[k]
+    left = np.nonzero(below[:k])[0]
+    right = np.nonzero(below[k:])[0]
+    start = (left[-1] + 1 if left.size else 0) - margin_samples
+    stop = (k + right[0] if right.size else m) + margin_samples
+    return max(0, int(start)), min(m, int(stop))
 
 
 # --------------------------------------------------------------------------------------------
@@ -1027,45 +829,12 @@ def track_echoes(codes: np.ndarray, trigger_offset_s: np.ndarray | None, sample_
     if np.any(not_finite):
         codes = np.where(not_finite[:, None], 0.0, codes)
 
-    reference_rows = None  # pulses of the first reference; None = the first live ones
     if opts.gate is None:
         # found on the first echoes that hold a signal (empty first segments made it fail)
         head = np.flatnonzero(np.ptp(codes[:64], axis=1) != 0)
-        found = _auto_gate(codes[head] if head.size else codes, fs, opts.gate_threshold,
-                           opts.gate_margin_samples, 8, opts.band_hz)
-        if found.cut_before or found.cut_after:
-            # The first echoes are cut by the record's edge. A reference built from them is
-            # a cut echo: every echo's in-record fraction (min_in_record) was judged against
-            # it and read ~100 %, so echoes with under half their energy inside the record
-            # were tracked against a truncated shape, 1.2-3.3 samples off and unflagged
-            # (docs/tracking.md). Gate and reference come from the pulses where the echo
-            # lies most wholly inside the record instead.
-            group = max(8, opts.initial_reference_echoes)
-            live = np.flatnonzero(np.ptp(codes, axis=1) != 0)
-            first = found
-            x0 = np.asarray(codes[head[:8]] if head.size else codes[:8], dtype=float)
-            fc = _centre_frequency_hz((x0 - x0.mean(axis=1, keepdims=True)).mean(axis=0), fs)
-            # One band for the search and the re-gating (the chosen pulses' own centre
-            # frequency had put the re-gated peak on another reflector than the search's).
-            band0 = opts.band_hz or (0.4 * fc, 1.6 * fc)
-            # The echo moves continuously: as the same echo count only envelope peaks within
-            # the first echoes' own (unclipped) window width, at least the lag range.
-            tolerance = max(L, first.half_width[0] + first.half_width[1])
-            rows, level, level_first = _wholest_echoes(
-                codes, live, fs, band0, opts.gate_threshold, opts.gate_margin_samples, group,
-                L, first.peak, tolerance)
-            # Taken when the echo is whole there, or at least clearly less cut than at the
-            # start (echoes cut alike everywhere, e.g. longer than the record, keep the
-            # first echoes' reference and their results).
-            if level < opts.gate_threshold or level < 0.5 * level_first:
-                regated = _auto_gate(codes[rows], fs, opts.gate_threshold,
-                                     opts.gate_margin_samples, rows.size, band0)
-                if _gate_improves(first, regated, opts.gate_threshold, tolerance):
-                    found = regated
-                    reference_rows = rows
-            warnings.append(_cut_reference_warning(first, found, reference_rows,
-                                                   opts.gate_threshold, m, L, fs))
-        gate = found.gate
+        gate = auto_gate(codes[head] if head.size else codes, fs,
+                         threshold=opts.gate_threshold,
+                         margin_samples=opts.gate_margin_samples, band_hz=opts.band_hz)
         start, stop = max(gate[0], L), min(gate[1], m - L)
         if (start, stop) != gate:
             warnings.append(f"gate {gate} clipped to {(start, stop)} to fit the lag range")
@@ -1086,8 +855,7 @@ def track_echoes(codes: np.ndarray, trigger_offset_s: np.ndarray | None, sample_
     empty = not_finite | (np.ptp(codes[:, probe], axis=1) == 0)
 
     # the first echoes that hold a signal (empty segments left out of the reference)
-    initial = (np.flatnonzero(~empty) if reference_rows is None
-               else reference_rows[~empty[reference_rows]])[: max(1, opts.initial_reference_echoes)]
+    initial = np.flatnonzero(~empty)[: max(1, opts.initial_reference_echoes)]
     if initial.size == 0:
         initial = np.arange(min(n, max(1, opts.initial_reference_echoes)))
     first = np.asarray(codes[initial, start:stop], dtype=float)
@@ -1138,16 +906,8 @@ def track_echoes(codes: np.ndarray, trigger_offset_s: np.ndarray | None, sample_
         # block-wise, rebuilding the reference whenever the correlation drops.
         if padded is None:
             padded = _pad_record(codes, pad)
-        offset0 = 0
-        if reference_rows is not None:
-            # The reference comes from mid-record: pulse 0's echo may lie 100+ samples from
-            # the reference's gate. Block 0 started there locked onto the wrong part of the
-            # echo and every later block followed on a wrong scale (max error 4.5 samples,
-            # echoes 42 % inside tracked, nothing lost; review of 58b0cdc). Start it where
-            # the path above found the first echoes.
-            offset0 = _first_offset(delay, lost_edge | empty, max(8, int(opts.block_size)))
         delay, corr, snr, lost_edge, shift, n_reref = _track_drifting(
-            padded, pad, m, start, G, L, ref, opts, band, offset0)
+            padded, pad, m, start, G, L, ref, opts, band)
         warnings.append(f"echo shape changed along the record: tracked block-wise with "
                         f"{n_reref} reference rebuild(s)")
     outside = np.zeros(n, dtype=bool)
@@ -1525,17 +1285,9 @@ def _track_predicted(padded: np.ndarray, pad: int, m: int, start: int, G: int, L
     return delay, res.corr, res.snr_db, res.edge, shift, ref, groups, whole
 
 
-def _first_offset(delay: np.ndarray, lost: np.ndarray, count: int) -> int:
-    """Gate offset (samples, rounded) at which the block-wise path starts: the median delay
-    (samples, relative to the reference's gate) of the first ``count`` echoes with a finite
-    delay that are not ``lost``; 0 when there are none."""
-    ok = np.flatnonzero(np.isfinite(delay) & ~lost)[:count]
-    return int(np.rint(np.median(delay[ok]))) if ok.size else 0
-
-
 def _track_drifting(padded: np.ndarray, pad: int, m: int, start: int, G: int, L: int,
                     ref: _Reference, opts: TrackingOptions,
-                    band: _Band, offset0: int = 0) -> tuple[np.ndarray, ...]:
+                    band: _Band) -> tuple[np.ndarray, ...]:
     """Block-wise tracking whose gate follows the echo; the reference is rebuilt at each move.
 
     ``padded``: the record with ``pad`` zeros each side; ``start``: gate start in record
@@ -1548,9 +1300,6 @@ def _track_drifting(padded: np.ndarray, pad: int, m: int, start: int, G: int, L:
     it is cut and none is left to calibrate the cut-echo path on (:func:`_cut_calibration`):
     such a block is calibrated on the good echoes of the latest block that lay wholly inside
     the record (re-tracked with the current reference).
-
-    ``offset0``: the gate offset (samples) of the first block, relative to ``start``: 0 when
-    the reference is the first echoes, else where the first echoes were found.
     """
     codes = padded
     n, M = padded.shape
@@ -1561,7 +1310,7 @@ def _track_drifting(padded: np.ndarray, pad: int, m: int, start: int, G: int, L:
     snr = np.full(n, -np.inf)
     lost = np.ones(n, dtype=bool)
     shift = np.zeros(n, dtype=int)
-    offset_gate = int(offset0)
+    offset_gate = 0
     n_reref = 0
     rho_ref: float | None = None
     # Windows of the latest whole block's good echoes. Without them a block cut by the

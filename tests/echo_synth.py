@@ -73,24 +73,6 @@ def synth_echoes(arrival_s: np.ndarray, *, n_samples: int = 500, sample_rate_hz:
     return np.clip(np.rint(x), -128, 127).astype(np.int8), trigger_offset_s
 
 
-def in_record_energy_fraction(arrival_s: np.ndarray, *, n_samples: int = 500,
-                              sample_rate_hz: float = 500e6, delay_s: float = 0.0,
-                              center_frequency_hz: float = 5e6,
-                              fractional_bandwidth: float = 0.6) -> np.ndarray:
-    """(n_pulses,) fraction of the energy of each :func:`synth_echoes` echo (arrival times
-    ``arrival_s``, s) that falls inside the record ``[delay_s, delay_s + n_samples / fs)``:
-    the truth ``TrackingOptions.min_in_record`` is about. Trigger offsets (< 1 sample) are
-    ignored; the integral is a sum over a grid 4x finer than the samples, +-6 envelope SDs."""
-    arrival_s = np.asarray(arrival_s, dtype=float).reshape(-1)
-    sig = pulse_sigma_s(center_frequency_hz, fractional_bandwidth)
-    dt = 0.25 / sample_rate_hz
-    u = np.arange(-6.0 * sig, 6.0 * sig, dt)  # time relative to the echo centre
-    e = gaussian_pulse(u, center_frequency_hz, fractional_bandwidth) ** 2
-    t = arrival_s[:, None] + u[None, :] - delay_s  # time after the record's first sample
-    inside = (t >= 0.0) & (t < n_samples / sample_rate_hz)
-    return (inside * e).sum(axis=1) / e.sum()
-
-
 def noise_sd_counts(amplitude_counts: float, snr_db: float) -> float:
     """Noise standard deviation (counts) giving ``snr_db`` for a pulse of that peak amplitude."""
     return amplitude_counts / 10.0 ** (snr_db / 20.0)
