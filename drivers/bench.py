@@ -512,15 +512,20 @@ def _read_drive_calibration(path: Path, err: Callable[[str], BenchConfigError]
     freqs: list[float] = []
     values: list[complex] = []
     phases_deg: list[float] = []
-    for line_no, (line, row) in enumerate(
-            zip(text.splitlines(), csv.reader(text.splitlines()), strict=True), start=1):
+    for line_no, line in enumerate(text.splitlines(), start=1):
+        # each physical line on its own: a quoted cell over two lines (a spreadsheet note)
+        # must not shift the line numbers, nor end the bench file's report with a bare error
+        try:
+            row = next(csv.reader([line], strict=True), [])
+        except csv.Error as exc:
+            raise err(f"{path}:{line_no}: not a CSV line ({exc}): {line.strip()!r}") from None
         cells = [c.strip() for c in row]
         while cells and not cells[-1]:  # a trailing separator (spreadsheet exports)
             cells.pop()
         if not cells or cells[0].startswith("#"):
             continue
         where = f"{path}:{line_no}"
-        if ";" in line or "\t" in line:
+        if ";" in line or "\t" in line.strip():  # (trailing whitespace is no separator)
             sep = "';'" if ";" in line else "tabs"
             raise err(f"{where}: separated by {sep} ({line.strip()!r}; a European "
                       "spreadsheet?): save it comma-separated with '.' decimals")
@@ -546,16 +551,17 @@ def _read_drive_calibration(path: Path, err: Callable[[str], BenchConfigError]
                  else a * cmath.exp(1j * math.radians(b)))
         if not cmath.isfinite(value) or value == 0 or (kind == "abs/phase" and a <= 0):
             raise err(f"{where}: the N/V value must be finite and non-zero")
-        # the file's own phase when it gives one; re/im: the shortest turn from the last
-        phase = b if kind == "abs/phase" else math.degrees(cmath.phase(value))
+        # the interpolation unwraps the phase the short way round between rows: a file's
+        # phase wrapped at +-180 deg (instruments export it so) is a short turn, a real turn
+        # beyond 90 deg between two rows would be taken the wrong way
+        phase = math.degrees(cmath.phase(value))
         if phases_deg:
-            turn = phase - phases_deg[-1]
-            if kind == "re/im":
-                turn = (turn + 180.0) % 360.0 - 180.0
+            turn = (phase - phases_deg[-1] + 180.0) % 360.0 - 180.0
             if abs(turn) > MAX_CALIBRATION_PHASE_STEP_DEG:
-                raise err(f"{where}: the phase turns {turn:+.0f} deg from {freqs[-1]:g} to "
-                          f"{f_hz:g} Hz, more than {MAX_CALIBRATION_PHASE_STEP_DEG:g} deg "
-                          "between rows: too coarse to interpolate, add rows there")
+                raise err(f"{where}: the phase turns {turn:+.0f} deg (the short way round) "
+                          f"from {freqs[-1]:g} to {f_hz:g} Hz, more than "
+                          f"{MAX_CALIBRATION_PHASE_STEP_DEG:g} deg between rows: too coarse "
+                          "to interpolate, add rows there")
         freqs.append(f_hz)
         values.append(value)
         phases_deg.append(phase)

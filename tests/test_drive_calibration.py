@@ -102,7 +102,10 @@ def test_magnitude_and_phase_columns(tmp_path):
      "cal.csv:2: the N/V value must be finite and non-zero"),
     # a coarse table across a resonance: -200 deg read as +160 would flip the force
     ("frequency_hz,newton_per_volt_abs,newton_per_volt_phase_deg\n10,1,0\n20,1,-200\n",
-     "cal.csv:3: the phase turns -200 deg from 10 to 20 Hz, more than 90 deg"),
+     "cal.csv:3: the phase turns +160 deg (the short way round) from 10 to 20 Hz, more than "
+     "90 deg"),
+    ('frequency_hz,newton_per_volt_re,newton_per_volt_im\n10,1,0\n"20,1,0\n',
+     "cal.csv:3: not a CSV line"),
     ("frequency_hz,newton_per_volt_re,newton_per_volt_im\n10,1,0\n20,-1,0.1\n",
      "cal.csv:3: the phase turns +174 deg"),
     ("frequency_hz;newton_per_volt_re;newton_per_volt_im\n10;8,5;0\n",
@@ -116,10 +119,20 @@ def test_a_bad_calibration_file_is_named_with_its_line(tmp_path, text, message):
         BenchConfig.load(write_bench(tmp_path, text))
 
 
+def test_a_phase_wrapped_at_180_degrees_is_a_short_turn(tmp_path):
+    # review: 170 then -175 deg (15 deg) was refused as a -345 deg turn, "add rows"
+    text = ("frequency_hz,newton_per_volt_abs,newton_per_volt_phase_deg\n"
+            "10,8,170\n20,8,-175\n30,8,-160\n")
+    cfg = BenchConfig.load(write_bench(tmp_path, text))
+    mid = complex(drive_calibration_at(15.0, cfg.drive_calibration_frequency_hz,
+                                       cfg.drive_calibration_newton_per_volt))
+    assert math.degrees(cmath.phase(mid)) == pytest.approx(177.5)
+
+
 def test_spreadsheet_exports_are_read(tmp_path):
     # "CSV UTF-8" (byte-order mark), a separator after every row, a comment in cp1252
     text = ("\ufefffrequency_hz,newton_per_volt_re,newton_per_volt_im,\r\n"
-            "10,8,0,\r\n20,7,-1,\r\n")
+            "10,8,0,\t\r\n20,7,-1,\r\n")
     path = write_bench(tmp_path)
     (tmp_path / "cal.csv").write_bytes(text.encode("utf-8") + "# 25 \xb0C\r\n".encode("cp1252"))
     cfg = BenchConfig.load(path)
