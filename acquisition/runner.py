@@ -1260,7 +1260,8 @@ def _drive_calibration_words(bench: dict[str, Any]) -> str:
     constant = bench.get("drive_newton_per_volt")
     if constant is None:
         return "none recorded"
-    return f"one constant {complex(constant):g} N/V"
+    # digits enough to show a difference the comparison (rtol 1e-9) sees
+    return f"one constant {complex(constant):.10g} N/V"
 
 
 def _first_table_difference(a: dict[str, Any], b: dict[str, Any]) -> str:
@@ -1269,11 +1270,20 @@ def _first_table_difference(a: dict[str, Any], b: dict[str, Any]) -> str:
     fb = np.atleast_1d(np.asarray(b["drive_calibration_frequency_hz"], dtype=float))
     ga = np.atleast_1d(np.asarray(a.get("drive_calibration_newton_per_volt", []), complex))
     gb = np.atleast_1d(np.asarray(b.get("drive_calibration_newton_per_volt", []), complex))
-    if fa.shape != fb.shape or not np.allclose(fa, fb, rtol=1e-9, atol=0.0):
+    if fa.shape != fb.shape:
         return f"{fb.size} rows, {fb[0]:g}-{fb[-1]:g} Hz"
-    row = int(np.argmax(~np.isclose(ga, gb, rtol=1e-9, atol=0.0))) if ga.shape == gb.shape \
-        else 0
-    return f"first different at {fa[row]:g} Hz: {ga[row]:.4g} -> {gb[row]:.4g} N/V"
+    moved = ~np.isclose(fa, fb, rtol=1e-9, atol=0.0)
+    if moved.any():
+        row = int(np.argmax(moved))
+        return f"row {row + 1} at {fb[row]:.10g} Hz, was {fa[row]:.10g} Hz"
+    changed = (~np.isclose(ga, gb, rtol=1e-9, atol=0.0, equal_nan=True)
+               if ga.shape == gb.shape else np.ones(fa.shape, dtype=bool))
+    if not changed.any():
+        return "the same rows"
+    row = int(np.argmax(changed))
+    if ga.shape != gb.shape:
+        return f"{gb.size} values for {fb.size} rows"
+    return (f"first different at {fa[row]:g} Hz: {ga[row]:.10g} -> {gb[row]:.10g} N/V")
 
 
 # --------------------------------------------------------------------------- reprocessing

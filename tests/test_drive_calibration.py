@@ -212,11 +212,23 @@ def test_resume_compares_the_table(tmp_path):
     assert bench_differences(table, other) == [
         "drive calibration (drive_calibration_newton_per_volt): a per-frequency table (3 "
         "rows, 20-200 Hz) in the session, another table (first different at 100 Hz: "
-        "4.915-3.441j -> 5.406-3.786j N/V) now"]
+        f"{TABLE_N_PER_V[1]:.10g} -> {values[1]:.10g} N/V) now"]
+    # review: differences the comparison sees but 4 digits do not, and a moved inner row
+    close = np.array(TABLE_N_PER_V)
+    close[0] = 8.0000001
+    (line,) = bench_differences(table, dict(table, drive_calibration_newton_per_volt=close))
+    assert "first different at 20 Hz: 8+0j -> 8.0000001+0j N/V" in line
+    moved = dict(table, drive_calibration_frequency_hz=np.array([20.0, 110.0, 200.0]))
+    (line,) = bench_differences(table, moved)
+    assert "another table (row 2 at 110 Hz, was 100 Hz) now" in line
     constant = {"simulated": True, "drive_newton_per_volt": 8.0, "speed_of_sound_m_s": 1540.0}
     (line,) = bench_differences(table, constant)
     assert line.endswith("a per-frequency table (3 rows, 20-200 Hz) in the session, one "
                          "constant 8+0j N/V now")
+    other_constant = dict(constant, drive_newton_per_volt=8.000001)
+    assert bench_differences(constant, other_constant) == [
+        "drive calibration (drive_newton_per_volt): one constant 8+0j N/V in the session, "
+        "one constant 8.000001+0j N/V now"]
     assert bench_differences(constant, table) == [
         "drive calibration (drive_newton_per_volt): one constant 8+0j N/V in the session, "
         "a per-frequency table (3 rows, 20-200 Hz) now"]
@@ -238,7 +250,8 @@ def test_resume_on_the_same_table_through_the_file(tmp_path):
         "20,", "10,"))
     with pytest.raises(ValueError, match=r"drive calibration \(drive_calibration_frequency_hz"
                                          r"\): a per-frequency table \(3 rows, 20-200 Hz\) in "
-                                         r"the session, another table \(3 rows, 10-200 Hz\)"):
+                                         r"the session, another table \(row 1 at 10 Hz, "
+                                         r"was 20 Hz\)"):
         prepare_session(protocol, out, resume=True, bench=sim_bench.open_simulated_bench(
             BenchConfig.load(tmp_path / "bench.toml"), generators="python"))
 
