@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import html
 import logging
+import math
 from collections.abc import Callable
 from concurrent.futures import Future, ThreadPoolExecutor
 from pathlib import Path
@@ -113,16 +114,23 @@ def candidate_rows(report: dict[str, Any]) -> list[tuple[str, str, str, str, str
         return {"none": "not needed (see the reason)",
                 "unexplained": "not near the noise"}.get(verdict, f"not named ({verdict} is)")
 
-    ranked = sorted(report.get("candidates", []),
-                    key=lambda c: (c.get("effect") != verdict, -c.get("shrink", 0.0)))
+    def number(cand: dict[str, Any], key: str) -> float:
+        # a report read back from its JSON has null where the value was NaN
+        value = cand.get(key)
+        return float("nan") if value is None else float(value)
+
+    def rank(cand: dict[str, Any]) -> tuple[bool, bool, float]:
+        shrink = number(cand, "shrink")
+        return (cand.get("effect") != verdict, not math.isfinite(shrink),
+                -shrink if math.isfinite(shrink) else 0.0)
+
     rows = []
-    for cand in ranked:
+    for cand in sorted(report.get("candidates") or [], key=rank):
         said = status(cand)
-        shrink = f"{100 * cand.get('shrink', float('nan')):.0f} %"
-        rows.append((str(cand.get("effect", "")), said,
-                     f"{cand.get('gap_after', float('nan')):.3g}",
+        shrink = f"{100 * number(cand, 'shrink'):.0f} %"
+        rows.append((str(cand.get("effect", "")), said, f"{number(cand, 'gap_after'):.3g}",
                      shrink if said == "named" else f"({shrink})",
-                     str(cand.get("evidence", ""))))
+                     str(cand.get("evidence") or "")))
     return rows
 
 

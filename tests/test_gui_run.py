@@ -383,7 +383,8 @@ def test_gap_candidates_say_which_the_verdict_named():
     from pelvislab.app.gui_replay import candidate_rows
 
     def cand(effect, shrink, **extra):
-        return {"effect": effect, "gap_after": 1.0 - shrink, "shrink": shrink,
+        return {"effect": effect, "gap_after": None if shrink is None else 1.0 - shrink,
+                "shrink": shrink,
                 "evidence": f"{effect} ...", **extra}
 
     report = {"verdict": "none", "candidates": [cand("added_mass", 0.2),
@@ -407,3 +408,9 @@ def test_gap_candidates_say_which_the_verdict_named():
         "explains it: updating, so none", "within the chain's tolerance"]
     report["verdict_reason"] = "base gap 0 <= 0.5 ..."
     assert candidate_rows(report)[0][1] == "updating, not an effect"
+    # a report read back from its JSON (null for NaN): no crash, unknown shrink last
+    report = {"verdict": "none", "candidates": [
+        cand("added_mass", None, gap_after=None, evidence=None), cand("soft_tissue", 0.7)]}
+    assert candidate_rows(report) == [
+        ("soft_tissue", "not needed (see the reason)", "0.3", "(70 %)", "soft_tissue ..."),
+        ("added_mass", "not needed (see the reason)", "nan", "(nan %)", "")]
