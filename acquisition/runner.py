@@ -1276,14 +1276,13 @@ def _first_table_difference(a: dict[str, Any], b: dict[str, Any]) -> str:
     if moved.any():
         row = int(np.argmax(moved))
         return f"row {row + 1} at {fb[row]:.10g} Hz, was {fa[row]:.10g} Hz"
-    changed = (~np.isclose(ga, gb, rtol=1e-9, atol=0.0, equal_nan=True)
-               if ga.shape == gb.shape else np.ones(fa.shape, dtype=bool))
+    if ga.shape != gb.shape:
+        return f"{gb.size} values for {fb.size} rows"
+    changed = ~np.isclose(ga, gb, rtol=1e-9, atol=0.0, equal_nan=True)
     if not changed.any():
         return "the same rows"
     row = int(np.argmax(changed))
-    if ga.shape != gb.shape:
-        return f"{gb.size} values for {fb.size} rows"
-    return (f"first different at {fa[row]:g} Hz: {ga[row]:.10g} -> {gb[row]:.10g} N/V")
+    return f"first different at {fa[row]:g} Hz: {ga[row]:.10g} -> {gb[row]:.10g} N/V"
 
 
 # --------------------------------------------------------------------------- reprocessing
