@@ -836,7 +836,11 @@ def track_echoes(codes: np.ndarray, trigger_offset_s: np.ndarray | None, sample_
                          threshold=opts.gate_threshold,
                          margin_samples=opts.gate_margin_samples, band_hz=opts.band_hz)
         start, stop = max(gate[0], L), min(gate[1], m - L)
-        if (start, stop) != gate:
+        # said only when the clip reaches into the echo's own window (beyond the margin
+        # added around it): a clip of the margin alone loses nothing of the echo, and it was
+        # 58 of the 108 notes on a simulated face_up run (most 1 sample off the end)
+        margin = opts.gate_margin_samples
+        if start - gate[0] > margin or gate[1] - stop > margin:
             warnings.append(f"gate {gate} clipped to {(start, stop)} to fit the lag range")
     else:
         start, stop = (int(v) for v in opts.gate)
