@@ -250,6 +250,12 @@ class QualityTable(QtWidgets.QTableWidget):
             if corr is None and snr is None:  # nothing to judge by is not "OK"
                 problems.append("no tracking figures")
             status = "OK" if not problems else "CHECK: " + ", ".join(problems)
+            # what the tracker said it found or corrected (an echo cut by the record's
+            # edge, a reference rebuilt along the record, a clipped gate): stored with the
+            # step but, on a channel that passed, shown nowhere (session 37)
+            notes = str(row.get("notes") or "")
+            if notes:
+                status += " (tracker note: hover)"
             if problems:
                 warnings.append(f"{row.get('channel', '?')}: {', '.join(problems)}")
             values = (
@@ -261,6 +267,8 @@ class QualityTable(QtWidgets.QTableWidget):
                 item = QtWidgets.QTableWidgetItem(text)
                 if problems:
                     item.setBackground(QtGui.QColor("#ffe0b2"))
+                if notes:
+                    item.setToolTip(notes)
                 self.setItem(r, c, item)
         return warnings
 
@@ -294,6 +302,7 @@ def quality_row(channel: Any) -> dict[str, object]:
         "snr_db": quality.get("snr_db_median"),
         "peak_hops": quality.get("peak_hops", 0),
         "lost": None if lost_fraction is None else round(float(lost_fraction) * n_pulses),
+        "notes": quality.get("tracking_warnings", ""),
     }
 
 

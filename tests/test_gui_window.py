@@ -104,6 +104,30 @@ def test_a_channel_without_tracking_figures_is_not_shown_as_ok(qtbot):
     assert table.item(0, 2).text() == ""  # not "nan"
 
 
+def test_the_trackers_notes_on_a_passing_channel_are_shown(qtbot):
+    # session 37: a channel that passed kept what the tracker said (e.g. the echo's shape
+    # changed and the record was tracked block-wise) in the file only
+    from types import SimpleNamespace
+
+    import numpy as np
+
+    from pelvislab.app.gui_plots import QualityTable, quality_row
+
+    note = "echo shape changed along the record: tracked block-wise"
+    channel = SimpleNamespace(
+        name="ch1", output=SimpleNamespace(name="SIAS_R_x"), codes=np.zeros((2000, 8)),
+        quality={"correlation_median": 0.99, "snr_db_median": 30.0, "peak_hops": 0,
+                 "lost_fraction": 0.0, "tracking_warnings": note})
+    table = QualityTable()
+    qtbot.addWidget(table)
+    assert table.show_quality([quality_row(channel)]) == []
+    status = table.item(0, table.columnCount() - 1)
+    assert status.text() == "OK (tracker note: hover)" and status.toolTip() == note
+    channel.quality.pop("tracking_warnings")
+    table.show_quality([quality_row(channel)])
+    assert table.item(0, table.columnCount() - 1).text() == "OK"
+
+
 def test_start_names_an_empty_or_folder_output(operator_window, tmp_path, monkeypatch):
     # GUI review, session 35: an empty output gave ". exists", a folder "<folder> exists"
     from pelvislab.app import gui_main
