@@ -1218,37 +1218,38 @@ def bench_differences(recorded: dict[str, Any], current: dict[str, Any]) -> list
             return norm(bench.get("speed_of_sound_m_s"))
         return norm(bench.get(key))
 
-    keys = list(BENCH_KEYS_THAT_SHAPE_THE_DATA)
-    keys += sorted(k for k in {*recorded, *current} if k.startswith("speed_of_sound_m_s_ch"))
-    out = []
-    for key in keys:
+    def differs(key: str) -> bool:
         a, b = value(recorded, key), value(current, key)
         if a is None:  # not recorded (an older file): nothing to compare with
-            continue
+            return False
         if b is None:
-            same = False
-        elif isinstance(a, (float, complex, np.ndarray)):
+            return True
+        if isinstance(a, (float, complex, np.ndarray)):
             a_arr, b_arr = np.atleast_1d(a), np.atleast_1d(np.asarray(b))
-            same = a_arr.shape == b_arr.shape and bool(np.all(np.isclose(
-                a_arr, b_arr, rtol=1e-9, atol=0.0, equal_nan=True)))
-        else:
-            same = a == b
-        if not same:
-            out.append(f"{key}: {a!r} in the session, {b!r} now")
+            return not (a_arr.shape == b_arr.shape and bool(np.all(np.isclose(
+                a_arr, b_arr, rtol=1e-9, atol=0.0, equal_nan=True))))
+        return a != b
+
     # the drive calibration in words, one line (its keys' raw values read "(8+0j) in the
     # session, (nan+nanj) now", or printed two whole tables)
-    calibration_keys = {"drive_newton_per_volt", "drive_calibration_frequency_hz",
-                        "drive_calibration_newton_per_volt"}
-    differing = [line.split(":")[0] for line in out if line.split(":")[0] in calibration_keys]
-    if differing:
-        out = [line for line in out if line.split(":")[0] not in calibration_keys]
-        now = _drive_calibration_words(current)
-        if now.startswith("a per-frequency") and _drive_calibration_words(
-                recorded).startswith("a per-frequency"):
+    out = []
+    calibration = [k for k in _DRIVE_CALIBRATION_KEYS if differs(k)]
+    if calibration:
+        then, now = _drive_calibration_words(recorded), _drive_calibration_words(current)
+        if then.startswith("a per-frequency") and now.startswith("a per-frequency"):
             now = f"another table ({_first_table_difference(recorded, current)})"
-        out.insert(0, f"drive calibration ({', '.join(differing)}): "
-                      f"{_drive_calibration_words(recorded)} in the session, {now} now")
+        out.append(f"drive calibration ({', '.join(calibration)}): {then} in the session, "
+                   f"{now} now")
+    keys = [k for k in BENCH_KEYS_THAT_SHAPE_THE_DATA if k not in _DRIVE_CALIBRATION_KEYS]
+    keys += sorted(k for k in {*recorded, *current} if k.startswith("speed_of_sound_m_s_ch"))
+    out += [f"{key}: {value(recorded, key)!r} in the session, {value(current, key)!r} now"
+            for key in keys if differs(key)]
     return out
+
+
+_DRIVE_CALIBRATION_KEYS = ("drive_newton_per_volt", "drive_calibration_frequency_hz",
+                           "drive_calibration_newton_per_volt")
+"""The ``/bench`` keys of the drive calibration (compared as one, said in words)."""
 
 
 def _drive_calibration_words(bench: dict[str, Any]) -> str:
