@@ -746,15 +746,14 @@ def _band_dft(m: int, nfft: int, bins: tuple[int, ...]) -> tuple[np.ndarray, np.
     return np.exp(-1j * phase), np.exp(1j * phase.T) / nfft
 
 
-def auto_gate(codes: np.ndarray, sample_rate_hz: float, *, threshold: float = 0.1,
-              margin_samples: int = 5, n_echoes: int = 8,
-              band_hz: tuple[float, float] | None = None) -> tuple[int, int]:
-    """Window (start, stop) samples around the strongest echo envelope (the bone echo).
+_GATE_ECHOES = 8
+"""Echoes whose mean envelope places the automatic gate."""
 
-    The envelope is the mean Hilbert envelope of the first ``n_echoes`` band-passed echoes
-    (band: ``band_hz`` or 0.4-1.6 x the centre frequency); the window extends from the peak
-    until the envelope drops below ``threshold`` of it, plus ``margin_samples`` each side.
-    """
+
+def _first_echoes_envelope(codes: np.ndarray, sample_rate_hz: float, n_echoes: int,
+                           band_hz: tuple[float, float] | None) -> np.ndarray:
+    """Mean Hilbert envelope (counts, per sample) of the first ``n_echoes`` echoes,
+    band-passed over ``band_hz`` (None = 0.4-1.6 x their centre frequency)."""
     x = np.asarray(codes[:n_echoes], dtype=float)
     x = x - x.mean(axis=1, keepdims=True)
     m = x.shape[1]
@@ -772,17 +771,102 @@ def auto_gate(codes: np.ndarray, sample_rate_hz: float, *, threshold: float = 0.
         # A few dozen bins (2-8 MHz of a 1000-point, 500 MS/s transform: 13): the DFT over
         # them as two small matrix products, far cheaper than the two full FFTs.
         fwd, inv = _band_dft(m, nfft, tuple(bins.tolist()))
-        env = np.abs((2.0 * (x @ fwd)) @ inv).mean(axis=0)
-    else:
-        spec = np.fft.fft(x, nfft, axis=1) * np.where(keep, 2.0, 0.0)
-        env = np.abs(np.fft.ifft(spec, axis=1)[:, :m]).mean(axis=0)
-    k = int(np.argmax(env))
-    below = env < threshold * env[k]
+        return np.abs((2.0 * (x @ fwd)) @ inv).mean(axis=0)
+    spec = np.fft.fft(x, nfft, axis=1) * np.where(keep, 2.0, 0.0)
+    return np.abs(np.fft.ifft(spec, axis=1)[:, :m]).mean(axis=0)
+
+
+def _strongest_echo_extent(envelope: np.ndarray, threshold: float) -> tuple[int, int]:
+    """(first, last + 1) samples around the envelope's peak where it stays at or above
+    ``threshold`` of the peak."""
+    k = int(np.argmax(envelope))
+    below = envelope < threshold * envelope[k]
     left = np.nonzero(below[:k])[0]
     right = np.nonzero(below[k:])[0]
-    start = (left[-1] + 1 if left.size else 0) - margin_samples
-    stop = (k + right[0] if right.size else m) + margin_samples
-    return max(0, int(start)), min(m, int(stop))
+    return (int(left[-1] + 1) if left.size else 0,
+            int(k + right[0]) if right.size else envelope.size)
+
+
+def auto_gate(codes: np.ndarray, sample_rate_hz: float, *, threshold: float = 0.1,
+              margin_samples: int = 5, n_echoes: int = _GATE_ECHOES,
+              band_hz: tuple[float, float] | None = None) -> tuple[int, int]:
+    """Window (start, stop) samples around the strongest echo envelope (the bone echo).
+
+    The envelope is the mean Hilbert envelope of the first ``n_echoes`` band-passed echoes
+    (band: ``band_hz`` or 0.4-1.6 x the centre frequency); the window extends from the peak
+    until the envelope drops below ``threshold`` of it, plus ``margin_samples`` each side.
+    """
+    env = _first_echoes_envelope(codes, sample_rate_hz, n_echoes, band_hz)
+    first, end = _strongest_echo_extent(env, threshold)
+    return max(0, first - margin_samples), min(env.size, end + margin_samples)
+
+
+RIVAL_ECHO_DB = 10.0
+"""An echo whose envelope peak is within this many dB of the gated one is named in the
+tracker's notes: the automatic gate takes the strongest echo for the bone, and with a rival
+that close the other may be the bone (session 36 review: a stationary reflection 1.5 x the
+bone's echo, 0.3 us before it, was gated and tracked instead, the step ``ok``); one that
+overlaps the gated echo biases its delay. The simulated bench's strongest other echo is
+-18.6 dB (62 demo records, session 37)."""
+
+RIVAL_MIN_DIP = 0.2
+"""A rival is a separate echo when the envelope dips by at least this fraction of its peak
+(3 dB) between it and any higher peak (scipy's peak prominence): the ripple of one echo's
+envelope is not a rival."""
+
+RIVAL_MIN_NOISE_RATIO = 3.0
+"""... and when its envelope peak is at least this many times the record's noise SD (so that
+the noise of a weak record is not called an echo)."""
+
+
+def rival_echo(envelope: np.ndarray, noise_sd: float = 0.0,
+               within_db: float = RIVAL_ECHO_DB) -> tuple[int, float] | None:
+    """The strongest echo other than the envelope's highest, when within ``within_db`` of it.
+
+    envelope: per-sample echo envelope (counts; the record's edges count as zero beyond it,
+        so an echo cut by an edge is seen). noise_sd: noise SD in the same unit; a peak below
+        ``RIVAL_MIN_NOISE_RATIO`` x it is not an echo.
+    Returns (sample of its peak, its level in dB relative to the highest peak) or None. A
+    peak is an echo of its own when its prominence is at least ``RIVAL_MIN_DIP`` of its
+    height (``scipy.signal.find_peaks``).
+    """
+    padded = np.concatenate(([0.0], np.asarray(envelope, dtype=float), [0.0]))
+    peaks, props = signal.find_peaks(padded, prominence=0.0)
+    if peaks.size < 2:
+        return None
+    heights = padded[peaks]
+    highest = int(np.argmax(heights))
+    separate = ((props["prominences"] >= RIVAL_MIN_DIP * heights)
+                & (heights >= RIVAL_MIN_NOISE_RATIO * noise_sd))
+    separate[highest] = False
+    if not np.any(separate):
+        return None
+    best = int(np.argmax(np.where(separate, heights, -np.inf)))
+    level_db = 20.0 * math.log10(heights[best] / heights[highest])
+    return (int(peaks[best]) - 1, level_db) if level_db >= -within_db else None
+
+
+def _rival_note(envelope: np.ndarray, first_echoes: np.ndarray, gate: tuple[int, int],
+                fs: float) -> str | None:
+    """The tracker's note on a rival echo (:func:`rival_echo`) in the envelope of
+    ``first_echoes`` (raw codes), or None."""
+    if rival_echo(envelope) is None:  # the usual case, without the noise estimate's cost
+        return None
+    # the raw record's noise SD: the first echoes' spread across pulses, per sample (their
+    # motion over 8 pulses can only raise it: fewer notes, never false ones)
+    noise_sd = float(np.median(np.std(np.asarray(first_echoes, dtype=float), axis=0)))
+    rival = rival_echo(envelope, noise_sd)
+    if rival is None:
+        return None
+    sample, level_db = rival
+    lag_s = (sample - int(np.argmax(envelope))) / fs
+    where = (f"another echo at sample {sample} ({abs(lag_s) * 1e6:.2f} us "
+             f"{'later' if lag_s > 0 else 'earlier'}) is {-level_db:.1f} dB below the gated one")
+    if gate[0] <= sample < gate[1]:
+        return (f"{where}, inside the gate: its overlap biases the tracked delay; look at the "
+                "A-scan and set the gate on the bone echo")
+    return (f"{where}: the strongest echo was taken for the bone; if the bone is the other, "
+            "set the gate on it")
 
 
 # --------------------------------------------------------------------------------------------
@@ -832,9 +916,11 @@ def track_echoes(codes: np.ndarray, trigger_offset_s: np.ndarray | None, sample_
     if opts.gate is None:
         # found on the first echoes that hold a signal (empty first segments made it fail)
         head = np.flatnonzero(np.ptp(codes[:64], axis=1) != 0)
-        gate = auto_gate(codes[head] if head.size else codes, fs,
-                         threshold=opts.gate_threshold,
-                         margin_samples=opts.gate_margin_samples, band_hz=opts.band_hz)
+        first_echoes = codes[head[:_GATE_ECHOES]] if head.size else codes[:_GATE_ECHOES]
+        env = _first_echoes_envelope(first_echoes, fs, _GATE_ECHOES, opts.band_hz)
+        extent = _strongest_echo_extent(env, opts.gate_threshold)
+        gate = (max(0, extent[0] - opts.gate_margin_samples),
+                min(m, extent[1] + opts.gate_margin_samples))
         start, stop = max(gate[0], L), min(gate[1], m - L)
         # said only when the clip reaches into the echo's own window (beyond the margin
         # added around it): a clip of the margin alone loses nothing of the echo, and it was
@@ -842,6 +928,9 @@ def track_echoes(codes: np.ndarray, trigger_offset_s: np.ndarray | None, sample_
         margin = opts.gate_margin_samples
         if start - gate[0] > margin or gate[1] - stop > margin:
             warnings.append(f"gate {gate} clipped to {(start, stop)} to fit the lag range")
+        note = _rival_note(env, first_echoes, (start, stop), fs)
+        if note is not None:
+            warnings.append(note)
     else:
         start, stop = (int(v) for v in opts.gate)
         if not 0 <= start - L < stop + L <= m:
