@@ -869,6 +869,62 @@ def _rival_note(envelope: np.ndarray, first_echoes: np.ndarray, gate: tuple[int,
             "set the gate on it")
 
 
+def _choose_gate(codes: np.ndarray, fs: float, opts: TrackingOptions,
+                 warnings: list[str]) -> tuple[int, int]:
+    """The gate (start, stop samples) :func:`track_echoes` tracks in: ``opts.gate``
+    (checked against the record and the lag range) or the automatic one, clipped to the
+    lag range; what is worth saying about it is appended to ``warnings``."""
+    m = codes.shape[1]
+    L = int(opts.max_lag_samples)
+    if opts.gate is None:
+        # found on the first echoes that hold a signal (empty first segments made it fail)
+        head = np.flatnonzero(np.ptp(codes[:64], axis=1) != 0)
+        first_echoes = codes[head[:_GATE_ECHOES]] if head.size else codes[:_GATE_ECHOES]
+        env = _first_echoes_envelope(first_echoes, fs, _GATE_ECHOES, opts.band_hz)
+        extent = _strongest_echo_extent(env, opts.gate_threshold)
+        gate = (max(0, extent[0] - opts.gate_margin_samples),
+                min(m, extent[1] + opts.gate_margin_samples))
+        start, stop = max(gate[0], L), min(gate[1], m - L)
+        # said only when the clip reaches into the echo's own window (beyond the margin
+        # added around it): a clip of the margin alone loses nothing of the echo, and it was
+        # 58 of the 108 notes on a simulated face_up run (most 1 sample off the end)
+        margin = opts.gate_margin_samples
+        if start - gate[0] > margin or gate[1] - stop > margin:
+            warnings.append(f"gate {gate} clipped to {(start, stop)} to fit the lag range")
+        note = _rival_note(env, first_echoes, (start, stop), fs)
+        if note is not None:
+            warnings.append(note)
+    else:
+        start, stop = (int(v) for v in opts.gate)
+        if not 0 <= start - L < stop + L <= m:
+            raise ValueError(f"gate {opts.gate} +- max_lag_samples={L} does not fit in "
+                             f"{m} samples")
+    if stop - start < 16:
+        raise ValueError(f"gate ({start}, {stop}) is too short to track an echo")
+    return start, stop
+
+
+def gate_preview(codes: np.ndarray, sample_rate_hz: float,
+                 options: TrackingOptions | None = None) -> tuple[tuple[int, int], list[str]]:
+    """The gate :func:`track_echoes` would track in on this record, and its notes on it.
+
+    codes: (n_pulses, n_samples) raw digitizer codes (a few pulses suffice: the automatic
+        gate looks at the first 8). sample_rate_hz: digitizer sample rate (Hz).
+    Returns ((start, stop) sample indices, notes: a clipped gate, a rival echo). For the
+    live A-scan while the operator places the transducers; raises ValueError like
+    :func:`track_echoes` (flat echoes, a gate that does not fit).
+    """
+    opts = options or TrackingOptions()
+    codes = np.asarray(codes)
+    if codes.ndim != 2 or codes.shape[0] < 1 or codes.shape[1] < 32:
+        raise ValueError(f"codes must be (n_pulses, n_samples >= 32), got shape {codes.shape}")
+    if codes.dtype.kind == "f":
+        codes = np.where(np.isfinite(codes), codes, 0.0)
+    notes: list[str] = []
+    gate = _choose_gate(codes, float(sample_rate_hz), opts, notes)
+    return gate, notes
+
+
 # --------------------------------------------------------------------------------------------
 # Public entry point
 
@@ -913,32 +969,8 @@ def track_echoes(codes: np.ndarray, trigger_offset_s: np.ndarray | None, sample_
     if np.any(not_finite):
         codes = np.where(not_finite[:, None], 0.0, codes)
 
-    if opts.gate is None:
-        # found on the first echoes that hold a signal (empty first segments made it fail)
-        head = np.flatnonzero(np.ptp(codes[:64], axis=1) != 0)
-        first_echoes = codes[head[:_GATE_ECHOES]] if head.size else codes[:_GATE_ECHOES]
-        env = _first_echoes_envelope(first_echoes, fs, _GATE_ECHOES, opts.band_hz)
-        extent = _strongest_echo_extent(env, opts.gate_threshold)
-        gate = (max(0, extent[0] - opts.gate_margin_samples),
-                min(m, extent[1] + opts.gate_margin_samples))
-        start, stop = max(gate[0], L), min(gate[1], m - L)
-        # said only when the clip reaches into the echo's own window (beyond the margin
-        # added around it): a clip of the margin alone loses nothing of the echo, and it was
-        # 58 of the 108 notes on a simulated face_up run (most 1 sample off the end)
-        margin = opts.gate_margin_samples
-        if start - gate[0] > margin or gate[1] - stop > margin:
-            warnings.append(f"gate {gate} clipped to {(start, stop)} to fit the lag range")
-        note = _rival_note(env, first_echoes, (start, stop), fs)
-        if note is not None:
-            warnings.append(note)
-    else:
-        start, stop = (int(v) for v in opts.gate)
-        if not 0 <= start - L < stop + L <= m:
-            raise ValueError(f"gate {opts.gate} +- max_lag_samples={L} does not fit in "
-                             f"{m} samples")
+    start, stop = _choose_gate(codes, fs, opts, warnings)
     G = stop - start
-    if G < 16:
-        raise ValueError(f"gate ({start}, {stop}) is too short to track an echo")
     # Segments without signal (a digitizer that returned empty segments) or with samples
     # that are not numbers: lost, and said so (they were "left the recorded window: lower
     # the drive level", and one NaN sample lost every echo: tracking review, session 36).

@@ -11,7 +11,13 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from pelvislab.acquisition.tracking import RIVAL_ECHO_DB, TrackingOptions, rival_echo, track_echoes
+from pelvislab.acquisition.tracking import (
+    RIVAL_ECHO_DB,
+    TrackingOptions,
+    gate_preview,
+    rival_echo,
+    track_echoes,
+)
 from pelvislab.tests.echo_synth import synth_echoes
 
 FS = 500e6
@@ -101,3 +107,15 @@ def test_rival_echo_level_and_place():
     # a ripple on one echo's flank (-5.2 dB, a 0.4 dB dip) is not an echo of its own
     assert rival_echo(np.array([0, 2, 10, 8, 6, 5, 5.5, 5, 3, 1, 0.0])) is None
     assert rival_echo(np.array([0, 2, 10, 8, 6, 3, 5.5, 5, 3, 1, 0.0]))[0] == 6
+
+
+@pytest.mark.parametrize("rel", [None, 1.5])
+def test_gate_preview_is_the_gate_tracking_uses(rel):
+    codes, off, _ = _record(rel)
+    res = track_echoes(codes, off, FS, C)
+    gate, notes = gate_preview(codes[:16], FS)  # a live echo's few pulses
+    assert gate == res.gate
+    assert notes == [w for w in res.warnings if "another echo" in w or "clipped" in w]
+    assert gate_preview(codes, FS, TrackingOptions(gate=(250, 350))) == ((250, 350), [])
+    with pytest.raises(ValueError, match="does not fit"):
+        gate_preview(codes, FS, TrackingOptions(gate=(2, 100)))
