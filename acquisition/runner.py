@@ -46,6 +46,8 @@ from pelvislab.acquisition.session import (
 
 __all__ = [
     "DRIVE_PHASE_AT_FIRST_PULSE_RAD",
+    "AimedEcho",
+    "AimingEchoes",
     "Event",
     "Fault",
     "LogMessage",
@@ -123,6 +125,38 @@ class OperatorPrompt(Event):
     setup: str
     message: str
     auto_continue: bool
+
+
+@dataclass(frozen=True)
+class AimedEcho:
+    """One channel's latest echo while the operator places its transducer."""
+
+    channel: int
+    landmark: str
+    time_s: np.ndarray
+    """(n_samples,) time of each sample after the trigger (s)."""
+    volts: np.ndarray
+    """(n_samples,) the last pulse's echo (V)."""
+    gate: tuple[int, int] | None
+    """The samples the steps will track in (None: no echo to gate on)."""
+    gate_source: str
+    """``operator`` (:meth:`Runner.set_gate`), ``options`` (the tracking options' gate) or
+    ``auto`` (the strongest echo)."""
+    notes: tuple[str, ...]
+    """What the tracker would say about the gate (a rival echo, a clipped gate) or why no
+    gate was found."""
+    sample_rate_hz: float
+    delay_s: float
+
+
+@dataclass(frozen=True)
+class AimingEchoes(Event):
+    """Live echoes while the runner waits at an operator prompt: the trigger pulses the
+    transducers, the drive stays off. Lets the operator find the bone echo and set each
+    channel's gate (:meth:`Runner.set_gate`) before anything is measured."""
+
+    setup_index: int
+    echoes: tuple[AimedEcho, ...]
 
 
 @dataclass(frozen=True)
@@ -434,11 +468,18 @@ class Runner:
 
     def __init__(self, protocol: Protocol, bench: Any, *, auto_continue: bool = True,
                  tracking_options: Any = None, skip: Iterable[tuple[Any, ...]] = (),
-                 clock: Callable[[], float] = time.monotonic) -> None:
+                 clock: Callable[[], float] = time.monotonic, aim_pulses: int = 16,
+                 aim_interval_s: float = 0.3) -> None:
         self.protocol = protocol
         self.bench = bench
         self.auto_continue = auto_continue
         self.tracking_options = tracking_options
+        self.aim_pulses = int(aim_pulses)
+        """Pulses per live echo while the runner waits at a prompt (0: no live echoes)."""
+        self.aim_interval_s = float(aim_interval_s)
+        """Seconds between two live echoes at a prompt."""
+        self._gates: dict[int, tuple[int, int]] = {}
+        self._gates_lock = threading.Lock()
         self._skip = {(k[0], round(float(k[1]), 9), int(k[2]) if len(k) > 2 else 0)
                       for k in skip}
         self._clock = clock
@@ -540,6 +581,57 @@ class Runner:
         if not self.critical and self.state in ("running", "waiting", "paused"):
             raise RunInterrupted(reason)
 
+    def set_gate(self, channel: int, gate: tuple[int, int] | None) -> None:
+        """Track ``channel``'s echoes in ``gate`` (start, stop: sample indices of the
+        record) from the next step of the current setup on; None: the automatic gate again.
+
+        Any thread. Cleared when a setup starts (its transducers are placed anew); set it
+        at the prompt, where the live echoes (:class:`AimingEchoes`) show the record.
+        Raises ValueError for a channel the protocol does not record, or a gate that does
+        not fit the record with the tracking's lag range (nothing is changed then)."""
+        if channel not in self.protocol.channels:
+            raise ValueError(f"channel {channel} is not recorded by this protocol "
+                             f"(channels {list(self.protocol.channels)})")
+        if gate is not None:
+            start, stop = (int(v) for v in gate)
+            lag = int(self._tracking_options().max_lag_samples)
+            samples = int(self.protocol.ultrasound.samples)
+            if not (start - lag >= 0 and stop + lag <= samples and stop - start >= 16):
+                raise ValueError(
+                    f"gate ({start}, {stop}) for ch{channel}: it must hold 16 samples or "
+                    f"more and leave the lag range ({lag} samples) inside the "
+                    f"{samples}-sample record: start {lag} to stop {samples - lag}")
+            gate = (start, stop)
+        with self._gates_lock:
+            if gate is None:
+                self._gates.pop(channel, None)
+            else:
+                self._gates[channel] = gate
+        self._log(f"ch{channel}: gate set by the operator to samples {gate[0]}-{gate[1]}"
+                  if gate is not None else f"ch{channel}: automatic gate again")
+
+    @property
+    def gates(self) -> dict[int, tuple[int, int]]:
+        """The gates set with :meth:`set_gate` for the current setup, by channel."""
+        with self._gates_lock:
+            return dict(self._gates)
+
+    def _tracking_options(self, gate: tuple[int, int] | None = None) -> Any:
+        """The runner's tracking options (the defaults when it has none), with ``gate``
+        (an operator's gate) if given."""
+        from dataclasses import replace
+
+        from pelvislab.acquisition.tracking import TrackingOptions
+
+        options = self.tracking_options or TrackingOptions()
+        return options if gate is None else replace(options, gate=gate)
+
+    def _gate_source(self, gate: tuple[int, int] | None) -> str:
+        """How a channel's gate was chosen (see :attr:`AimedEcho.gate_source`)."""
+        if gate is not None:
+            return "operator"
+        return "options" if getattr(self.tracking_options, "gate", None) else "auto"
+
     @property
     def aborted(self) -> bool:
         """True once an abort was requested."""
@@ -624,7 +716,9 @@ class Runner:
                 finally:  # the trigger off even when the drive's OFF raised
                     self.bench.trigger.output_off()
 
-    def _wait_prompt(self, setup_index: int, setup: Setup) -> None:
+    def _wait_prompt(self, setup_index: int, setup: Setup, first: PlannedStep) -> None:
+        """Prompt the operator and wait for :meth:`confirm`, showing live echoes meanwhile
+        (:meth:`_aim`; they leave the trigger and the digitizer configured for themselves)."""
         transducers = ", ".join(f"ch{c} -> {p}" for c, p in sorted(setup.transducers.items()))
         message = (setup.prompt or f"Setup {setup.name!r}: excitation at {setup.excitation}; "
                    f"place the transducers: {transducers}.")
@@ -636,13 +730,94 @@ class Runner:
             return
         self.state = "waiting"
         t_wait = self._clock()
+        aiming = self.aim_pulses > 0 and self._aim_configure(setup, first)
+        next_aim = self._clock()
         while not self._confirm.is_set():
             self._check()
+            # a pause at the prompt holds the trigger off too
+            if aiming and not self._pause.is_set() and self._clock() >= next_aim:
+                aiming = self._aim(setup_index, setup, first)
+                next_aim = self._clock() + self.aim_interval_s
+                continue  # a confirm during the acquisition is seen at once
             self._wake.wait(0.05)
             self._wake.clear()
         self._waited_s += self._clock() - t_wait
         self.state = "running"
         self._log(f"operator confirmed setup {setup.name!r}")
+
+    def _aim_failed(self, exc: Exception) -> bool:
+        self._log(f"no live echoes while placing the transducers: {type(exc).__name__}: "
+                  f"{' '.join(str(exc).split())} (the steps configure the bench anew)",
+                  "WARNING")
+        return False
+
+    def _aim_configure(self, setup: Setup, first: PlannedStep) -> bool:
+        """Configure short trigger bursts and records for the live echoes, the drive's sine
+        at the first step (its SYNC may trigger the bursts) with its output left off."""
+        us = self.protocol.ultrasound
+        try:
+            with self._lock:
+                self._check()
+                self.bench.drive.configure_sine(
+                    first.frequency_hz, first.drive_vpp or self.protocol.sweep.drive_vpp)
+                self.bench.trigger.configure_pulse_burst(
+                    us.prf_hz, self.aim_pulses, us.trigger_width_s, us.trigger_high_v)
+            self.bench.digitizer.configure_sequence(
+                sorted(setup.transducers), us.sample_rate_hz, us.samples, self.aim_pulses,
+                us.delay_s, us.full_scale_v, us.offset_v)
+        except _Stop:
+            raise
+        except Exception as exc:
+            return self._aim_failed(exc)
+        return True
+
+    def _aim(self, setup_index: int, setup: Setup, first: PlannedStep) -> bool:
+        """One live echo per channel (trigger on for ``aim_pulses`` pulses, then off; the
+        drive stays off), emitted as :class:`AimingEchoes`. False after a failure (said)."""
+        from pelvislab.acquisition.tracking import gate_preview
+
+        us = self.protocol.ultrasound
+        sync_wait_s = 1.0 / first.frequency_hz  # a burst may wait for the drive's SYNC
+        try:
+            with self._lock:
+                self._check()
+                self.bench.trigger.output_on()
+            try:
+                records = self.bench.digitizer.acquire(
+                    timeout_s=self.aim_pulses / us.prf_hz + sync_wait_s + 0.5)
+            finally:
+                with self._lock:
+                    self.bench.trigger.output_off()
+        except _Stop:
+            raise
+        except Exception as exc:
+            return self._aim_failed(exc)
+        self._check()
+        gates = self.gates
+        echoes = []
+        for ch in sorted(setup.transducers):
+            rec = records.get(ch)
+            if rec is None:
+                continue
+            codes = np.asarray(rec.codes)
+            gate: tuple[int, int] | None = None
+            notes: tuple[str, ...] = ()
+            try:
+                gate, found = gate_preview(codes, float(rec.sample_rate_hz),
+                                           self._tracking_options(gates.get(ch)))
+                notes = tuple(found)
+            except ValueError as exc:
+                notes = (str(exc),)
+            samples = codes.shape[1]
+            echoes.append(AimedEcho(
+                channel=ch, landmark=setup.transducers[ch],
+                time_s=float(rec.delay_s) + np.arange(samples) / float(rec.sample_rate_hz),
+                volts=codes[-1].astype(float) * float(rec.volts_per_count)
+                - float(rec.volts_offset),
+                gate=gate, gate_source=self._gate_source(gates.get(ch)), notes=notes,
+                sample_rate_hz=float(rec.sample_rate_hz), delay_s=float(rec.delay_s)))
+        self._emit(AimingEchoes(self._t(), setup_index, tuple(echoes)))
+        return True
 
     def _place(self, setup: Setup) -> None:
         """On a simulated bench, let its simulated operator move shaker and transducers
@@ -786,11 +961,19 @@ class Runner:
             if not steps:
                 continue
             self._check()
+            with self._gates_lock:  # the transducers are placed anew
+                self._gates.clear()
             self._emit(SetupStarted(self._t(), si, setup.name, setup.excitation,
                                     dict(setup.transducers), n_setups))
-            self._wait_prompt(si, setup)
-            self._place(setup)
             first = steps[0]
+            aims = not self.auto_continue and self.aim_pulses > 0
+            if aims:  # the simulated operator places first, so that the live echoes show it
+                self._place(setup)
+            self._wait_prompt(si, setup, first)
+            if aims:  # the live echoes configured trigger and digitizer for themselves
+                configured = (-1, ())
+            else:
+                self._place(setup)
             level = first.drive_vpp or proto.sweep.drive_vpp
             with self._lock:
                 self._check()
@@ -909,6 +1092,7 @@ class Runner:
         proto = self.protocol
         us = proto.ultrasound
         cfg = self.bench.config
+        gates = self.gates  # one snapshot per step (the GUI may set one meanwhile)
         chans: list[ChannelData] = []
         for ch in sorted(setup.transducers):
             if ch not in records:
@@ -923,7 +1107,10 @@ class Runner:
                 delay_s=float(rec.delay_s), volts_per_count=float(rec.volts_per_count),
                 volts_offset=float(rec.volts_offset), speed_of_sound_m_s=c,
                 output=proto.points[setup.transducers[ch]])
-            process_channel(cd, step.frequency_hz, self.tracking_options)
+            gate = gates.get(ch)
+            process_channel(cd, step.frequency_hz, self.tracking_options if gate is None
+                            else self._tracking_options(gate))
+            cd.quality["gate_source"] = self._gate_source(gate)
             chans.append(cd)
         level = float(level_vpp if level_vpp is not None else
                       (step.drive_vpp or proto.sweep.drive_vpp))

@@ -341,8 +341,11 @@ def test_a_pause_asked_at_a_prompt_keeps_the_outputs_off_until_resumed(tmp_path)
         runner = session.runner
         resumed = []
 
+        paused = []
+
         def listener(event):
             if isinstance(event, r.OperatorPrompt) and event.setup == "s2":
+                paused.append(time.monotonic())
                 runner.pause()
                 runner.confirm()
             if isinstance(event, r.Paused):
@@ -354,10 +357,14 @@ def test_a_pause_asked_at_a_prompt_keeps_the_outputs_off_until_resumed(tmp_path)
         runner.subscribe(listener)
         final = session.run()
     assert final.status == "completed" and resumed
-    for gen in (bench.drive, bench.trigger):
-        on_times = [t for t, text in gen.command_log if text == "OUTP ON"]
-        assert len(on_times) == 2, gen.command_log  # once per setup, the 2nd after resume
-        assert on_times[1] > resumed[0]
+    drive_on = [t for t, text in bench.drive.command_log if text == "OUTP ON"]
+    assert len(drive_on) == 2, bench.drive.command_log  # once per setup, the 2nd after resume
+    assert drive_on[1] > resumed[0]
+    # the trigger also pulses for the live echoes at s1's prompt (the drive off then);
+    # nothing is switched on between the pause and the resume
+    trigger_on = [t for t, text in bench.trigger.command_log if text == "OUTP ON"]
+    assert not [t for t in trigger_on if paused[0] <= t <= resumed[0]]
+    assert trigger_on[-1] > resumed[0]
 
 
 @pytest.mark.parametrize("fault", ["digitizer", "generator"])

@@ -1,0 +1,188 @@
+"""Live echoes at the operator prompt, and the operator's gate (runner, simulated bench).
+
+While the runner waits for the transducers to be placed it pulses the trigger (the drive
+stays off) and emits :class:`AimingEchoes`: the operator sees each channel's echo with the
+gate the steps would use and the tracker's notes on it, and may set the gate on the bone
+echo (:meth:`Runner.set_gate`). The case it is for (session 36 review): a stationary
+reflection stronger than the bone echo is gated and tracked instead, the step ``ok``.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from pelvislab.acquisition import runner as r
+from pelvislab.acquisition.runner import prepare_session
+from pelvislab.acquisition.session import SessionReader
+
+sim_bench = pytest.importorskip("pelvislab.sim_instruments.bench")
+faults = pytest.importorskip("pelvislab.sim_instruments.faults")
+effects = pytest.importorskip("pelvislab.sim_instruments.effects")
+
+PROTOCOL = """
+schema = "pelvislab-protocol"
+schema_version = 1
+name = "aim-test"
+[sweep]
+frequencies_hz = [40.0, 100.0, 160.0]
+drive_vpp = 0.2
+settle_s = 0.05
+[ultrasound]
+pulses = 1000
+samples = 500
+[[setups]]
+name = "a"
+excitation = "SIAS_R_x"
+transducers = { ch1 = "SIAS_R_x", ch2 = "sacrum_x" }
+[[setups]]
+name = "b"
+excitation = "SIAS_L_x"
+transducers = { ch1 = "SIAS_R_x" }
+"""
+BONE_DEPTH_M = 8.2e-3  # the simulated bench's default
+# a stationary reflection 0.3 us before the bone echo, 3.5 dB stronger, on ch1
+CLUTTER = effects.StaticClutter(depth_m=(BONE_DEPTH_M - 0.3e-6 * 1540.0 / 2,),
+                                level_db=(3.5,), channels=(1,))
+
+
+def run(tmp_path, on_event, *, sim_faults=(), clutter=True, auto_continue=False):
+    protocol = tmp_path / "p.toml"
+    protocol.write_text(PROTOCOL)
+    bench = sim_bench.open_simulated_bench(
+        generators="python", effects=[CLUTTER] if clutter else [], faults=list(sim_faults))
+    events = []
+    out = tmp_path / "s.h5"
+    with prepare_session(protocol, out, bench=bench, auto_continue=auto_continue) as session:
+        def listener(event):
+            events.append(event)
+            on_event(session.runner, bench, event)
+        session.runner.subscribe(listener)
+        final = session.run()
+    return final, bench, events, out
+
+
+def ch1_ratio(path) -> np.ndarray:
+    """|H / truth| of ch1's lines in setup a (input SIAS_R_x)."""
+    from pelvislab.model.frf import frf
+    from pelvislab.model.pelvis import default_model
+
+    with SessionReader(path) as reader:
+        measured = reader.frf()
+    truth = frf(default_model(), measured.frequency_hz, measured.outputs, measured.inputs)
+    o, i = measured.outputs.index("SIAS_R_x"), measured.inputs.index("SIAS_R_x")
+    return np.abs(measured.H[:, o, i] / truth[:, o, i])
+
+
+def confirm_after(n_aims: int, set_gate=None):
+    """A listener confirming each prompt after ``n_aims`` live echoes; ``set_gate(runner,
+    echoes)`` is called on the first live echoes of setup a."""
+    count = {}
+
+    def on_event(runner, bench, event):
+        if isinstance(event, r.AimingEchoes):
+            # the drive is never on while the operator places transducers; the trigger
+            # pulses only during the live echo's acquisition
+            assert not bench.world.drive.output and not bench.world.trigger.output
+            n = count[event.setup_index] = count.get(event.setup_index, 0) + 1
+            if n == 1 and event.setup_index == 0 and set_gate is not None:
+                set_gate(runner, {e.channel: e for e in event.echoes})
+            if n == n_aims:
+                runner.confirm()
+    return on_event
+
+
+def test_live_echoes_name_the_rival_and_the_operator_gate_tracks_the_bone(tmp_path):
+    def gate_on_rival(runner, echoes):
+        note = next(n for n in echoes[1].notes if "another echo" in n)
+        bone = int(note.split("sample ")[1].split()[0])
+        runner.set_gate(1, (bone - 50, bone + 50))
+
+    final, bench, events, out = run(tmp_path, confirm_after(3, gate_on_rival))
+    assert final.status == "completed"
+    aims = [e for e in events if isinstance(e, r.AimingEchoes)]
+    assert [a.setup_index for a in aims] == [0, 0, 0, 1, 1, 1]
+    first = {e.channel: e for e in aims[0].echoes}
+    assert sorted(first) == [1, 2] and first[1].landmark == "SIAS_R_x"
+    assert first[1].gate_source == "auto" and any("another echo" in n for n in first[1].notes)
+    assert first[2].gate_source == "auto" and not first[2].notes  # no clutter there
+    assert first[1].volts.shape == first[1].time_s.shape == (500,)
+    gate = {e.channel: e for e in aims[1].echoes}[1]
+    assert gate.gate_source == "operator" and gate.gate[1] - gate.gate[0] == 100
+    assert not gate.notes  # a gate the operator set is not second-guessed
+    # setup b: placed anew, automatic again
+    assert {e.channel: e for e in aims[3].echoes}[1].gate_source == "auto"
+    with SessionReader(out) as reader:
+        steps = list(reader.steps(with_echoes=False))
+    sources = {(s.setup, c.name): c.quality["gate_source"] for s in steps for c in s.channels}
+    assert sources == {("a", "ch1"): "operator", ("a", "ch2"): "auto", ("b", "ch1"): "auto"}
+    a_ch1 = [c.quality for s in steps if s.setup == "a" for c in s.channels if c.name == "ch1"]
+    assert all((q["gate_start"], q["gate_stop"]) == gate.gate for q in a_ch1)
+    # the bone's motion, +21..+27 % (the reflection's tail in the gate; measured 1.21-1.27)
+    # instead of 0.19-0.20 x (next test)
+    ratio = ch1_ratio(out)
+    assert np.all((ratio > 0.9) & (ratio < 1.45)), ratio
+
+
+def test_without_the_operator_gate_the_reflection_is_tracked(tmp_path):
+    # the failure the live echoes are for, on the same bench: 0.19-0.20 x the motion, "ok"
+    final, _, events, out = run(tmp_path, confirm_after(1))
+    assert final.status == "completed"
+    ratio = ch1_ratio(out)
+    assert np.all(ratio < 0.5), ratio
+    notes = [q.message for q in events if isinstance(q, r.Quality)]
+    assert notes  # quality events came; the tracker's note is stored with each step
+    with SessionReader(out) as reader:
+        step = next(iter(reader.steps(with_echoes=False)))
+    assert "another echo" in step.channels[0].quality["tracking_warnings"]
+
+
+def test_headless_runs_show_no_live_echoes(tmp_path):
+    final, bench, events, _ = run(tmp_path, lambda *a: None, clutter=False,
+                                  auto_continue=True)
+    assert final.status == "completed"
+    assert not [e for e in events if isinstance(e, r.AimingEchoes)]
+
+
+def test_live_echoes_that_fail_are_said_and_the_run_goes_on(tmp_path):
+    def on_event(runner, bench, event):
+        if (isinstance(event, r.AimingEchoes) or isinstance(event, r.LogMessage)
+                and "no live echoes" in event.text):
+            runner.confirm()
+
+    final, _, events, _ = run(tmp_path, on_event, clutter=False,
+                              sim_faults=[faults.DigitizerTimeout(at_acquisition=0)])
+    assert final.status == "completed"
+    said = [e.text for e in events if isinstance(e, r.LogMessage) and e.level == "WARNING"]
+    assert any("no live echoes while placing the transducers" in t for t in said), said
+
+
+def test_abort_while_aiming_leaves_every_output_off(tmp_path):
+    def on_event(runner, bench, event):
+        if isinstance(event, r.AimingEchoes):
+            runner.abort("stop at the prompt")
+
+    final, bench, _, out = run(tmp_path, on_event, clutter=False)
+    assert final.status == "aborted" and not final.unsafe
+    assert not bench.world.drive.output and not bench.world.trigger.output
+    drive_on = [t for t, text in bench.drive.command_log if text.strip() == "OUTP ON"]
+    assert not drive_on
+
+
+def test_set_gate_refuses_what_cannot_be_tracked(tmp_path):
+    protocol = tmp_path / "p.toml"
+    protocol.write_text(PROTOCOL)
+    bench = sim_bench.open_simulated_bench(generators="python")
+    with prepare_session(protocol, tmp_path / "s.h5", bench=bench) as session:
+        runner = session.runner
+        with pytest.raises(ValueError, match="channel 3 is not recorded"):
+            runner.set_gate(3, (100, 200))
+        with pytest.raises(ValueError, match="start 12 to stop 488"):
+            runner.set_gate(1, (5, 200))
+        with pytest.raises(ValueError, match="16 samples"):
+            runner.set_gate(1, (100, 110))
+        assert runner.gates == {}
+        runner.set_gate(2, (100, 200))
+        assert runner.gates == {2: (100, 200)}
+        runner.set_gate(2, None)
+        assert runner.gates == {}
