@@ -496,7 +496,7 @@ class Runner:
         """True while listeners run (they write the session): signal handlers must then
         only call :meth:`abort`, not raise."""
         self.state = "idle"
-        self._notes: list[str] = []
+        self._notes: list[tuple[str, str]] = []  # (level, text) from other threads
         self._notes_lock = threading.Lock()
         self._unsafe: list[str] = []  # failures of the last safe state that completed
 
@@ -607,8 +607,8 @@ class Runner:
                 self._gates.pop(channel, None)
             else:
                 self._gates[channel] = gate
-        self._log(f"ch{channel}: gate set by the operator to samples {gate[0]}-{gate[1]}"
-                  if gate is not None else f"ch{channel}: automatic gate again")
+        self._defer_log(f"ch{channel}: gate set by the operator to samples {gate[0]}-{gate[1]}"
+                        if gate is not None else f"ch{channel}: automatic gate again")
 
     @property
     def gates(self) -> dict[int, tuple[int, int]]:
@@ -663,15 +663,20 @@ class Runner:
     def add_note(self, text: str) -> None:
         """Operator note from any thread; the runner's thread emits it as a LogMessage of
         level NOTE (so the session writer stays single-threaded) at its next check."""
+        self._defer_log(text, "NOTE")
+
+    def _defer_log(self, text: str, level: str = "INFO") -> None:
+        """A log line from any thread, emitted by the runner's thread at its next check
+        (listeners write the session: they run in that thread only)."""
         with self._notes_lock:
-            self._notes.append(" ".join(str(text).split()))
+            self._notes.append((level, " ".join(str(text).split())))
         self._wake.set()
 
     def _flush_notes(self) -> None:
         with self._notes_lock:
             notes, self._notes = self._notes, []
-        for note in notes:
-            self._emit(LogMessage(self._t(), "NOTE", note))
+        for level, note in notes:
+            self._emit(LogMessage(self._t(), level, note))
 
     def _check(self) -> None:
         if self._notes:

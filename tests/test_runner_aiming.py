@@ -110,6 +110,8 @@ def test_live_echoes_name_the_rival_and_the_operator_gate_tracks_the_bone(tmp_pa
     gate = {e.channel: e for e in aims[1].echoes}[1]
     assert gate.gate_source == "operator" and gate.gate[1] - gate.gate[0] == 100
     assert not gate.notes  # a gate the operator set is not second-guessed
+    said = [e.text for e in events if isinstance(e, r.LogMessage) and e.level == "INFO"]
+    assert f"ch1: gate set by the operator to samples {gate.gate[0]}-{gate.gate[1]}" in said
     # setup b: placed anew, automatic again
     assert {e.channel: e for e in aims[3].echoes}[1].gate_source == "auto"
     with SessionReader(out) as reader:
