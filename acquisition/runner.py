@@ -119,7 +119,8 @@ class SetupStarted(Event):
 @dataclass(frozen=True)
 class OperatorPrompt(Event):
     """Reposition the transducers: the runner waits for :meth:`Runner.confirm` (or abort)
-    unless it runs with ``auto_continue``. Outputs are off while it waits."""
+    unless it runs with ``auto_continue``. The drive is off while it waits; the trigger
+    pulses only for the live echoes (:class:`AimingEchoes`)."""
 
     setup_index: int
     setup: str

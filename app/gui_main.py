@@ -8,6 +8,7 @@ plots, so the UI thread never waits for an instrument. STOP (button or Esc) call
 
 from __future__ import annotations
 
+import html
 import queue
 import re
 import sys
@@ -42,7 +43,7 @@ STATE_STYLES = {
     "ready": ("READY — not started", "#cfd8dc", "black"),
     "starting": ("STARTING — outputs off", "#cfd8dc", "black"),
     "running": ("RUNNING — OUTPUTS ON", "#2e7d32", "white"),
-    "waiting": ("WAITING — outputs off", "#fdd835", "black"),
+    "waiting": ("WAITING — drive off", "#fdd835", "black"),  # live echoes pulse
     "paused": ("PAUSED — outputs off", "#1565c0", "white"),
     "stopping": ("STOPPING — outputs off", "#ef6c00", "white"),
     "completed": ("COMPLETED — outputs off", "#cfd8dc", "black"),
@@ -139,6 +140,8 @@ class OperatorWindow(QtWidgets.QMainWindow):
         self._latest_step: Any = None
         self._frf_lines: dict[tuple[str, str], dict[float, complex]] = {}
         self._channel_labels: list[str] = []
+        self._setup_channels: list[int] = []  # the A-scan rows' channels, in order
+        self._aimed: dict[int, Any] = {}  # channel -> latest live echo (runner.AimedEcho)
         self._build()
         self.timer = QtCore.QTimer(self)
         self.timer.setInterval(REFRESH_MS)
@@ -274,6 +277,19 @@ class OperatorWindow(QtWidgets.QMainWindow):
         self.confirm_button.setVisible(False)
         self.confirm_button.clicked.connect(self.confirm_prompt)
         run_layout.addWidget(self.confirm_button)
+        # live echoes at the prompt: the gate each channel will track in, and the
+        # tracker's notes on it (a second echo that may be the bone)
+        self.aim_label = QtWidgets.QLabel()
+        self.aim_label.setWordWrap(True)
+        self.aim_label.setStyleSheet("padding: 4px;")
+        self.aim_label.setVisible(False)
+        run_layout.addWidget(self.aim_label)
+        self.auto_gates_button = QtWidgets.QPushButton("Automatic gates")
+        self.auto_gates_button.setToolTip(
+            "forget the gates you set: track the strongest echo of each channel")
+        self.auto_gates_button.setVisible(False)
+        self.auto_gates_button.clicked.connect(self.automatic_gates)
+        run_layout.addWidget(self.auto_gates_button)
         side_layout.addWidget(run_box)
 
         notes_box = QtWidgets.QGroupBox("Notes (saved into the session)")
@@ -297,6 +313,7 @@ class OperatorWindow(QtWidgets.QMainWindow):
         grid = QtWidgets.QGridLayout(live)
         grid.setContentsMargins(2, 2, 2, 2)
         self.ascan = AScanPanel()
+        self.ascan.gate_edited.connect(self.set_gate_from_plot)
         self.displacement = DisplacementPanel()
         self.frf = FrfPanel()
         self.quality = QualityTable()
@@ -594,7 +611,69 @@ class OperatorWindow(QtWidgets.QMainWindow):
             self.control.runner.confirm()
         self.prompt_label.setVisible(False)
         self.confirm_button.setVisible(False)
+        self._end_aiming()
         self.bench_box.setVisible(True)
+
+    def _end_aiming(self) -> None:
+        self.ascan.set_gates_editable(False)
+        self.aim_label.setVisible(False)
+        self.auto_gates_button.setVisible(False)
+
+    def set_gate_from_plot(self, row: int, start_s: float, stop_s: float) -> None:
+        """The operator moved a channel's gate on the live A-scan: the steps of this setup
+        track that channel in it (the runner refuses a gate the tracker cannot use)."""
+        if self.control is None or row >= len(self._setup_channels):
+            return
+        channel = self._setup_channels[row]
+        echo = self._aimed.get(channel)
+        if echo is None:
+            return
+        start = int(round((start_s - echo.delay_s) * echo.sample_rate_hz))
+        stop = int(round((stop_s - echo.delay_s) * echo.sample_rate_hz))
+        try:
+            self.control.runner.set_gate(channel, (start, stop))
+        except ValueError as exc:
+            # the next live echo draws the gate the runner keeps
+            self._say(f"gate not set: {exc}")
+            self.statusBar().showMessage(f"gate not set: {exc}")
+            return
+        self._say(f"ch{channel}: gate set to samples {start}-{stop} "
+                  f"({start_s * 1e6:.2f}-{stop_s * 1e6:.2f} us)")
+
+    def automatic_gates(self) -> None:
+        """Forget the operator's gates of this setup."""
+        if self.control is None:
+            return
+        for channel in self.control.runner.gates:
+            self.control.runner.set_gate(channel, None)
+        self._say("automatic gates")
+
+    def _show_aiming(self, event: Any) -> None:
+        """Live echoes at the prompt: each channel's echo, its gate and the notes on it."""
+        self._aimed = {e.channel: e for e in event.echoes}
+        lines = []
+        for row, channel in enumerate(self._setup_channels):
+            echo = self._aimed.get(channel)
+            if echo is None:
+                continue
+            gate_s = None if echo.gate is None else tuple(
+                echo.delay_s + g / echo.sample_rate_hz for g in echo.gate)
+            operator = echo.gate_source == "operator"
+            self.ascan.show_echo(row, echo.time_s, echo.volts, gate_s, operator=operator)
+            where = ("no gate" if echo.gate is None else
+                     f"gate {echo.gate[0]}-{echo.gate[1]} "
+                     f"({'yours' if operator else echo.gate_source})")
+            lines.append(f"<b>ch{channel}</b>: {html.escape(where)}" + "".join(
+                f"<br><span style='color:#b35900'>{html.escape(n)}</span>"
+                for n in echo.notes))
+        self.aim_label.setText(
+            "Live echoes (drive off): drag a gate onto the bone echo if it is not on it."
+            "<br>" + "<br>".join(lines))
+        _fit_height(self.aim_label)
+        if self.confirm_button.isVisible():  # a prompt not yet answered
+            self.aim_label.setVisible(True)
+            self.auto_gates_button.setVisible(True)
+            self.ascan.set_gates_editable(True)
 
     def add_note(self) -> None:
         """Save the note into the running session (or say that none runs)."""
@@ -619,6 +698,7 @@ class OperatorWindow(QtWidgets.QMainWindow):
         # Drain everything first, then draw once: a burst of events costs one redraw.
         latest_step = None
         latest_progress = None
+        latest_aim = None
         changed_frfs: set[tuple[str, str]] = set()
         while True:
             try:
@@ -627,7 +707,11 @@ class OperatorWindow(QtWidgets.QMainWindow):
                 break
             if isinstance(event, r.Progress):
                 latest_progress = event
+            elif isinstance(event, r.AimingEchoes):
+                latest_aim = event
             elif isinstance(event, r.StepStarted):
+                latest_aim = None
+                self._end_aiming()
                 self.statusBar().showMessage(
                     f"setup {event.step.setup}: {event.step.frequency_hz:g} Hz")
                 if not self.control.runner.aborted:
@@ -653,13 +737,15 @@ class OperatorWindow(QtWidgets.QMainWindow):
                 self._say(f"PROMPT: {event.message}")
                 if not event.auto_continue:
                     self._set_state("waiting")
-                    self.eta_label.setText("waiting for the operator (outputs off)")
+                    self.eta_label.setText("waiting for the operator (drive off)")
                     self.statusBar().showMessage(
                         "waiting for the operator: place the transducers, then "
                         "Placed — continue")
             elif isinstance(event, r.SetupStarted):
                 self._channel_labels = [
                     f"ch{c} → {p}" for c, p in sorted(event.transducers.items())]
+                self._setup_channels = sorted(event.transducers)
+                self._aimed = {}
                 self.ascan.set_channels(self._channel_labels)
                 self.displacement.set_channels(self._channel_labels)
                 self.quality.setRowCount(0)  # the previous setup's figures are not these
@@ -686,6 +772,8 @@ class OperatorWindow(QtWidgets.QMainWindow):
             self.eta_label.setText(
                 f"{event.n_done}/{event.n_steps} steps, {event.elapsed_s:.0f} s elapsed, "
                 f"about {event.eta_s:.0f} s left")
+        if latest_aim is not None and self.confirm_button.isVisible():
+            self._show_aiming(latest_aim)
         if changed_frfs:
             self._draw_frf_lines(changed_frfs)
         if latest_step is not None:
@@ -700,6 +788,7 @@ class OperatorWindow(QtWidgets.QMainWindow):
         self.pause_button.setText("Pause")
         self.prompt_label.setVisible(False)
         self.confirm_button.setVisible(False)
+        self._end_aiming()
         self.bench_box.setVisible(True)
         text = f"run {event.status}: {event.n_done}/{event.n_steps} steps"
         if event.reason:

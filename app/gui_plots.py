@@ -69,14 +69,28 @@ class LogLabelAxis(pg.AxisItem):
         return log_tick_labels(values, tuple(self.range), scale)
 
 
+AUTO_GATE_BRUSH = (255, 200, 0, 50)
+"""The gate the tracker chose (amber)."""
+OPERATOR_GATE_BRUSH = (0, 170, 80, 60)
+"""A gate the operator set (green)."""
+
+
 class AScanPanel(pg.GraphicsLayoutWidget):
-    """The latest echo of each channel (volts against depth-time in µs) with its gate."""
+    """The latest echo of each channel (volts against depth-time in µs) with its gate.
+
+    While :meth:`set_gates_editable` is on, the operator drags a gate (or its edges) onto
+    the bone echo; :attr:`gate_edited` then gives the channel's row and the new edges (s)."""
+
+    gate_edited = QtCore.Signal(int, float, float)
+    """(row, start s, stop s) when the operator has moved a gate."""
 
     def __init__(self, parent: QtWidgets.QWidget | None = None) -> None:
         super().__init__(parent)
         self._plots: list[pg.PlotItem] = []
         self._curves: list[pg.PlotDataItem] = []
         self._gates: list[pg.LinearRegionItem] = []
+        self._editable = False
+        self._drawing = False  # our own setRegion also emits sigRegionChangeFinished
 
     def set_channels(self, names: Sequence[str]) -> None:
         """One row per channel, titled by its name (e.g. ``ch1 → PSIS_R``). Plots are reused
@@ -88,8 +102,11 @@ class AScanPanel(pg.GraphicsLayoutWidget):
             plot.setLabel("left", "echo", units="V")
             plot.showGrid(x=True, y=True, alpha=0.2)
             curve = plot.plot(pen=channel_pen(i, 1.0))
-            gate = pg.LinearRegionItem(movable=False, brush=pg.mkBrush(255, 200, 0, 50))
+            gate = pg.LinearRegionItem(movable=self._editable,
+                                       brush=pg.mkBrush(*AUTO_GATE_BRUSH))
             gate.setVisible(False)
+            gate.sigRegionChangeFinished.connect(
+                lambda region, row=i: self._gate_moved(row, region))
             plot.addItem(gate)
             self._plots.append(plot)
             self._curves.append(curve)
@@ -103,18 +120,43 @@ class AScanPanel(pg.GraphicsLayoutWidget):
                 self._curves[i].setData([], [])
                 self._gates[i].setVisible(False)
 
+    def set_gates_editable(self, editable: bool) -> None:
+        """Let the operator move the gates (at a prompt, over live echoes) or not."""
+        self._editable = bool(editable)
+        for gate in self._gates:
+            gate.setMovable(self._editable)
+
+    @property
+    def gates_editable(self) -> bool:
+        """True while the operator may move the gates."""
+        return self._editable
+
+    def _gate_moved(self, row: int, region: pg.LinearRegionItem) -> None:
+        if self._drawing or not self._editable:
+            return
+        start_s, stop_s = region.getRegion()
+        self.gate_edited.emit(row, float(start_s), float(stop_s))
+
     def show_echo(self, index: int, time_s: np.ndarray, volts: np.ndarray,
-                  gate_s: tuple[float, float] | None) -> None:
-        """Draw one echo of channel ``index``; ``gate_s`` is the tracking gate (start, stop)."""
+                  gate_s: tuple[float, float] | None, operator: bool = False) -> None:
+        """Draw one echo of channel ``index``; ``gate_s`` is the tracking gate (start, stop),
+        green when the operator set it (``operator``)."""
         if index >= len(self._curves):
             return
         self._curves[index].setData(time_s, volts)
         gate = self._gates[index]
         if gate_s is None:
             gate.setVisible(False)
-        else:
-            gate.setRegion(gate_s)
-            gate.setVisible(True)
+            return
+        gate.setBrush(pg.mkBrush(*(OPERATOR_GATE_BRUSH if operator else AUTO_GATE_BRUSH)))
+        # a gate the operator is dragging is not pulled back by the next live echo
+        if not (gate.moving or any(line.moving for line in gate.lines)):
+            self._drawing = True
+            try:
+                gate.setRegion(gate_s)
+            finally:
+                self._drawing = False
+        gate.setVisible(True)
 
 
 class DisplacementPanel(pg.PlotWidget):
@@ -320,7 +362,8 @@ def draw_step(ascan: AScanPanel, displacement: DisplacementPanel, quality: Quali
     rows = []
     for i, ch in enumerate(step.channels):
         time_s, volts = echo_trace(ch, echo_index)
-        ascan.show_echo(i, time_s, volts, gate_seconds(ch))
+        ascan.show_echo(i, time_s, volts, gate_seconds(ch),
+                        operator=(ch.quality or {}).get("gate_source") == "operator")
         if ch.displacement_m is not None:
             displacement.show_trace(i, np.arange(ch.displacement_m.size) / ch.prf_hz,
                                     ch.displacement_m)

@@ -85,7 +85,7 @@ def test_the_state_banner_and_set_up_follow_the_run(operator_window, qtbot, tmp_
     _start(window, tmp_path, protocol="demo")
     assert not window.setup_box.isEnabled()
     qtbot.waitUntil(window.confirm_button.isVisible, timeout=30_000)
-    assert window.state_banner.text() == "WAITING — outputs off"
+    assert window.state_banner.text() == "WAITING — drive off"
     # the runner's own prompt lists the placement: not said twice (a protocol's worded
     # prompt gets the "Place:" line, see the face-up run above)
     assert "Place:" not in window.prompt_label.text()
@@ -414,3 +414,42 @@ def test_gap_candidates_say_which_the_verdict_named():
     assert candidate_rows(report) == [
         ("soft_tissue", "not needed (see the reason)", "0.3", "(70 %)", "soft_tissue ..."),
         ("added_mass", "not needed (see the reason)", "nan", "(nan %)", "")]
+
+
+def test_live_echoes_at_the_prompt_and_a_gate_set_by_dragging(operator_window, qtbot, tmp_path):
+    # at the prompt the A-scan shows live echoes (drive off) with the gate the steps will
+    # use; the operator drags a gate, the steps of that setup track in it
+    window = operator_window()
+    out = _start(window, tmp_path, protocol="demo")
+    qtbot.waitUntil(window.aim_label.isVisible, timeout=30_000)
+    assert window.ascan.gates_editable and window.auto_gates_button.isVisible()
+    assert "Live echoes (drive off)" in window.aim_label.text()
+    bench = window.control.prepared.bench
+    assert not bench.world.drive.output
+    channel = window._setup_channels[0]
+    echo = window._aimed[channel]
+    assert echo.gate_source == "auto" and echo.volts.size == echo.time_s.size > 100
+    x, _ = window.ascan._curves[0].getData()
+    assert x is not None and x.size == echo.time_s.size
+    region = window.ascan._gates[0]
+    # a gate whose lag range leaves the record: refused, said, nothing set
+    region.setRegion((echo.time_s[0], echo.time_s[200]))
+    assert window.control.runner.gates == {}
+    assert "gate not set" in window.message_log.toPlainText()
+    # a gate inside the record: set for that channel
+    start, stop = echo.gate[0] + 10, echo.gate[1] - 10
+    region.setRegion((echo.time_s[start], echo.time_s[stop]))
+    assert window.control.runner.gates == {channel: (start, stop)}
+    qtbot.waitUntil(lambda: window._aimed[channel].gate_source == "operator", timeout=10_000)
+    qtbot.waitUntil(lambda: "(yours)" in window.aim_label.text(), timeout=10_000)
+    window.confirm_prompt()
+    assert not window.ascan.gates_editable and not window.aim_label.isVisible()
+    _wait_for_frf_lines(window, qtbot, 2)
+    window.control.stop("test done")
+    qtbot.waitUntil(window.control.finished.is_set, timeout=30_000)
+    with SessionReader(out) as reader:
+        step = next(iter(reader.steps(with_echoes=False)))
+    by_name = {c.name: c.quality for c in step.channels}
+    q = by_name[f"ch{channel}"]
+    assert q["gate_source"] == "operator" and (q["gate_start"], q["gate_stop"]) == (start, stop)
+    assert all(v["gate_source"] == "auto" for k, v in by_name.items() if k != f"ch{channel}")
