@@ -1480,10 +1480,29 @@ def _first_table_difference(a: dict[str, Any], b: dict[str, Any]) -> str:
 
 
 # --------------------------------------------------------------------------- reprocessing
+def _with_gate(options: Any, gate: tuple[int, int] | None) -> Any:
+    """``options`` (the defaults when None) with ``gate`` (None: automatic)."""
+    from dataclasses import replace
+
+    from pelvislab.acquisition.tracking import TrackingOptions
+
+    return replace(options or TrackingOptions(), gate=gate)
+
+
+def _recorded_operator_gate(channel: ChannelData) -> tuple[int, int] | None:
+    """The gate the operator set for this channel record at acquisition, if any."""
+    q = channel.quality or {}
+    if q.get("gate_source") != "operator" or "gate_start" not in q or "gate_stop" not in q:
+        return None
+    return int(q["gate_start"]), int(q["gate_stop"])
+
+
 def reprocess_session(source: Path | str, target: Path | str, tracking_options: Any = None,
                       speed_of_sound_m_s: float | None = None,
                       progress: Callable[[int, int], None] | None = None,
-                      software_version: str = "") -> tuple[int, list[str]]:
+                      software_version: str = "",
+                      channel_gates: Mapping[str, tuple[int, int] | None] | None = None,
+                      keep_operator_gates: bool = True) -> tuple[int, list[str]]:
     """Recompute displacement, phasors and /frf of ``source`` from its raw echoes alone.
 
     Writes a new session ``target`` (never over an existing file) with the same /protocol,
@@ -1493,6 +1512,13 @@ def reprocess_session(source: Path | str, target: Path | str, tracking_options: 
     100-10000 m/s (the protocol's range), and options with which no FRF line survives
     (every echo lost). Returns (steps reprocessed, problems met: damaged or incomplete
     groups skipped).
+
+    Gates, per channel record: ``channel_gates[name]`` (``"ch1"``: a (start, stop) gate for
+    that channel in every step, or None for the automatic gate) first, then the gate of
+    ``tracking_options`` (every channel), then the gate the operator set at acquisition
+    (recorded as ``gate_source = "operator"``: kept unless ``keep_operator_gates`` is
+    False, so that re-tracking with another estimator does not silently drop it), else the
+    automatic gate. A gate for a channel no step has is refused (nothing written).
     """
     import os
 
@@ -1503,6 +1529,7 @@ def reprocess_session(source: Path | str, target: Path | str, tracking_options: 
         SESSION_SCHEMA,
         SESSION_SCHEMA_VERSION,
         create_log,
+        log_entry,
         publish_new_file,
         remove_stale_partials,
     )
@@ -1535,13 +1562,29 @@ def reprocess_session(source: Path | str, target: Path | str, tracking_options: 
                     reader.handle.copy(reader.handle[group], out, name=group)
             create_log(out, reader.log_lines() + [
                 f"reprocessed from {source} with tracking options {tracking_options!r}"
-                + (f", speed of sound {speed_of_sound_m_s} m/s" if speed_of_sound_m_s else "")])
+                + (f", speed of sound {speed_of_sound_m_s} m/s" if speed_of_sound_m_s else "")
+                + (f", gates {dict(channel_gates)!r}" if channel_gates else "")])
             steps_out = out.create_group("steps")
             done: list[StepData] = []
+            chosen = dict(channel_gates or {})
+            options_gate = getattr(tracking_options, "gate", None)
+            kept_operator = 0
             for n, step in enumerate(reader.steps()):
                 for c in step.channels:
-                    process_channel(c, step.frequency_hz, tracking_options,
-                                    speed_of_sound_m_s)
+                    if c.name in chosen:  # given for this channel: it decides
+                        gate = chosen[c.name]
+                        options = _with_gate(tracking_options, gate)
+                        source = "auto" if gate is None else "options"
+                    elif options_gate is not None:  # given for every channel
+                        options, source = tracking_options, "options"
+                    else:
+                        gate = _recorded_operator_gate(c) if keep_operator_gates else None
+                        options = (tracking_options if gate is None
+                                   else _with_gate(tracking_options, gate))
+                        source = "auto" if gate is None else "operator"
+                        kept_operator += gate is not None
+                    process_channel(c, step.frequency_hz, options, speed_of_sound_m_s)
+                    c.quality["gate_source"] = source
                 failed = [str(c.quality.get("message", "")) for c in step.channels
                           if str(c.quality.get("message", "")).startswith("tracking failed")]
                 if not done and step.channels and len(failed) == len(step.channels):
@@ -1573,6 +1616,14 @@ def reprocess_session(source: Path | str, target: Path | str, tracking_options: 
                 done.append(step)
                 if progress is not None:
                     progress(n + 1, len(names))
+            unknown = sorted(set(chosen) - {c.name for s in done for c in s.channels})
+            if unknown:
+                raise ValueError(f"gate for {', '.join(unknown)}: no such channel in "
+                                 f"{source}'s steps; nothing written")
+            if kept_operator:
+                out["log"].resize((out["log"].shape[0] + 1,))
+                out["log"][-1] = log_entry(f"kept the gate the operator set at acquisition "
+                                           f"on {kept_operator} channel record(s)")
             if not done:  # an empty copy is no reprocessing (it exited 0: review, session 36)
                 raise ValueError(f"{source} holds no complete step to reprocess"
                                  + (f" ({len(reader.damaged + reader.incomplete)} damaged or "

@@ -188,3 +188,66 @@ def test_set_gate_refuses_what_cannot_be_tracked(tmp_path):
         assert runner.gates == {2: (100, 200)}
         runner.set_gate(2, None)
         assert runner.gates == {}
+
+
+def _gate_on_rival(runner, echoes):
+    note = next(n for n in echoes[1].notes if "another echo" in n)
+    bone = int(note.split("sample ")[1].split()[0])
+    runner.set_gate(1, (bone - 50, bone + 50))
+
+
+def _quality(path, setup="a", channel="ch1"):
+    with SessionReader(path) as reader:
+        return [c.quality for s in reader.steps(with_echoes=False) if s.setup == setup
+                for c in s.channels if c.name == channel]
+
+
+def test_reprocessing_keeps_the_operators_gate_unless_told(tmp_path):
+    final, _, _, out = run(tmp_path, confirm_after(2, _gate_on_rival))
+    assert final.status == "completed"
+    gate = (_quality(out)[0]["gate_start"], _quality(out)[0]["gate_stop"])
+    # another estimator: the operator's gate stays (it was silently dropped before)
+    kept = tmp_path / "kept.h5"
+    from pelvislab.acquisition.tracking import TrackingOptions
+
+    r.reprocess_session(out, kept, TrackingOptions(estimator="parabolic"))
+    assert all(q["gate_source"] == "operator" and (q["gate_start"], q["gate_stop"]) == gate
+               for q in _quality(kept))
+    assert all(q["gate_source"] == "auto" for q in _quality(kept, "a", "ch2"))
+    with SessionReader(kept) as reader:
+        assert any("kept the gate the operator set at acquisition on 3 channel record(s)"
+                   in line for line in reader.log_lines())
+    assert np.all(ch1_ratio(kept) > 0.9)
+    # every channel automatic again: the reflection is tracked
+    auto = tmp_path / "auto.h5"
+    r.reprocess_session(out, auto, keep_operator_gates=False)
+    assert all(q["gate_source"] == "auto" for q in _quality(auto))
+    assert np.all(ch1_ratio(auto) < 0.5)
+
+
+def test_reprocessing_with_a_gate_for_one_channel(tmp_path, capsys):
+    from pelvislab.app.cli import main
+
+    final, _, _, out = run(tmp_path, confirm_after(1))
+    assert final.status == "completed" and np.all(ch1_ratio(out) < 0.5)
+    note = _quality(out)[0]["tracking_warnings"]
+    bone = int(note.split("another echo at sample ")[1].split()[0])
+    fixed = tmp_path / "fixed.h5"
+    assert main(["reprocess", str(out), "--out", str(fixed),
+                 "--gate", f"ch1={bone - 50}:{bone + 50}"]) == 0
+    assert all(q["gate_source"] == "options"
+               and (q["gate_start"], q["gate_stop"]) == (bone - 50, bone + 50)
+               for q in _quality(fixed) + _quality(fixed, "b"))
+    assert all(q["gate_source"] == "auto" for q in _quality(fixed, "a", "ch2"))
+    assert np.all((ch1_ratio(fixed) > 0.9) & (ch1_ratio(fixed) < 1.45))
+    # refused before anything is written
+    for argv, said in [(["--gate", "ch3=100:200"], "gate for ch3: no such channel"),
+                       (["--gate", "ch1=abc"], "expected START:STOP"),
+                       (["--gate", "1=100:200"], "expected chN=START:STOP"),
+                       (["--gate", "100:200", "--gate", "150:250"], "given 2 times"),
+                       (["--gate", "ch1=100:200", "--gate", "ch1=auto"], "given twice")]:
+        target = tmp_path / "refused.h5"
+        capsys.readouterr()
+        code = main(["reprocess", str(out), "--out", str(target), *argv])
+        assert code == 1 and not target.exists(), argv
+        assert said in capsys.readouterr().err, argv

@@ -14,6 +14,7 @@ import argparse
 import dataclasses
 import logging
 import os
+import re
 import signal
 import sys
 import threading
@@ -61,7 +62,10 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                    "spline)")
     p.add_argument("--max-lag-samples", type=int, help="correlation lag half-range, samples")
     p.add_argument("--min-correlation", type=float, help="echoes below this are lost")
-    p.add_argument("--gate", metavar="START:STOP", help="bone echo window, samples")
+    p.add_argument("--gate", action="append", default=[], metavar="[chN=]START:STOP",
+                   help="bone echo window, samples: for every channel, or chN=START:STOP for "
+                   "one (repeatable); 'auto' or chN=auto for the automatic gate. Without it, "
+                   "gates the operator set at acquisition are kept")
     p.add_argument("--speed-of-sound", type=float, metavar="M_S",
                    help="speed of sound to assume instead of the recorded one, m/s")
     p.add_argument("--tracking", action="append", default=[], metavar="KEY=VALUE",
@@ -379,13 +383,11 @@ def _tracking_options(args: argparse.Namespace) -> Any:
         values["max_lag_samples"] = args.max_lag_samples
     if args.min_correlation is not None:
         values["min_correlation"] = args.min_correlation
-    if args.gate is not None:
-        try:
-            start, stop = (int(v) for v in args.gate.split(":"))
-        except ValueError:
-            raise ValueError(f"--gate: expected START:STOP sample indices, got {args.gate!r}")\
-                from None
-        values["gate"] = (start, stop)
+    every = [g for g in args.gate if "=" not in g]
+    if len(every) > 1:
+        raise ValueError(f"--gate for every channel given {len(every)} times: {every}")
+    if every and every[0].strip().lower() != "auto":
+        values["gate"] = _gate_value(every[0], "--gate")
     defaults = TrackingOptions()
     for item in args.tracking:
         key, sep, raw = item.partition("=")
@@ -399,6 +401,35 @@ def _tracking_options(args: argparse.Namespace) -> Any:
         return TrackingOptions(**values)
     except (TypeError, ValueError) as exc:
         raise ValueError(f"tracking options: {exc}") from None
+
+
+def _gate_value(text: str, what: str) -> tuple[int, int] | None:
+    """``START:STOP`` sample indices, or ``auto`` (None)."""
+    if text.strip().lower() == "auto":
+        return None
+    try:
+        start, stop = (int(v) for v in text.split(":"))
+    except ValueError:
+        raise ValueError(f"{what}: expected START:STOP sample indices or 'auto', got "
+                         f"{text!r}") from None
+    if not 0 <= start < stop:
+        raise ValueError(f"{what}: expected 0 <= START < STOP, got {text!r}")
+    return start, stop
+
+
+def _channel_gates(args: argparse.Namespace) -> dict[str, tuple[int, int] | None]:
+    """``--gate chN=START:STOP`` / ``chN=auto`` items, by channel name."""
+    gates: dict[str, tuple[int, int] | None] = {}
+    for item in args.gate:
+        if "=" not in item:
+            continue
+        name, _, value = (part.strip() for part in item.partition("="))
+        if not re.fullmatch(r"ch[1-9][0-9]*", name):
+            raise ValueError(f"--gate {item!r}: expected chN=START:STOP (e.g. ch1=300:420)")
+        if name in gates:
+            raise ValueError(f"--gate for {name} given twice")
+        gates[name] = _gate_value(value, f"--gate {name}")
+    return gates
 
 
 def _convert(raw: str, like: Any, key: str) -> Any:
@@ -426,6 +457,9 @@ def reprocess_command(args: argparse.Namespace) -> int:
     from pelvislab.app.cli import package_version
 
     options = _tracking_options(args)
+    gates = _channel_gates(args)
+    # 'auto' for every channel: the gates the operator set at acquisition too
+    keep_operator = not any(g.strip().lower() == "auto" for g in args.gate if "=" not in g)
     tty = sys.stderr.isatty()
 
     def progress(done: int, total: int) -> None:
@@ -434,7 +468,8 @@ def reprocess_command(args: argparse.Namespace) -> int:
             sys.stderr.flush()
 
     n, problems = reprocess_session(args.session, args.out, options, args.speed_of_sound,
-                                    progress, package_version())
+                                    progress, package_version(), channel_gates=gates,
+                                    keep_operator_gates=keep_operator)
     if tty:
         sys.stderr.write("\n")
     for problem in problems:
