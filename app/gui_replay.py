@@ -214,8 +214,14 @@ class ReplayView(QtWidgets.QWidget):
         form.addRow("gate start (sample)", self.gate_start)
         form.addRow("gate stop (sample)", self.gate_stop)
         self.retrack_button = QtWidgets.QPushButton("Re-track")
+        self.retrack_button.setToolTip(
+            "a channel's gate: the one dragged on its A-scan, else the sample boxes, else "
+            "the one the operator set at acquisition, else the strongest echo")
         self.retrack_button.clicked.connect(self.retrack_step)
         form.addRow(self.retrack_button)
+        self.dragged_gates_label = QtWidgets.QLabel("")
+        self.dragged_gates_label.setWordWrap(True)
+        form.addRow(self.dragged_gates_label)
         left.addWidget(retrack)
 
         analysis = QtWidgets.QGroupBox("Analysis")
@@ -244,6 +250,10 @@ class ReplayView(QtWidgets.QWidget):
         grid = QtWidgets.QGridLayout(step_page)
         grid.setContentsMargins(2, 2, 2, 2)
         self.ascan = AScanPanel()
+        # drag a channel's gate, then Re-track: per channel, kept for the steps of its setup
+        self.ascan.set_gates_editable(True)
+        self.ascan.gate_edited.connect(self._gate_dragged)
+        self._dragged_gates: dict[tuple[str, str], tuple[int, int]] = {}
         self.displacement = DisplacementPanel()
         self.quality = QualityTable()
         self.step_info = QtWidgets.QLabel()
@@ -387,6 +397,8 @@ class ReplayView(QtWidgets.QWidget):
             raise
         self.close_session()
         self.reader, self.path, self.steps = reader, Path(path), steps
+        self._dragged_gates = {}
+        self._show_dragged_gates()
         status, reason = reader.status
         # "running" in a file nobody writes: the process ended without closing it
         shown = ("did not end (the process was killed?)" if status == "running"
@@ -485,19 +497,63 @@ class ReplayView(QtWidgets.QWidget):
             gate = (self.gate_start.value(), self.gate_stop.value())
         return TrackingOptions(gate=gate, estimator=self.estimator_combo.currentText())
 
+    def channel_gate(self, step: Any, channel: Any) -> tuple[tuple[int, int] | None, str]:
+        """The gate a re-track uses for ``channel`` of ``step`` and where it comes from:
+        dragged on its A-scan, the sample boxes (every channel), the operator's at
+        acquisition (as ``pelvislab reprocess`` keeps it), else automatic (None)."""
+        dragged = self._dragged_gates.get((step.setup, channel.name))
+        if dragged is not None:
+            return dragged, "dragged"
+        boxes = self.tracking_options().gate
+        if boxes is not None:
+            return boxes, "boxes"
+        q = channel.quality or {}
+        if q.get("gate_source") == "operator" and "gate_start" in q and "gate_stop" in q:
+            return (int(q["gate_start"]), int(q["gate_stop"])), "operator's"
+        return None, "auto"
+
+    def _gate_dragged(self, row: int, start_s: float, stop_s: float) -> None:
+        try:
+            step = self.current_step(with_echoes=False)
+        except Exception:
+            return
+        if step is None or row >= len(step.channels):
+            return
+        ch = step.channels[row]
+        gate = (int(round((start_s - ch.delay_s) * ch.sample_rate_hz)),
+                int(round((stop_s - ch.delay_s) * ch.sample_rate_hz)))
+        self._dragged_gates[(step.setup, ch.name)] = gate
+        self._show_dragged_gates()
+
+    def clear_dragged_gates(self) -> None:
+        """Forget the gates dragged on the A-scans."""
+        self._dragged_gates = {}
+        self._show_dragged_gates()
+
+    def _show_dragged_gates(self) -> None:
+        self.dragged_gates_label.setText(
+            "dragged (Re-track to apply): " + ", ".join(
+                f"{setup} {name} {a}-{b}" for (setup, name), (a, b)
+                in sorted(self._dragged_gates.items())) if self._dragged_gates else
+            "drag a gate on an A-scan to re-track that channel in it")
+
     def retrack_step(self) -> None:
         """Re-run echo tracking on the selected step with the chosen options (worker thread)."""
         step = self.current_step()
         if step is None:
             return
         options = self.tracking_options()
+        gates = [self.channel_gate(step, ch) for ch in step.channels]
 
         def work() -> list[Any]:
+            from dataclasses import replace
+
             from pelvislab.acquisition.tracking import track_echoes
 
             return [track_echoes(ch.codes, ch.trigger_offset_s, ch.sample_rate_hz,
-                                 ch.speed_of_sound_m_s, ch.volts_per_count, options)
-                    for ch in step.channels]
+                                 ch.speed_of_sound_m_s, ch.volts_per_count,
+                                 replace(options, gate=gate))
+                    for ch, (gate, _) in zip(step.channels, gates, strict=True)]
 
         def done(results: list[Any]) -> None:
             rows = []
@@ -506,7 +562,8 @@ class ReplayView(QtWidgets.QWidget):
                     i, np.arange(res.displacement_m.size) / ch.prf_hz, res.displacement_m)
                 gate = (ch.delay_s + res.gate[0] / ch.sample_rate_hz,
                         ch.delay_s + res.gate[1] / ch.sample_rate_hz)
-                self.ascan.show_echo(i, *echo_trace(ch, 0), gate)
+                self.ascan.show_echo(i, *echo_trace(ch, 0), gate,
+                                     operator=gates[i][1] != "auto")
                 rows.append({
                     "channel": ch.name, "landmark": ch.output.name,
                     "correlation": float(np.median(res.correlation)),
@@ -515,8 +572,11 @@ class ReplayView(QtWidgets.QWidget):
                 })
             self.quality.show_quality(rows)
             base = self.step_info.text().split(" [re-tracked")[0]
-            self.step_info.setText(
-                f"{base} [re-tracked: {options.estimator}, gate {options.gate or 'auto'}]")
+            used = ", ".join(
+                f"{ch.name} {'auto' if gate is None else f'{gate[0]}-{gate[1]}'}"
+                + ("" if source == "auto" else f" ({source})")
+                for ch, (gate, source) in zip(step.channels, gates, strict=True))
+            self.step_info.setText(f"{base} [re-tracked: {options.estimator}, gates {used}]")
 
         self.submit(work, done, "re-tracking")
 

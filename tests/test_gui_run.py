@@ -453,3 +453,36 @@ def test_live_echoes_at_the_prompt_and_a_gate_set_by_dragging(operator_window, q
     q = by_name[f"ch{channel}"]
     assert q["gate_source"] == "operator" and (q["gate_start"], q["gate_stop"]) == (start, stop)
     assert all(v["gate_source"] == "auto" for k, v in by_name.items() if k != f"ch{channel}")
+
+
+def test_replay_retracks_with_the_operators_gate_and_a_dragged_one(operator_window, qtbot,
+                                                                   tmp_path):
+    # a session whose ch1 gate the operator set at the prompt (a reflection stronger than
+    # the bone echo); the replay's re-track keeps it, and a gate dragged on ch2's A-scan
+    # is used for ch2
+    from pelvislab.tests.test_runner_aiming import _gate_on_rival, confirm_after, run
+
+    final, _, _, out = run(tmp_path, confirm_after(2, _gate_on_rival))
+    assert final.status == "completed"
+    window = operator_window()
+    assert window.open_replay(out)
+    replay = window.replay
+    replay.step_list.setCurrentRow(0)
+    step = replay.current_step(with_echoes=False)
+    ch1, ch2 = step.channels
+    operator_gate = (int(ch1.quality["gate_start"]), int(ch1.quality["gate_stop"]))
+    replay.estimator_combo.setCurrentText("parabolic")
+    replay.retrack_step()
+    qtbot.waitUntil(lambda: "re-tracked: parabolic" in replay.step_info.text(), timeout=60_000)
+    text = replay.step_info.text()
+    assert f"ch1 {operator_gate[0]}-{operator_gate[1]} (operator's)" in text and "ch2 auto" in text
+    # drag ch2's gate (its automatic one, narrowed by 20 samples each side)
+    start, stop = int(ch2.quality["gate_start"]) + 20, int(ch2.quality["gate_stop"]) - 20
+    to_s = lambda k: ch2.delay_s + k / ch2.sample_rate_hz  # noqa: E731
+    replay.ascan._gates[1].setRegion((to_s(start), to_s(stop)))
+    assert f"a ch2 {start}-{stop}" in replay.dragged_gates_label.text()
+    replay.retrack_step()
+    qtbot.waitUntil(lambda: f"ch2 {start}-{stop} (dragged)" in replay.step_info.text(),
+                    timeout=60_000)
+    replay.clear_dragged_gates()
+    assert replay.channel_gate(step, ch2) == (None, "auto")
