@@ -251,3 +251,52 @@ def test_reprocessing_with_a_gate_for_one_channel(tmp_path, capsys):
         code = main(["reprocess", str(out), "--out", str(target), *argv])
         assert code == 1 and not target.exists(), argv
         assert said in capsys.readouterr().err, argv
+
+
+class _TypedLines:
+    """stdin for ``pelvislab run --wait-prompts``: lines typed after a pause each."""
+
+    def __init__(self, lines, pause_s=0.4):
+        self.lines, self.pause_s = list(lines), pause_s
+
+    def readline(self):
+        import time
+
+        time.sleep(self.pause_s)  # the live echoes come meanwhile
+        return self.lines.pop(0) if self.lines else ""
+
+
+def test_run_in_a_terminal_shows_live_echoes_and_takes_a_typed_gate(tmp_path, monkeypatch,
+                                                                     capsys):
+    # the CLI at a prompt: each channel's gate and notes when they change; chN=START:STOP
+    # sets a gate, a bad line is said, Enter confirms
+    from pelvislab.app.cli import main
+
+    protocol = tmp_path / "p.toml"
+    protocol.write_text(PROTOCOL)
+    opened = []
+
+    def open_bench(config=None, **_):
+        bench = sim_bench.open_simulated_bench(config, generators="python", effects=[CLUTTER])
+        opened.append(bench)
+        return bench
+
+    monkeypatch.setattr("pelvislab.drivers.bench.open_bench", open_bench)
+    monkeypatch.setattr("sys.stdin", _TypedLines(
+        ["ch1=310:410\n", "ch9=1:2\n", "hello\n", "ch1=5:100\n", "\n", "\n"]))
+    out = tmp_path / "s.h5"
+    assert main(["run", str(protocol), "--out", str(out), "--wait-prompts"]) == 0
+    err = capsys.readouterr().err
+    assert "type chN=START:STOP to set a channel's gate" in err
+    assert "live echo ch1 -> SIAS_R_x: gate" in err and "(auto;" in err
+    assert "note: another echo at sample" in err
+    assert "ch1: gate set to samples 310-410" in err
+    assert "live echo ch1 -> SIAS_R_x: gate 310-410 (operator;" in err
+    assert "gate not set: channel 9 is not recorded" in err
+    assert "not understood: 'hello'" in err
+    assert "gate not set: gate (5, 100) for ch1" in err  # its lag range leaves the record
+    qualities = _quality(out)
+    assert qualities and all(q["gate_source"] == "operator"
+                             and (q["gate_start"], q["gate_stop"]) == (310, 410)
+                             for q in qualities)
+    assert all(q["gate_source"] == "auto" for q in _quality(out, "b"))

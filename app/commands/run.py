@@ -86,6 +86,7 @@ class ConsoleProgress:
         self.quiet = quiet
         self._bar = False
         self._tenth = 0  # without a terminal: the last tenth of the plan reported
+        self._aim_said: dict[int, Any] = {}  # channel -> the live echo's gate/notes said
 
     def _line(self, text: str) -> None:
         if self._bar:
@@ -95,17 +96,58 @@ class ConsoleProgress:
         self.stream.flush()
 
     def _answer(self) -> None:
-        """Enter confirms the operator prompt; end of input aborts the run."""
-        answer = sys.stdin.readline()
-        if self.runner.aborted:
+        """Enter confirms the operator prompt; ``chN=START:STOP`` (or ``chN=auto``) sets a
+        channel's gate first (:meth:`Runner.set_gate`); end of input aborts the run."""
+        while True:
+            answer = sys.stdin.readline()
+            if self.runner.aborted:
+                return
+            if not answer:
+                real = not getattr(getattr(self.runner, "bench", None), "simulated", True)
+                self.runner.abort("operator prompt: no answer (stdin closed"
+                                  + ("; a rig whose transducers need no repositioning can "
+                                     "run with --auto-continue)" if real else ")"))
+                return
+            if not answer.strip():
+                self.runner.confirm()
+                return
+            self._set_gate(answer.strip())
+
+    def _set_gate(self, text: str) -> None:
+        """``chN=START:STOP`` or ``chN=auto`` typed at a prompt."""
+        match = re.fullmatch(r"ch([1-9][0-9]*)\s*=\s*(auto|(\d+)\s*:\s*(\d+))", text)
+        if match is None:
+            self._line(f"not understood: {text!r}; type chN=START:STOP (samples) or "
+                       "chN=auto to set a gate, or press Enter when the transducers are "
+                       "in place")
             return
-        if not answer:
-            real = not getattr(getattr(self.runner, "bench", None), "simulated", True)
-            self.runner.abort("operator prompt: no answer (stdin closed"
-                              + ("; a rig whose transducers need no repositioning can run "
-                                 "with --auto-continue)" if real else ")"))
-        else:
-            self.runner.confirm()
+        channel = int(match.group(1))
+        gate = None if match.group(2) == "auto" else (int(match.group(3)), int(match.group(4)))
+        try:
+            self.runner.set_gate(channel, gate)
+        except ValueError as exc:
+            self._line(f"gate not set: {exc}")
+            return
+        self._line(f"ch{channel}: " + ("automatic gate" if gate is None else
+                                      f"gate set to samples {gate[0]}-{gate[1]}")
+                   + "; press Enter when the transducers are in place")
+
+    def _say_live_echoes(self, event: Any) -> None:
+        """At a prompt: each channel's gate and the tracker's notes on it, when they
+        change (the live echoes come about three times a second)."""
+        for echo in event.echoes:
+            said = (echo.gate, echo.gate_source, echo.notes)
+            if self._aim_said.get(echo.channel) == said:
+                continue
+            self._aim_said[echo.channel] = said
+            if echo.gate is None:
+                where = "no gate"
+            else:
+                t0, t1 = (echo.delay_s + g / echo.sample_rate_hz for g in echo.gate)
+                where = (f"gate {echo.gate[0]}-{echo.gate[1]} ({echo.gate_source}; "
+                         f"{t0 * 1e6:.2f}-{t1 * 1e6:.2f} us after the trigger)")
+            self._line(f"live echo ch{echo.channel} -> {echo.landmark}: {where}"
+                       + "".join(f"\n  note: {n}" for n in echo.notes))
 
     def __call__(self, event: Any) -> None:
         from pelvislab.acquisition import runner as r
@@ -116,11 +158,16 @@ class ConsoleProgress:
                 self.stream.flush()
                 self._bar = False
             return
+        if isinstance(event, r.AimingEchoes):
+            if self.wait_prompts:
+                self._say_live_echoes(event)
+            return
         if isinstance(event, r.OperatorPrompt):
+            self._aim_said = {}
             if self.wait_prompts:
                 self._line(f"PROMPT: {event.message}")
-                self.stream.write("press Enter when the transducers are in place (Ctrl-C "
-                                  "aborts) ")
+                self.stream.write("press Enter when the transducers are in place; type "
+                                  "chN=START:STOP to set a channel's gate (Ctrl-C aborts) ")
                 self.stream.flush()
                 self._bar = True  # a line left open: the next one starts on its own
                 # read in a thread: blocked in this listener, the runner could not see an
