@@ -620,12 +620,8 @@ class Runner:
     def _tracking_options(self, gate: tuple[int, int] | None = None) -> Any:
         """The runner's tracking options (the defaults when it has none), with ``gate``
         (an operator's gate) if given."""
-        from dataclasses import replace
-
-        from pelvislab.acquisition.tracking import TrackingOptions
-
-        options = self.tracking_options or TrackingOptions()
-        return options if gate is None else replace(options, gate=gate)
+        return _with_gate(self.tracking_options, gate if gate is not None
+                          else getattr(self.tracking_options, "gate", None))
 
     def _gate_source(self, gate: tuple[int, int] | None) -> str:
         """How a channel's gate was chosen (see :attr:`AimedEcho.gate_source`)."""
@@ -785,13 +781,13 @@ class Runner:
         us = self.protocol.ultrasound
         sync_wait_s = 1.0 / first.frequency_hz  # a burst may wait for the drive's SYNC
         try:
-            with self._lock:
-                self._check()
-                self.bench.trigger.output_on()
             try:
+                with self._lock:
+                    self._check()
+                    self.bench.trigger.output_on()
                 records = self.bench.digitizer.acquire(
                     timeout_s=self.aim_pulses / us.prf_hz + sync_wait_s + 0.5)
-            finally:
+            finally:  # also when switching it on failed half-way
                 with self._lock:
                     self.bench.trigger.output_off()
         except _Stop:
@@ -1574,17 +1570,17 @@ def reprocess_session(source: Path | str, target: Path | str, tracking_options: 
                     if c.name in chosen:  # given for this channel: it decides
                         gate = chosen[c.name]
                         options = _with_gate(tracking_options, gate)
-                        source = "auto" if gate is None else "options"
+                        gate_source = "auto" if gate is None else "options"
                     elif options_gate is not None:  # given for every channel
-                        options, source = tracking_options, "options"
+                        options, gate_source = tracking_options, "options"
                     else:
                         gate = _recorded_operator_gate(c) if keep_operator_gates else None
                         options = (tracking_options if gate is None
                                    else _with_gate(tracking_options, gate))
-                        source = "auto" if gate is None else "operator"
+                        gate_source = "auto" if gate is None else "operator"
                         kept_operator += gate is not None
                     process_channel(c, step.frequency_hz, options, speed_of_sound_m_s)
-                    c.quality["gate_source"] = source
+                    c.quality["gate_source"] = gate_source
                 failed = [str(c.quality.get("message", "")) for c in step.channels
                           if str(c.quality.get("message", "")).startswith("tracking failed")]
                 if not done and step.channels and len(failed) == len(step.channels):

@@ -241,7 +241,8 @@ def test_reprocessing_with_a_gate_for_one_channel(tmp_path, capsys):
     assert all(q["gate_source"] == "auto" for q in _quality(fixed, "a", "ch2"))
     assert np.all((ch1_ratio(fixed) > 0.9) & (ch1_ratio(fixed) < 1.45))
     # refused before anything is written
-    for argv, said in [(["--gate", "ch3=100:200"], "gate for ch3: no such channel"),
+    for argv, said in [(["--gate", "ch3=100:200"],
+                        f"gate for ch3: no such channel in {out}'s steps"),
                        (["--gate", "ch1=abc"], "expected START:STOP"),
                        (["--gate", "1=100:200"], "expected chN=START:STOP"),
                        (["--gate", "100:200", "--gate", "150:250"], "given 2 times"),
@@ -300,3 +301,31 @@ def test_run_in_a_terminal_shows_live_echoes_and_takes_a_typed_gate(tmp_path, mo
                              and (q["gate_start"], q["gate_stop"]) == (310, 410)
                              for q in qualities)
     assert all(q["gate_source"] == "auto" for q in _quality(out, "b"))
+
+
+def test_a_trigger_that_fails_half_way_on_is_switched_off_again(tmp_path):
+    # OUTP ON sent, then the instrument failed (no answer to the error query): the live
+    # echoes stop, the trigger is put off, the run goes on
+    from pelvislab.drivers.interfaces import InstrumentError
+
+    state = {}
+
+    def on_event(runner, bench, event):
+        if isinstance(event, r.SetupStarted) and event.setup_index == 0:
+            real_on = bench.trigger.output_on
+
+            def failing_on():
+                real_on()
+                state["on_then_failed"] = bench.world.trigger.output
+                bench.trigger.output_on = real_on  # once
+                raise InstrumentError("simulated: no answer after OUTP ON")
+            bench.trigger.output_on = failing_on
+        if isinstance(event, r.LogMessage) and "no live echoes" in event.text:
+            state["after"] = bench.world.trigger.output
+            runner.confirm()
+        if isinstance(event, r.AimingEchoes):
+            runner.confirm()
+
+    final, _, events, _ = run(tmp_path, on_event, clutter=False)
+    assert final.status == "completed"
+    assert state == {"on_then_failed": True, "after": False}
