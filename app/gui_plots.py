@@ -349,10 +349,11 @@ def quality_row(channel: Any) -> dict[str, object]:
 
 
 def echo_trace(channel: Any, echo_index: int) -> tuple[np.ndarray, np.ndarray]:
-    """(time after trigger in s, volts) of one echo of a step channel's raw record."""
+    """(time after trigger in s, volts) of one echo of a step channel's raw record; volts
+    as the digitizer defines them (``SegmentedRecord``: codes x V/count minus the offset)."""
     time_s = channel.delay_s + np.arange(channel.codes.shape[1]) / channel.sample_rate_hz
     volts = channel.codes[echo_index].astype(float) * channel.volts_per_count
-    return time_s, volts + channel.volts_offset
+    return time_s, volts - channel.volts_offset
 
 
 def draw_step(ascan: AScanPanel, displacement: DisplacementPanel, quality: QualityTable,

@@ -88,3 +88,23 @@ def test_residual_map_columns_sit_at_their_own_frequencies():
     assert set(index.tolist()) == set(range(f.size))  # every line shown
     one, lo1, hi1 = display_columns(np.array([50.0]))
     assert one.tolist() == [0] and lo1 == hi1 == 50.0
+
+
+def test_echo_trace_volts_follow_the_digitizers_convention():
+    # SegmentedRecord: volts = codes x volts_per_count - volts_offset (Acqiris vOffset);
+    # the A-scan added the offset (twice it off with a non-zero offset)
+    from types import SimpleNamespace
+
+    import numpy as np
+
+    from pelvislab.app.gui_plots import echo_trace
+    from pelvislab.drivers.interfaces import SegmentedRecord
+
+    codes = np.array([[0, 10, -20, 127]], dtype=np.int8)
+    record = SegmentedRecord(codes=codes, trigger_offset_s=np.zeros(1), sample_rate_hz=500e6,
+                             delay_s=10e-6, volts_per_count=0.004, volts_offset=0.05)
+    channel = SimpleNamespace(codes=codes, delay_s=10e-6, sample_rate_hz=500e6,
+                              volts_per_count=0.004, volts_offset=0.05)
+    time_s, volts = echo_trace(channel, 0)
+    assert np.allclose(volts, record.volts()[0])
+    assert np.allclose(time_s, 10e-6 + np.arange(4) / 500e6)
