@@ -148,6 +148,8 @@ class AimedEcho:
     gate was found."""
     sample_rate_hz: float
     delay_s: float
+    rival_sample: int | None = None
+    """Sample of another echo within 10 dB of the gated one (automatic gate), else None."""
 
 
 @dataclass(frozen=True)
@@ -804,9 +806,10 @@ class Runner:
             codes = np.asarray(rec.codes)
             gate: tuple[int, int] | None = None
             notes: tuple[str, ...] = ()
+            rival = None
             try:
-                gate, found = gate_preview(codes, float(rec.sample_rate_hz),
-                                           self._tracking_options(gates.get(ch)))
+                gate, found, rival = gate_preview(codes, float(rec.sample_rate_hz),
+                                                  self._tracking_options(gates.get(ch)))
                 notes = tuple(found)
             except ValueError as exc:
                 notes = (str(exc),)
@@ -817,7 +820,8 @@ class Runner:
                 volts=codes[-1].astype(float) * float(rec.volts_per_count)
                 - float(rec.volts_offset),
                 gate=gate, gate_source=self._gate_source(gates.get(ch)), notes=notes,
-                sample_rate_hz=float(rec.sample_rate_hz), delay_s=float(rec.delay_s)))
+                sample_rate_hz=float(rec.sample_rate_hz), delay_s=float(rec.delay_s),
+                rival_sample=rival))
         self._emit(AimingEchoes(self._t(), setup_index, tuple(echoes)))
         return True
 

@@ -37,6 +37,7 @@ from __future__ import annotations
 import functools
 import math
 from dataclasses import dataclass, field
+from typing import NamedTuple
 
 import numpy as np
 from scipy import fft as sp_fft
@@ -846,18 +847,20 @@ def rival_echo(envelope: np.ndarray, noise_sd: float = 0.0,
     return (int(peaks[best]) - 1, level_db) if level_db >= -within_db else None
 
 
-def _rival_note(envelope: np.ndarray, first_echoes: np.ndarray, gate: tuple[int, int],
-                fs: float) -> str | None:
-    """The tracker's note on a rival echo (:func:`rival_echo`) in the envelope of
-    ``first_echoes`` (raw codes), or None."""
+def _rival_in(envelope: np.ndarray, first_echoes: np.ndarray) -> tuple[int, float] | None:
+    """:func:`rival_echo` in the envelope of ``first_echoes`` (raw codes), their noise SD
+    estimated only when there is a candidate."""
     if rival_echo(envelope) is None:  # the usual case, without the noise estimate's cost
         return None
     # the raw record's noise SD: the first echoes' spread across pulses, per sample (their
     # motion over 8 pulses can only raise it: fewer notes, never false ones)
     noise_sd = float(np.median(np.std(np.asarray(first_echoes, dtype=float), axis=0)))
-    rival = rival_echo(envelope, noise_sd)
-    if rival is None:
-        return None
+    return rival_echo(envelope, noise_sd)
+
+
+def _rival_note(envelope: np.ndarray, rival: tuple[int, float], gate: tuple[int, int],
+                fs: float) -> str:
+    """The tracker's note on ``rival`` (:func:`rival_echo`'s answer)."""
     sample, level_db = rival
     lag_s = (sample - int(np.argmax(envelope))) / fs
     where = (f"another echo at sample {sample} ({abs(lag_s) * 1e6:.2f} us "
@@ -870,12 +873,14 @@ def _rival_note(envelope: np.ndarray, first_echoes: np.ndarray, gate: tuple[int,
 
 
 def _choose_gate(codes: np.ndarray, fs: float, opts: TrackingOptions,
-                 warnings: list[str]) -> tuple[int, int]:
+                 warnings: list[str]) -> tuple[int, int, int | None]:
     """The gate (start, stop samples) :func:`track_echoes` tracks in: ``opts.gate``
     (checked against the record and the lag range) or the automatic one, clipped to the
-    lag range; what is worth saying about it is appended to ``warnings``."""
+    lag range; what is worth saying about it is appended to ``warnings``. Third: the
+    sample of a rival echo's peak (automatic gate only), else None."""
     m = codes.shape[1]
     L = int(opts.max_lag_samples)
+    rival = None
     if opts.gate is None:
         # found on the first echoes that hold a signal (empty first segments made it fail)
         head = np.flatnonzero(np.ptp(codes[:64], axis=1) != 0)
@@ -891,9 +896,9 @@ def _choose_gate(codes: np.ndarray, fs: float, opts: TrackingOptions,
         margin = opts.gate_margin_samples
         if start - gate[0] > margin or gate[1] - stop > margin:
             warnings.append(f"gate {gate} clipped to {(start, stop)} to fit the lag range")
-        note = _rival_note(env, first_echoes, (start, stop), fs)
-        if note is not None:
-            warnings.append(note)
+        rival = _rival_in(env, first_echoes)
+        if rival is not None:
+            warnings.append(_rival_note(env, rival, (start, stop), fs))
     else:
         start, stop = (int(v) for v in opts.gate)
         if not 0 <= start - L < stop + L <= m:
@@ -901,18 +906,29 @@ def _choose_gate(codes: np.ndarray, fs: float, opts: TrackingOptions,
                              f"{m} samples")
     if stop - start < 16:
         raise ValueError(f"gate ({start}, {stop}) is too short to track an echo")
-    return start, stop
+    return start, stop, None if rival is None else rival[0]
+
+
+class GatePreview(NamedTuple):
+    """What :func:`gate_preview` finds on a record."""
+
+    gate: tuple[int, int]
+    """(start, stop) sample indices the tracking would use."""
+    notes: list[str]
+    """The tracker's notes on it (a clipped gate, a rival echo)."""
+    rival_sample: int | None
+    """Sample of a rival echo's envelope peak (see :func:`rival_echo`), else None."""
 
 
 def gate_preview(codes: np.ndarray, sample_rate_hz: float,
-                 options: TrackingOptions | None = None) -> tuple[tuple[int, int], list[str]]:
+                 options: TrackingOptions | None = None) -> GatePreview:
     """The gate :func:`track_echoes` would track in on this record, and its notes on it.
 
     codes: (n_pulses, n_samples) raw digitizer codes (a few pulses suffice: the automatic
         gate looks at the first 8). sample_rate_hz: digitizer sample rate (Hz).
-    Returns ((start, stop) sample indices, notes: a clipped gate, a rival echo). For the
-    live A-scan while the operator places the transducers; raises ValueError like
-    :func:`track_echoes` (flat echoes, a gate that does not fit).
+    Returns a :class:`GatePreview` (gate, notes, rival echo's sample). For the live A-scan
+    while the operator places the transducers; raises ValueError like :func:`track_echoes`
+    (flat echoes, a gate that does not fit).
     """
     opts = options or TrackingOptions()
     codes = np.asarray(codes)
@@ -921,8 +937,8 @@ def gate_preview(codes: np.ndarray, sample_rate_hz: float,
     if codes.dtype.kind == "f":
         codes = np.where(np.isfinite(codes), codes, 0.0)
     notes: list[str] = []
-    gate = _choose_gate(codes, float(sample_rate_hz), opts, notes)
-    return gate, notes
+    start, stop, rival = _choose_gate(codes, float(sample_rate_hz), opts, notes)
+    return GatePreview((start, stop), notes, rival)
 
 
 # --------------------------------------------------------------------------------------------
@@ -969,7 +985,7 @@ def track_echoes(codes: np.ndarray, trigger_offset_s: np.ndarray | None, sample_
     if np.any(not_finite):
         codes = np.where(not_finite[:, None], 0.0, codes)
 
-    start, stop = _choose_gate(codes, fs, opts, warnings)
+    start, stop, _ = _choose_gate(codes, fs, opts, warnings)
     G = stop - start
     # Segments without signal (a digitizer that returned empty segments) or with samples
     # that are not numbers: lost, and said so (they were "left the recorded window: lower

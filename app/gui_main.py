@@ -616,6 +616,8 @@ class OperatorWindow(QtWidgets.QMainWindow):
 
     def _end_aiming(self) -> None:
         self.ascan.set_gates_editable(False)
+        for row in range(len(self._setup_channels)):
+            self.ascan.show_rival(row, None)  # a mark of the live echoes only
         self.aim_label.setVisible(False)
         self.auto_gates_button.setVisible(False)
 
@@ -660,6 +662,9 @@ class OperatorWindow(QtWidgets.QMainWindow):
                 echo.delay_s + g / echo.sample_rate_hz for g in echo.gate)
             operator = echo.gate_source == "operator"
             self.ascan.show_echo(row, echo.time_s, echo.volts, gate_s, operator=operator)
+            rival = getattr(echo, "rival_sample", None)
+            self.ascan.show_rival(row, None if rival is None
+                                  else echo.delay_s + rival / echo.sample_rate_hz)
             where = ("no gate" if echo.gate is None else
                      f"gate {echo.gate[0]}-{echo.gate[1]} "
                      f"({'yours' if operator else echo.gate_source})")

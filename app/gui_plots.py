@@ -89,6 +89,7 @@ class AScanPanel(pg.GraphicsLayoutWidget):
         self._plots: list[pg.PlotItem] = []
         self._curves: list[pg.PlotDataItem] = []
         self._gates: list[pg.LinearRegionItem] = []
+        self._rivals: list[pg.InfiniteLine] = []
         self._editable = False
         self._drawing = False  # our own setRegion also emits sigRegionChangeFinished
 
@@ -108,9 +109,15 @@ class AScanPanel(pg.GraphicsLayoutWidget):
             gate.sigRegionChangeFinished.connect(
                 lambda region, row=i: self._gate_moved(row, region))
             plot.addItem(gate)
+            rival = pg.InfiniteLine(angle=90, movable=False, pen=pg.mkPen(
+                "#e65100", width=2, style=QtCore.Qt.PenStyle.DashLine),
+                label="other echo", labelOpts={"position": 0.92, "color": "#e65100"})
+            rival.setVisible(False)
+            plot.addItem(rival)
             self._plots.append(plot)
             self._curves.append(curve)
             self._gates.append(gate)
+            self._rivals.append(rival)
         for i, plot in enumerate(self._plots):
             visible = i < len(names)
             plot.setVisible(visible)
@@ -119,6 +126,7 @@ class AScanPanel(pg.GraphicsLayoutWidget):
                 # the previous setup's echo is not shown under the new landmark's name
                 self._curves[i].setData([], [])
                 self._gates[i].setVisible(False)
+                self._rivals[i].setVisible(False)
 
     def set_gates_editable(self, editable: bool) -> None:
         """Let the operator move the gates (at a prompt, over live echoes) or not."""
@@ -130,6 +138,18 @@ class AScanPanel(pg.GraphicsLayoutWidget):
     def gates_editable(self) -> bool:
         """True while the operator may move the gates."""
         return self._editable
+
+    def show_rival(self, index: int, time_s: float | None) -> None:
+        """Mark another echo within 10 dB of the gated one (the tracker's rival-echo note)
+        on channel ``index``'s A-scan at ``time_s``; None hides the mark."""
+        if index >= len(self._rivals):
+            return
+        line = self._rivals[index]
+        if time_s is None:
+            line.setVisible(False)
+        else:
+            line.setValue(time_s)
+            line.setVisible(True)
 
     def _gate_moved(self, row: int, region: pg.LinearRegionItem) -> None:
         if self._drawing or not self._editable:

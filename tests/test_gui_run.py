@@ -486,3 +486,32 @@ def test_replay_retracks_with_the_operators_gate_and_a_dragged_one(operator_wind
                     timeout=60_000)
     replay.clear_dragged_gates()
     assert replay.channel_gate(step, ch2) == (None, "auto")
+
+
+def test_live_echoes_mark_the_other_echo_the_note_names(operator_window, qtbot, tmp_path,
+                                                        monkeypatch):
+    # a stationary reflection stronger than ch1's bone echo: the automatic gate takes it,
+    # the note names the bone echo and the A-scan marks it; the mark goes with the prompt
+    from pelvislab.tests.test_runner_aiming import CLUTTER
+
+    sim_bench = pytest.importorskip("pelvislab.sim_instruments.bench")
+    monkeypatch.setattr(
+        "pelvislab.drivers.bench.open_bench",
+        lambda config=None, **_: sim_bench.open_simulated_bench(
+            config, generators="python", effects=[CLUTTER]))
+    window = operator_window()
+    _start(window, tmp_path, protocol="demo")
+    qtbot.waitUntil(window.aim_label.isVisible, timeout=30_000)
+    row = window._setup_channels.index(1)
+    echo = window._aimed[1]
+    assert echo.rival_sample is not None
+    assert f"another echo at sample {echo.rival_sample} " in window.aim_label.text()
+    mark = window.ascan._rivals[row]
+    assert mark.isVisible()
+    assert mark.value() == pytest.approx(echo.delay_s + echo.rival_sample / echo.sample_rate_hz)
+    other = window._setup_channels.index(2)
+    assert not window.ascan._rivals[other].isVisible()  # no clutter on ch2
+    window.confirm_prompt()
+    assert not mark.isVisible()
+    window.control.stop("test done")
+    qtbot.waitUntil(window.control.finished.is_set, timeout=30_000)

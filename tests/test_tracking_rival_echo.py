@@ -113,9 +113,13 @@ def test_rival_echo_level_and_place():
 def test_gate_preview_is_the_gate_tracking_uses(rel):
     codes, off, _ = _record(rel)
     res = track_echoes(codes, off, FS, C)
-    gate, notes = gate_preview(codes[:16], FS)  # a live echo's few pulses
+    gate, notes, rival = gate_preview(codes[:16], FS)  # a live echo's few pulses
     assert gate == res.gate
     assert notes == [w for w in res.warnings if "another echo" in w or "clipped" in w]
-    assert gate_preview(codes, FS, TrackingOptions(gate=(250, 350))) == ((250, 350), [])
+    if rel is None:
+        assert rival is None
+    else:
+        assert f"another echo at sample {rival} " in notes[-1]
+    assert gate_preview(codes, FS, TrackingOptions(gate=(250, 350))) == ((250, 350), [], None)
     with pytest.raises(ValueError, match="does not fit"):
         gate_preview(codes, FS, TrackingOptions(gate=(2, 100)))

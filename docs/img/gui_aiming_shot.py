@@ -1,9 +1,10 @@
 """Screenshot of the live echoes at a prompt (docs/img/gui-aiming.png).
 
 The demo protocol on the simulated bench with a stationary reflection 3.5 dB stronger than
-ch1's bone echo, 0.3 us before it; the operator's gate set on the echo the tracker's note
-names. The simulated bench takes its effects only in Python, so the bench factory is
-replaced here. Run from the repository:
+ch1's bone echo, 0.3 us before it: the automatic gate holds both, the note and the dashed
+mark name the other echo (the bone's), before the operator drags the gate onto it. The
+simulated bench takes its effects only in Python, so the bench factory is replaced here.
+Run from the repository:
 
     QT_QPA_PLATFORM=offscreen .venv/bin/python docs/img/gui_aiming_shot.py \\
         docs/img/gui-aiming.png /tmp/aimshot.h5
@@ -56,13 +57,7 @@ def main(png: Path, session: Path) -> None:
     session.unlink(missing_ok=True)
     window.out_edit.setText(str(session))
     window.start_run()
-    pump(window.aim_label.isVisible)
-    row = window._setup_channels.index(1)
-    echo = window._aimed[1]
-    note = next(n for n in echo.notes if "another echo" in n)
-    sample = int(note.split("sample ")[1].split()[0])
-    window.ascan._gates[row].setRegion((echo.time_s[sample - 50], echo.time_s[sample + 50]))
-    pump(lambda: "(yours)" in window.aim_label.text())
+    pump(lambda: window.aim_label.isVisible() and "another echo" in window.aim_label.text())
     shown = time.monotonic()
     pump(lambda: time.monotonic() - shown > 0.8)
     window.grab().save(str(png))
