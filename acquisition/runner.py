@@ -755,6 +755,14 @@ class Runner:
                   "WARNING")
         return False
 
+    @staticmethod
+    def _instrument_errors() -> type[Exception]:
+        """What an instrument raises (a timeout, a SCPI error, a limit): the live echoes
+        stop with a warning. Anything else (a listener writing the session) is a fault."""
+        from pelvislab.drivers.interfaces import DriverError
+
+        return DriverError
+
     def _aim_configure(self, setup: Setup, first: PlannedStep) -> bool:
         """Configure short trigger bursts and records for the live echoes, the drive's sine
         at the first step (its SYNC may trigger the bursts) with its output left off."""
@@ -769,9 +777,7 @@ class Runner:
             self.bench.digitizer.configure_sequence(
                 sorted(setup.transducers), us.sample_rate_hz, us.samples, self.aim_pulses,
                 us.delay_s, us.full_scale_v, us.offset_v)
-        except _Stop:
-            raise
-        except Exception as exc:
+        except self._instrument_errors() as exc:
             return self._aim_failed(exc)
         return True
 
@@ -782,20 +788,26 @@ class Runner:
 
         us = self.protocol.ultrasound
         sync_wait_s = 1.0 / first.frequency_hz  # a burst may wait for the drive's SYNC
+        failure: Exception | None = None
         try:
-            try:
-                with self._lock:
-                    self._check()
-                    self.bench.trigger.output_on()
-                records = self.bench.digitizer.acquire(
-                    timeout_s=self.aim_pulses / us.prf_hz + sync_wait_s + 0.5)
-            finally:  # also when switching it on failed half-way
-                with self._lock:
-                    self.bench.trigger.output_off()
-        except _Stop:
-            raise
-        except Exception as exc:
-            return self._aim_failed(exc)
+            with self._lock:
+                self._check()
+                self.bench.trigger.output_on()
+                # an abort that could not wait for this lock (50 ms) put the outputs off
+                # meanwhile: stop before acquiring (the finally puts the trigger off again)
+                self._check()
+            records = self.bench.digitizer.acquire(
+                timeout_s=self.aim_pulses / us.prf_hz + sync_wait_s + 0.5)
+        except self._instrument_errors() as exc:
+            failure = exc
+        finally:
+            # also when switching it on failed half-way; an OFF that fails leaves the
+            # trigger perhaps pulsing: a fault (the run stops in the safe state), never a
+            # warning at a prompt that goes on waiting
+            with self._lock:
+                self.bench.trigger.output_off()
+        if failure is not None:
+            return self._aim_failed(failure)
         self._check()
         gates = self.gates
         echoes = []

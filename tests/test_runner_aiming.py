@@ -329,3 +329,55 @@ def test_a_trigger_that_fails_half_way_on_is_switched_off_again(tmp_path):
     final, _, events, _ = run(tmp_path, on_event, clutter=False)
     assert final.status == "completed"
     assert state == {"on_then_failed": True, "after": False}
+
+
+def test_a_trigger_that_does_not_go_off_after_a_live_echo_is_a_fault(tmp_path):
+    # helper review, session 38: the failed OFF was a warning and the prompt went on
+    # waiting with the trigger pulsing
+    from pelvislab.drivers.interfaces import InstrumentError
+
+    state = {}
+
+    def on_event(runner, bench, event):
+        if isinstance(event, r.SetupStarted) and event.setup_index == 0:
+            real_off = bench.trigger.output_off
+
+            def failing_off():
+                bench.trigger.output_off = real_off  # once: the safe state's works
+                raise InstrumentError("simulated: no answer to OUTP OFF")
+            bench.trigger.output_off = failing_off
+        if isinstance(event, r.Fault):
+            state["fault"] = event.reason
+
+    final, bench, _, _ = run(tmp_path, on_event, clutter=False)
+    assert final.status == "failed" and not final.unsafe
+    assert "OUTP OFF" in state["fault"]
+    assert not bench.world.trigger.output and not bench.world.drive.output
+
+
+def test_an_abort_while_the_trigger_goes_on_stops_before_acquiring(tmp_path):
+    # helper review, session 38: STOP gave up on the runner's lock after 50 ms and put
+    # the outputs off; the live echo's ON then completed and a whole acquisition ran
+    import threading
+    import time
+
+    state = {}
+
+    def on_event(runner, bench, event):
+        if isinstance(event, r.SetupStarted) and event.setup_index == 0:
+            real_on = bench.trigger.output_on
+
+            def slow_on():
+                threading.Thread(target=lambda: (runner.abort("STOP during ON"),
+                                                 state.setdefault("aborted", time.monotonic()),
+                                                 state.setdefault(
+                                                     "acquisitions", bench.world.acquisitions)),
+                                 daemon=True).start()
+                time.sleep(0.15)  # longer than the abort's 50 ms wait for the lock
+                real_on()
+            bench.trigger.output_on = slow_on
+
+    final, bench, _, _ = run(tmp_path, on_event, clutter=False)
+    assert final.status == "aborted"
+    assert bench.world.acquisitions == state["acquisitions"]  # none after the abort
+    assert not bench.world.trigger.output and not bench.world.drive.output
