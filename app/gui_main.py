@@ -142,6 +142,9 @@ class OperatorWindow(QtWidgets.QMainWindow):
         self._channel_labels: list[str] = []
         self._setup_channels: list[int] = []  # the A-scan rows' channels, in order
         self._aimed: dict[int, Any] = {}  # channel -> latest live echo (runner.AimedEcho)
+        # gates set by dragging that the live echoes have not shown yet (one already on
+        # its way drew the old gate back for ~0.3 s: helper review, session 38)
+        self._pending_gates: dict[int, tuple[int, int]] = {}
         self._build()
         self.timer = QtCore.QTimer(self)
         self.timer.setInterval(REFRESH_MS)
@@ -639,6 +642,7 @@ class OperatorWindow(QtWidgets.QMainWindow):
             self._say(f"gate not set: {exc}")
             self.statusBar().showMessage(f"gate not set: {exc}")
             return
+        self._pending_gates[channel] = (start, stop)
         self._say(f"ch{channel}: gate set to samples {start}-{stop} "
                   f"({start_s * 1e6:.2f}-{stop_s * 1e6:.2f} us)")
 
@@ -648,6 +652,7 @@ class OperatorWindow(QtWidgets.QMainWindow):
             return
         for channel in self.control.runner.gates:
             self.control.runner.set_gate(channel, None)
+        self._pending_gates = {}
         self._say("automatic gates")
 
     def _show_aiming(self, event: Any) -> None:
@@ -658,19 +663,24 @@ class OperatorWindow(QtWidgets.QMainWindow):
             echo = self._aimed.get(channel)
             if echo is None:
                 continue
-            gate_s = None if echo.gate is None else tuple(
-                echo.delay_s + g / echo.sample_rate_hz for g in echo.gate)
-            operator = echo.gate_source == "operator"
+            gate, operator = echo.gate, echo.gate_source == "operator"
+            notes, rival = echo.notes, getattr(echo, "rival_sample", None)
+            pending = self._pending_gates.get(channel)
+            if pending is not None and not (operator and gate == pending):
+                # acquired before the drag: its gate and notes are not the steps' any more
+                gate, operator, notes, rival = pending, True, (), None
+            else:
+                self._pending_gates.pop(channel, None)
+            gate_s = None if gate is None else tuple(
+                echo.delay_s + g / echo.sample_rate_hz for g in gate)
             self.ascan.show_echo(row, echo.time_s, echo.volts, gate_s, operator=operator)
-            rival = getattr(echo, "rival_sample", None)
             self.ascan.show_rival(row, None if rival is None
                                   else echo.delay_s + rival / echo.sample_rate_hz)
-            where = ("no gate" if echo.gate is None else
-                     f"gate {echo.gate[0]}-{echo.gate[1]} "
-                     f"({'yours' if operator else echo.gate_source})")
+            where = ("no gate" if gate is None else
+                     f"gate {gate[0]}-{gate[1]} ({'yours' if operator else echo.gate_source})")
             lines.append(f"<b>ch{channel}</b>: {html.escape(where)}" + "".join(
                 f"<br><span style='color:#b35900'>{html.escape(n)}</span>"
-                for n in echo.notes))
+                for n in notes))
         self.aim_label.setText(
             "Live echoes (drive off): drag a gate onto the bone echo if it is not on it."
             "<br>" + "<br>".join(lines))
@@ -751,6 +761,7 @@ class OperatorWindow(QtWidgets.QMainWindow):
                     f"ch{c} → {p}" for c, p in sorted(event.transducers.items())]
                 self._setup_channels = sorted(event.transducers)
                 self._aimed = {}
+                self._pending_gates = {}
                 self.ascan.set_channels(self._channel_labels)
                 self.displacement.set_channels(self._channel_labels)
                 self.quality.setRowCount(0)  # the previous setup's figures are not these

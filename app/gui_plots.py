@@ -90,6 +90,7 @@ class AScanPanel(pg.GraphicsLayoutWidget):
         self._curves: list[pg.PlotDataItem] = []
         self._gates: list[pg.LinearRegionItem] = []
         self._rivals: list[pg.InfiniteLine] = []
+        self._drawn: dict[int, tuple[float, float]] = {}  # row -> the region last drawn
         self._editable = False
         self._drawing = False  # our own setRegion also emits sigRegionChangeFinished
 
@@ -133,6 +134,12 @@ class AScanPanel(pg.GraphicsLayoutWidget):
         self._editable = bool(editable)
         for gate in self._gates:
             gate.setMovable(self._editable)
+            if not self._editable:
+                # a drag cut short (STOP pressed mid-drag) never finishes: its "moving"
+                # flags would keep show_echo from drawing this gate again
+                gate.moving = False
+                for line in gate.lines:
+                    line.moving = False
 
     @property
     def gates_editable(self) -> bool:
@@ -155,6 +162,13 @@ class AScanPanel(pg.GraphicsLayoutWidget):
         if self._drawing or not self._editable:
             return
         start_s, stop_s = region.getRegion()
+        # a drag cancelled (right click) or let go where it began ends here too, with the
+        # region unchanged: that is no gate set by the operator (helper review, session 38)
+        drawn = self._drawn.get(row)
+        if drawn is not None and abs(start_s - drawn[0]) <= 1e-12 and \
+                abs(stop_s - drawn[1]) <= 1e-12:
+            return
+        self._drawn[row] = (float(start_s), float(stop_s))
         self.gate_edited.emit(row, float(start_s), float(stop_s))
 
     def show_echo(self, index: int, time_s: np.ndarray, volts: np.ndarray,
@@ -174,6 +188,8 @@ class AScanPanel(pg.GraphicsLayoutWidget):
             self._drawing = True
             try:
                 gate.setRegion(gate_s)
+                start_s, stop_s = gate.getRegion()
+                self._drawn[index] = (float(start_s), float(stop_s))
             finally:
                 self._drawing = False
         gate.setVisible(True)

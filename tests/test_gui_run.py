@@ -417,6 +417,8 @@ def test_gap_candidates_say_which_the_verdict_named():
 
 
 def test_live_echoes_at_the_prompt_and_a_gate_set_by_dragging(operator_window, qtbot, tmp_path):
+    from pelvislab.acquisition import runner as r
+
     # at the prompt the A-scan shows live echoes (drive off) with the gate the steps will
     # use; the operator drags a gate, the steps of that setup track in it
     window = operator_window()
@@ -432,6 +434,16 @@ def test_live_echoes_at_the_prompt_and_a_gate_set_by_dragging(operator_window, q
     x, _ = window.ascan._curves[0].getData()
     assert x is not None and x.size == echo.time_s.size
     region = window.ascan._gates[0]
+    # a drag cancelled (right click) or let go where it began: the region's "finished"
+    # signal with the region unchanged sets nothing (it made the automatic gate the
+    # operator's: helper review, session 38)
+    region.sigRegionChangeFinished.emit(region)
+    assert window.control.runner.gates == {}
+    # STOP pressed mid-drag: the drag never finishes; the gate must not stay "moving"
+    region.moving = True
+    window.ascan.set_gates_editable(False)
+    assert not region.moving
+    window.ascan.set_gates_editable(True)
     # a gate whose lag range leaves the record: refused, said, nothing set
     region.setRegion((echo.time_s[0], echo.time_s[200]))
     assert window.control.runner.gates == {}
@@ -440,6 +452,11 @@ def test_live_echoes_at_the_prompt_and_a_gate_set_by_dragging(operator_window, q
     start, stop = echo.gate[0] + 10, echo.gate[1] - 10
     region.setRegion((echo.time_s[start], echo.time_s[stop]))
     assert window.control.runner.gates == {channel: (start, stop)}
+    # a live echo acquired before the drag does not draw the old gate back
+    window._show_aiming(r.AimingEchoes(0.0, 0, tuple(window._aimed.values())))
+    assert window.ascan._gates[0].getRegion() == pytest.approx(
+        (echo.time_s[start], echo.time_s[stop]))
+    assert "(yours)" in window.aim_label.text()
     qtbot.waitUntil(lambda: window._aimed[channel].gate_source == "operator", timeout=10_000)
     qtbot.waitUntil(lambda: "(yours)" in window.aim_label.text(), timeout=10_000)
     window.confirm_prompt()
