@@ -807,17 +807,23 @@ RIVAL_ECHO_DB = 10.0
 tracker's notes: the automatic gate takes the strongest echo for the bone, and with a rival
 that close the other may be the bone (session 36 review: a stationary reflection 1.5 x the
 bone's echo, 0.3 us before it, was gated and tracked instead, the step ``ok``); one that
-overlaps the gated echo biases its delay. The simulated bench's strongest other echo is
--18.6 dB (62 demo records, session 37)."""
+overlaps the gated echo biases its delay unless it moves with it. On the simulated bench
+the strongest other envelope peak is -19.5 dB (the demo's 616 records, session 38)."""
 
 RIVAL_MIN_DIP = 0.2
 """A rival is a separate echo when the envelope dips by at least this fraction of its peak
-(3 dB) between it and any higher peak (scipy's peak prominence): the ripple of one echo's
+(1.9 dB) between it and any higher peak (scipy's peak prominence): the ripple of one echo's
 envelope is not a rival."""
 
 RIVAL_MIN_NOISE_RATIO = 3.0
 """... and when its envelope peak is at least this many times the record's noise SD (so that
 the noise of a weak record is not called an echo)."""
+
+RIVAL_MIN_ECHOES = 4
+"""The noise SD is the echoes' spread across pulses: with fewer than this many (a live
+echo of 1-3 pulses) it is not known, and no rival is named (band-limited noise at 10-15 dB
+gave false notes on 3 of 60 records with 3 pulses, 41-53 of 60 with 1: helper review,
+session 38)."""
 
 
 def rival_echo(envelope: np.ndarray, noise_sd: float = 0.0,
@@ -852,6 +858,8 @@ def _rival_in(envelope: np.ndarray, first_echoes: np.ndarray) -> tuple[int, floa
     estimated only when there is a candidate."""
     if rival_echo(envelope) is None:  # the usual case, without the noise estimate's cost
         return None
+    if len(first_echoes) < RIVAL_MIN_ECHOES:
+        return None
     # the raw record's noise SD: the first echoes' spread across pulses, per sample (their
     # motion over 8 pulses can only raise it: fewer notes, never false ones)
     noise_sd = float(np.median(np.std(np.asarray(first_echoes, dtype=float), axis=0)))
@@ -866,8 +874,10 @@ def _rival_note(envelope: np.ndarray, rival: tuple[int, float], gate: tuple[int,
     where = (f"another echo at sample {sample} ({abs(lag_s) * 1e6:.2f} us "
              f"{'later' if lag_s > 0 else 'earlier'}) is {-level_db:.1f} dB below the gated one")
     if gate[0] <= sample < gate[1]:
-        return (f"{where}, inside the gate: its overlap biases the tracked delay; look at the "
-                "A-scan and set the gate on the bone echo")
+        # one that moves with the bone (a second interface, a two-lobed pulse) does no harm
+        return (f"{where}, inside the gate: if it does not move with the bone (a fixed "
+                "reflector), it biases the tracked delay; look at the A-scan and set the gate "
+                "on the bone echo")
     return (f"{where}: the strongest echo was taken for the bone; if the bone is the other, "
             "set the gate on it")
 
@@ -909,6 +919,18 @@ def _choose_gate(codes: np.ndarray, fs: float, opts: TrackingOptions,
     return start, stop, None if rival is None else rival[0]
 
 
+def _zero_segments_not_finite(codes: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``codes`` with every segment that holds a sample that is not a number (float codes
+    only) zeroed, and which segments those were (a NaN among the first echoes had spread
+    the automatic gate over the record; :func:`track_echoes` loses them)."""
+    if codes.dtype.kind != "f":
+        return codes, np.zeros(codes.shape[0], dtype=bool)
+    not_finite = ~np.isfinite(codes).all(axis=1)
+    if np.any(not_finite):
+        codes = np.where(not_finite[:, None], 0.0, codes)
+    return codes, not_finite
+
+
 class GatePreview(NamedTuple):
     """What :func:`gate_preview` finds on a record."""
 
@@ -934,8 +956,7 @@ def gate_preview(codes: np.ndarray, sample_rate_hz: float,
     codes = np.asarray(codes)
     if codes.ndim != 2 or codes.shape[0] < 1 or codes.shape[1] < 32:
         raise ValueError(f"codes must be (n_pulses, n_samples >= 32), got shape {codes.shape}")
-    if codes.dtype.kind == "f":
-        codes = np.where(np.isfinite(codes), codes, 0.0)
+    codes, _ = _zero_segments_not_finite(codes)
     notes: list[str] = []
     start, stop, rival = _choose_gate(codes, float(sample_rate_hz), opts, notes)
     return GatePreview((start, stop), notes, rival)
@@ -978,12 +999,7 @@ def track_echoes(codes: np.ndarray, trigger_offset_s: np.ndarray | None, sample_
     if L < _FINE_HALF + 2:
         raise ValueError(f"max_lag_samples must be >= {_FINE_HALF + 2}")
     warnings: list[str] = []
-    # samples that are not numbers (float codes only): zeroed before the gate is found (a
-    # NaN among the first echoes had spread the auto gate over the record), lost below
-    not_finite = (~np.isfinite(codes).all(axis=1) if codes.dtype.kind == "f"
-                  else np.zeros(n, dtype=bool))
-    if np.any(not_finite):
-        codes = np.where(not_finite[:, None], 0.0, codes)
+    codes, not_finite = _zero_segments_not_finite(codes)
 
     start, stop, _ = _choose_gate(codes, fs, opts, warnings)
     G = stop - start

@@ -71,7 +71,7 @@ def test_stronger_stationary_reflection_is_tracked_but_the_bone_echo_is_named():
     (0.6, +0.3e-6, True),      # after it (+8 %)
     (0.6, -0.5e-6, True),      # before it, apart (+2 %: a caution, not an error)
     (0.3, +0.3e-6, False),     # -10.5 dB
-    (0.12, -0.3e-6, False),    # -18.4 dB: the simulated bench's clutter level
+    (0.12, -0.3e-6, False),    # -18.4 dB: about the simulated bench's clutter (-19.5 dB)
 ])
 def test_note_only_for_a_separate_echo_within_the_rival_level(rel, shift_s, noted):
     codes, off, _ = _record(rel, shift_s)
@@ -123,3 +123,37 @@ def test_gate_preview_is_the_gate_tracking_uses(rel):
     assert gate_preview(codes, FS, TrackingOptions(gate=(250, 350))) == ((250, 350), [], None)
     with pytest.raises(ValueError, match="does not fit"):
         gate_preview(codes, FS, TrackingOptions(gate=(2, 100)))
+
+
+def _band_limited_record(n_pulses: int, snr_db: float, seed: int) -> np.ndarray:
+    """One echo at sample 300 in noise band-limited to 1-10 MHz (as behind the receiver's
+    filters), ``snr_db`` = peak / noise SD."""
+    from scipy import signal as sp_signal
+
+    rng = np.random.default_rng(seed)
+    clean, _ = synth_echoes(np.full(n_pulses, 300 / FS), amplitude_counts=60.0, snr_db=None,
+                            quantise=False, rng=rng)
+    sos = sp_signal.butter(4, (1e6, 10e6), "bandpass", fs=FS, output="sos")
+    noise = sp_signal.sosfiltfilt(sos, rng.normal(0.0, 1.0, (n_pulses, 900)), axis=1)[:, 200:700]
+    noise *= (60.0 / 10 ** (snr_db / 20)) / noise.std()
+    return np.clip(np.rint(clean + noise), -128, 127).astype(np.int8)
+
+
+@pytest.mark.parametrize("n_pulses", [1, 2, 3])
+def test_a_live_echo_of_few_pulses_names_no_rival_in_noise(n_pulses):
+    # helper review, session 38: the noise SD is the spread across pulses, 0 with one
+    # pulse: band-limited noise at 10 dB gave a false note on 53 of 60 single pulses
+    false = [seed for seed in range(20)
+             if gate_preview(_band_limited_record(n_pulses, 10.0, seed), FS).notes
+             and "another echo" in " ".join(gate_preview(
+                 _band_limited_record(n_pulses, 10.0, seed), FS).notes)]
+    assert not false
+
+
+def test_gate_preview_treats_samples_that_are_not_numbers_as_tracking_does():
+    codes, off, _ = _record(None)
+    x = codes.astype(float)
+    x[0, 10] = np.nan  # segment 0 is lost by tracking, zeroed before the gate is found
+    # a 5 MHz burst in that same segment, after the echo (it widened the preview's gate)
+    x[0, 420:500] += 400.0 * np.sin(2 * np.pi * 0.01 * np.arange(80))
+    assert gate_preview(x[:16], FS).gate == track_echoes(x, off, FS, C).gate
