@@ -483,6 +483,7 @@ class Runner:
         """Seconds between two live echoes at a prompt."""
         self._gates: dict[int, tuple[int, int]] = {}
         self._gates_lock = threading.Lock()
+        self._current_setup: Setup | None = None  # the setup being placed or measured
         self._skip = {(k[0], round(float(k[1]), 9), int(k[2]) if len(k) > 2 else 0)
                       for k in skip}
         self._clock = clock
@@ -595,16 +596,17 @@ class Runner:
         if channel not in self.protocol.channels:
             raise ValueError(f"channel {channel} is not recorded by this protocol "
                              f"(channels {list(self.protocol.channels)})")
+        setup = self._current_setup
+        if setup is not None and channel not in setup.transducers:
+            # accepted, it would wait unused until the setup ends (review, session 38)
+            raise ValueError(f"channel {channel} is not used in setup {setup.name!r} "
+                             f"(channels {sorted(setup.transducers)})")
         if gate is not None:
-            start, stop = (int(v) for v in gate)
-            lag = int(self._tracking_options().max_lag_samples)
-            samples = int(self.protocol.ultrasound.samples)
-            if not (start - lag >= 0 and stop + lag <= samples and stop - start >= 16):
-                raise ValueError(
-                    f"gate ({start}, {stop}) for ch{channel}: it must hold 16 samples or "
-                    f"more and leave the lag range ({lag} samples) inside the "
-                    f"{samples}-sample record: start {lag} to stop {samples - lag}")
-            gate = (start, stop)
+            gate = (int(gate[0]), int(gate[1]))
+            problem = _gate_problem(gate, int(self._tracking_options().max_lag_samples),
+                                    int(self.protocol.ultrasound.samples))
+            if problem:
+                raise ValueError(f"gate {gate} for ch{channel}: {problem}")
         with self._gates_lock:
             if gate is None:
                 self._gates.pop(channel, None)
@@ -981,6 +983,7 @@ class Runner:
             self._check()
             with self._gates_lock:  # the transducers are placed anew
                 self._gates.clear()
+                self._current_setup = setup
             self._emit(SetupStarted(self._t(), si, setup.name, setup.excitation,
                                     dict(setup.transducers), n_setups))
             first = steps[0]
@@ -1492,6 +1495,17 @@ def _first_table_difference(a: dict[str, Any], b: dict[str, Any]) -> str:
 
 
 # --------------------------------------------------------------------------- reprocessing
+def _gate_problem(gate: tuple[int, int], lag_samples: int, samples: int) -> str:
+    """Why ``gate`` (start, stop samples) cannot be tracked in a ``samples``-long record
+    with a lag range of +-``lag_samples``; empty when it can (as track_echoes checks)."""
+    start, stop = gate
+    if start - lag_samples >= 0 and stop + lag_samples <= samples and stop - start >= 16:
+        return ""
+    return (f"it must hold 16 samples or more and leave the lag range ({lag_samples} "
+            f"samples) inside the {samples}-sample record: start {lag_samples} to stop "
+            f"{samples - lag_samples}")
+
+
 def _with_gate(options: Any, gate: tuple[int, int] | None) -> Any:
     """``options`` (the defaults when None) with ``gate`` (None: automatic)."""
     from dataclasses import replace
@@ -1595,6 +1609,19 @@ def reprocess_session(source: Path | str, target: Path | str, tracking_options: 
                                    else _with_gate(tracking_options, gate))
                         gate_source = "auto" if gate is None else "operator"
                         kept_operator += gate is not None
+                    if gate_source != "auto" and options is not None and options.gate:
+                        # a channel's gate that cannot be tracked lost that channel in
+                        # every step, and the command said nothing (review, session 38)
+                        problem = _gate_problem(options.gate, int(options.max_lag_samples),
+                                                int(np.shape(c.codes)[1]))
+                        if problem:
+                            by_operator = gate_source == "operator"
+                            raise ValueError(
+                                f"gate {options.gate} for {c.name} (step {step.index}"
+                                + (", set by the operator at acquisition" if by_operator
+                                   else "") + f"): {problem}"
+                                + (f"; --gate {c.name}=auto tracks the automatic gate"
+                                   if by_operator else "") + "; nothing written")
                     process_channel(c, step.frequency_hz, options, speed_of_sound_m_s)
                     c.quality["gate_source"] = gate_source
                 failed = [str(c.quality.get("message", "")) for c in step.channels

@@ -98,8 +98,20 @@ def test_live_echoes_name_the_rival_and_the_operator_gate_tracks_the_bone(tmp_pa
         bone = int(note.split("sample ")[1].split()[0])
         runner.set_gate(1, (bone - 50, bone + 50))
 
-    final, bench, events, out = run(tmp_path, confirm_after(3, gate_on_rival))
-    assert final.status == "completed"
+    refused = []
+
+    def on_event(runner, bench, event):
+        confirm = confirm_after_3(runner, bench, event)
+        if isinstance(event, r.AimingEchoes) and event.setup_index == 1 and not refused:
+            # setup b has no ch2: a gate for it would wait unused (review, session 38)
+            with pytest.raises(ValueError, match="channel 2 is not used in setup 'b'"):
+                runner.set_gate(2, (100, 200))
+            refused.append(True)
+        return confirm
+
+    confirm_after_3 = confirm_after(3, gate_on_rival)
+    final, bench, events, out = run(tmp_path, on_event)
+    assert final.status == "completed" and refused
     aims = [e for e in events if isinstance(e, r.AimingEchoes)]
     assert [a.setup_index for a in aims] == [0, 0, 0, 1, 1, 1]
     first = {e.channel: e for e in aims[0].echoes}
@@ -381,3 +393,25 @@ def test_an_abort_while_the_trigger_goes_on_stops_before_acquiring(tmp_path):
     assert final.status == "aborted"
     assert bench.world.acquisitions == state["acquisitions"]  # none after the abort
     assert not bench.world.trigger.output and not bench.world.drive.output
+
+
+def test_reprocessing_refuses_a_channel_gate_it_cannot_track(tmp_path, capsys):
+    # helper review, session 38: --gate ch1=5:100 (its lag range leaves the record) exited
+    # 0, and every ch1 record of the new file was empty
+    from pelvislab.app.cli import main
+
+    final, _, _, out = run(tmp_path, confirm_after(2, _gate_on_rival))
+    assert final.status == "completed"
+    target = tmp_path / "bad.h5"
+    assert main(["reprocess", str(out), "--out", str(target), "--gate", "ch1=5:100"]) == 1
+    assert "gate (5, 100) for ch1 (step 0): it must hold 16 samples or more" in \
+        capsys.readouterr().err
+    assert not target.exists()
+    # the operator's gate no longer fits a wider lag range: said, with the way out
+    assert main(["reprocess", str(out), "--out", str(target),
+                 "--max-lag-samples", "100"]) == 1
+    err = capsys.readouterr().err
+    assert "set by the operator at acquisition" in err and "--gate ch1=auto" in err
+    assert not target.exists()
+    assert main(["reprocess", str(out), "--out", str(target), "--max-lag-samples", "100",
+                 "--gate", "ch1=auto"]) == 0

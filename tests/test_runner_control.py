@@ -474,8 +474,9 @@ def test_reprocess_with_unusable_options_fails_and_writes_nothing(tmp_path):
     from pelvislab.acquisition.tracking import TrackingOptions
 
     out = tmp_path / "bad.h5"
-    # a gate past the end of the records: only the first step's tracking can tell
-    with pytest.raises(ValueError, match="tracking failed"):
+    # a gate past the end of the records: only the first step's records can tell
+    with pytest.raises(ValueError, match=r"gate \(0, 10000000\) for ch1 \(step 0\): .*"
+                                         r"leave the lag range"):
         r.reprocess_session(tmp_path / "s.h5", out, TrackingOptions(gate=(0, 10**7)))
     assert not out.exists()
     # what the options alone show is refused before any work (session 34: an unknown
