@@ -415,3 +415,37 @@ def test_reprocessing_refuses_a_channel_gate_it_cannot_track(tmp_path, capsys):
     assert not target.exists()
     assert main(["reprocess", str(out), "--out", str(target), "--max-lag-samples", "100",
                  "--gate", "ch1=auto"]) == 0
+
+
+def test_the_terminal_says_a_live_echo_again_only_when_it_changes():
+    # helper review, session 38: the automatic gate jitters by 1-2 samples from echo to
+    # echo, and every jitter printed a line (18 in 4 s while the operator typed)
+    import io
+
+    from pelvislab.app.commands.run import ConsoleProgress
+
+    def aimed(gate, source="auto", notes=()):
+        return r.AimedEcho(channel=1, landmark="SIAS_R_x", time_s=np.zeros(3),
+                           volts=np.zeros(3), gate=gate, gate_source=source, notes=notes,
+                           sample_rate_hz=500e6, delay_s=10e-6)
+
+    stream = io.StringIO()
+    console = ConsoleProgress(runner=None, stream=stream, wait_prompts=True)
+    note = "another echo at sample {} ({} us later) is {} dB below the gated one"
+    for k, echo in enumerate([
+            aimed((164, 487)), aimed((165, 487)), aimed((163, 488)),   # jitter: said once
+            aimed((164, 487), notes=(note.format(354, 0.39, 4.1),)),  # a note: said
+            aimed((164, 487), notes=(note.format(355, 0.40, 4.3),)),  # its figures jitter
+            aimed((180, 487), notes=(note.format(355, 0.40, 4.3),)),  # an edge moved 16
+            aimed((304, 404), "operator")]):                          # the operator's gate
+        console(r.AimingEchoes(float(k), 0, (echo,)))
+    lines = [line for line in stream.getvalue().splitlines() if line.startswith("live echo")]
+    assert [line.split(": ", 1)[1].split(" (")[0] for line in lines] == [
+        "gate 164-487", "gate 164-487", "gate 180-487", "gate 304-404"]
+    assert "(operator;" in lines[-1]
+    quiet = io.StringIO()
+    console = ConsoleProgress(runner=None, stream=quiet, wait_prompts=True, quiet=True)
+    console(r.AimingEchoes(0.0, 0, (aimed((164, 487)),)))
+    assert quiet.getvalue() == ""  # --quiet: only a note is said
+    console(r.AimingEchoes(1.0, 0, (aimed((164, 487), notes=(note.format(1, 2, 3),)),)))
+    assert "note: another echo" in quiet.getvalue()

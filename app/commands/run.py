@@ -132,14 +132,23 @@ class ConsoleProgress:
                                       f"gate set to samples {gate[0]}-{gate[1]}")
                    + "; press Enter when the transducers are in place")
 
+    LIVE_GATE_MOVE_SAMPLES = 10
+    """A live echo's automatic gate is said again when an edge moved more than this: it
+    jitters by 1-2 samples from echo to echo (18 lines in 4 s before: review, session 38)."""
+
     def _say_live_echoes(self, event: Any) -> None:
-        """At a prompt: each channel's gate and the tracker's notes on it, when they
-        change (the live echoes come about three times a second)."""
+        """At a prompt: each channel's gate and the tracker's notes on it when the notes or
+        the gate's source change, or an edge moves by more than LIVE_GATE_MOVE_SAMPLES."""
         for echo in event.echoes:
-            said = (echo.gate, echo.gate_source, echo.notes)
-            if self._aim_said.get(echo.channel) == said:
+            said = self._aim_said.get(echo.channel)
+            # the notes' figures jitter too (a rival's level, its sample): compared without
+            notes = tuple(re.sub(r"\d+(\.\d+)?", "#", n) for n in echo.notes)
+            if said is not None and said[1:] == (echo.gate_source, notes) and (
+                    (said[0] is None) == (echo.gate is None)) and (
+                    echo.gate is None or max(abs(a - b) for a, b in zip(
+                        said[0], echo.gate, strict=True)) <= self.LIVE_GATE_MOVE_SAMPLES):
                 continue
-            self._aim_said[echo.channel] = said
+            self._aim_said[echo.channel] = (echo.gate, echo.gate_source, notes)
             if echo.gate is None:
                 where = "no gate"
             else:
@@ -159,7 +168,8 @@ class ConsoleProgress:
                 self._bar = False
             return
         if isinstance(event, r.AimingEchoes):
-            if self.wait_prompts:
+            # --quiet: only what needs the operator's eye (a note)
+            if self.wait_prompts and (not self.quiet or any(e.notes for e in event.echoes)):
                 self._say_live_echoes(event)
             return
         if isinstance(event, r.OperatorPrompt):
