@@ -618,6 +618,8 @@ class OperatorWindow(QtWidgets.QMainWindow):
         self.bench_box.setVisible(True)
 
     def _end_aiming(self) -> None:
+        if not (self.ascan.gates_editable or self.aim_label.isVisible()):
+            return  # every step starts here: nothing to undo, nothing to redraw
         self.ascan.set_gates_editable(False)
         for row in range(len(self._setup_channels)):
             self.ascan.show_rival(row, None)  # a mark of the live echoes only
