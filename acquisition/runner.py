@@ -1641,10 +1641,16 @@ def reprocess_session(source: Path | str, target: Path | str, tracking_options: 
                 disp = g.create_group("displacement")
                 ph = g.create_group("phasor")
                 for c in step.channels:
+                    # as SessionWriter: the quality with the displacement, else on the
+                    # echoes (whose copy may carry the source's: replaced)
+                    quality_attrs = g["echoes"][c.name].attrs
+                    for qk in [k for k in quality_attrs if k.startswith("quality_")]:
+                        del quality_attrs[qk]
                     if c.displacement_m is not None:
                         d = disp.create_dataset(c.name, data=c.displacement_m)
-                        for qk, qv in c.quality.items():
-                            d.attrs[f"quality_{qk}"] = qv
+                        quality_attrs = d.attrs
+                    for qk, qv in c.quality.items():
+                        quality_attrs[f"quality_{qk}"] = qv
                     if c.phasor_m is not None:
                         p = ph.create_dataset(c.name, data=np.complex128(c.phasor_m))
                         p.attrs["std_m"] = float(np.nan if c.phasor_std_m is None

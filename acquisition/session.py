@@ -555,10 +555,15 @@ class SessionWriter:
             _point_attrs(ds.attrs, "output", c.output)
             echoes.create_dataset(f"{c.name}_trigger_offset_s",
                                   data=np.asarray(c.trigger_offset_s, dtype=np.float64))
+            # the quality goes with the displacement; a channel without one (its tracking
+            # failed) keeps it on its echoes: why it failed, and the operator's gate, were
+            # not in the file (review, session 38)
+            quality_attrs = ds.attrs
             if c.displacement_m is not None:
                 d = disp.create_dataset(c.name, data=np.asarray(c.displacement_m, dtype=float))
-                for k, v in c.quality.items():
-                    d.attrs[f"quality_{k}"] = _attr_value(v)
+                quality_attrs = d.attrs
+            for k, v in c.quality.items():
+                quality_attrs[f"quality_{k}"] = _attr_value(v)
             if c.phasor_m is not None:
                 p = ph.create_dataset(c.name, data=np.complex128(c.phasor_m))
                 p.attrs["std_m"] = float(np.nan if c.phasor_std_m is None else c.phasor_std_m)
@@ -972,10 +977,9 @@ class SessionReader:
             ds = echoes[ch]
             ea = ds.attrs
             disp = g["displacement"][ch][()] if ch in g.get("displacement", {}) else None
-            quality = {}
-            if ch in g.get("displacement", {}):
-                dq = g["displacement"][ch].attrs
-                quality = {k[len("quality_"):]: dq[k] for k in dq if k.startswith("quality_")}
+            # on the displacement; on the echoes for a channel whose tracking failed
+            dq = g["displacement"][ch].attrs if ch in g.get("displacement", {}) else ea
+            quality = {k[len("quality_"):]: dq[k] for k in dq if k.startswith("quality_")}
             ph = g["phasor"][ch] if ch in g.get("phasor", {}) else None
             channels.append(ChannelData(
                 name=ch,

@@ -449,3 +449,27 @@ def test_the_terminal_says_a_live_echo_again_only_when_it_changes():
     assert quiet.getvalue() == ""  # --quiet: only a note is said
     console(r.AimingEchoes(1.0, 0, (aimed((164, 487), notes=(note.format(1, 2, 3),)),)))
     assert "note: another echo" in quiet.getvalue()
+
+
+def test_reprocessing_replaces_a_quality_kept_on_the_echoes(tmp_path):
+    # a channel whose tracking failed keeps its quality on its echoes dataset; copied by
+    # reprocess with the echoes, it must not outlive the new tracking's
+    import h5py
+
+    final, _, _, out = run(tmp_path, confirm_after(1), clutter=False)
+    assert final.status == "completed"
+    with h5py.File(out, "r+") as f:  # as SessionWriter stores a failed channel's
+        step = f["steps/000000"]
+        del step["displacement/ch2"]
+        step["echoes/ch2"].attrs["quality_message"] = "tracking failed: stale"
+        step["echoes/ch2"].attrs["quality_ok"] = False
+    with SessionReader(out) as reader:
+        first = {c.name: c for c in next(iter(reader.steps(with_echoes=False))).channels}
+    assert first["ch2"].quality["message"] == "tracking failed: stale"
+    again = tmp_path / "again.h5"
+    r.reprocess_session(out, again)
+    with h5py.File(again, "r") as f:
+        assert not [k for k in f["steps/000000/echoes/ch2"].attrs if k.startswith("quality_")]
+    with SessionReader(again) as reader:
+        second = {c.name: c for c in next(iter(reader.steps(with_echoes=False))).channels}
+    assert second["ch2"].quality["ok"] and second["ch2"].quality["gate_source"] == "auto"

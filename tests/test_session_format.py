@@ -271,3 +271,26 @@ def test_corrupted_files_give_one_line_errors_or_readable_steps(tmp_path_factory
             reader.frf()
         except ValueError as exc:  # FrfFileError / SessionFileError, one line
             assert "\n" not in str(exc)
+
+
+def test_a_channel_whose_tracking_failed_keeps_its_quality(tmp_path, protocol):
+    # review, session 38: a channel without displacement (its tracking failed) had its
+    # quality stored nowhere: why it failed, and the gate the operator set, were lost
+    path = tmp_path / "s.h5"
+    rng = np.random.default_rng(2)
+    step = make_step(protocol, 0, 80.0, rng)
+    failed = step.channels[1]
+    failed.displacement_m, failed.phasor_m, failed.phasor_std_m = None, None, None
+    failed.quality = {"ok": False, "message": "tracking failed: the gate (30, 50) of the "
+                      "first echoes is flat", "gate_source": "operator", "gate_start": 30,
+                      "gate_stop": 50}
+    with SessionWriter.create(path, protocol, BENCH, "test") as w:
+        w.start_run(BENCH)
+        w.append_step(step)
+        w.finish_run("completed", "", {})
+    with SessionReader(path) as reader:
+        back = {c.name: c for c in next(iter(reader.steps())).channels}
+    assert back["ch2"].displacement_m is None
+    assert back["ch2"].quality["message"].startswith("tracking failed: the gate (30, 50)")
+    assert back["ch2"].quality["gate_source"] == "operator"
+    assert back["ch1"].quality["ok"]  # the other channel's, with its displacement
