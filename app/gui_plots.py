@@ -380,7 +380,12 @@ def quality_row(channel: Any) -> dict[str, object]:
         "snr_db": quality.get("snr_db_median"),
         "peak_hops": quality.get("peak_hops", 0),
         "lost": None if lost_fraction is None else round(float(lost_fraction) * n_pulses),
-        "notes": quality.get("tracking_warnings", ""),
+        # why a channel failed ("tracking failed: ...", stored since session 38), then
+        # what the tracker said
+        "notes": "; ".join(str(text) for text in (
+            quality.get("message") if str(quality.get("message", "ok")).startswith(
+                "tracking failed") else "",
+            quality.get("tracking_warnings", "")) if text),
     }
 
 

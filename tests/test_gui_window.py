@@ -126,6 +126,13 @@ def test_the_trackers_notes_on_a_passing_channel_are_shown(qtbot):
     channel.quality.pop("tracking_warnings")
     table.show_quality([quality_row(channel)])
     assert table.item(0, table.columnCount() - 1).text() == "OK"
+    # a channel whose tracking failed: why, in the tooltip (session 38: now in the file)
+    why = "tracking failed: the gate (30, 50) of the first echoes is flat"
+    channel.quality = {"ok": False, "message": why}
+    assert table.show_quality([quality_row(channel)]) == ["ch1: no tracking figures"]
+    status = table.item(0, table.columnCount() - 1)
+    assert status.text() == "CHECK: no tracking figures (tracker note: hover)"
+    assert status.toolTip() == why
 
 
 def test_start_names_an_empty_or_folder_output(operator_window, tmp_path, monkeypatch):
