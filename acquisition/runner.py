@@ -6,7 +6,8 @@ writer (:class:`SessionRecorder`) are listeners, called synchronously in the run
 thread, in subscription order. ``docs/runner.md`` lists every event type.
 
 Control from any thread (GUI buttons, signal handlers): :meth:`Runner.pause`,
-:meth:`Runner.resume`, :meth:`Runner.abort`, :meth:`Runner.confirm` (operator prompt).
+:meth:`Runner.resume`, :meth:`Runner.abort`, :meth:`Runner.confirm` (operator prompt),
+:meth:`Runner.set_gate` and :meth:`Runner.live_echoes_in_pause` (re-placing a transducer).
 ``abort`` puts the bench in its safe state *immediately in the calling thread* (outputs
 off), then the runner stops at its next check.
 
@@ -154,9 +155,10 @@ class AimedEcho:
 
 @dataclass(frozen=True)
 class AimingEchoes(Event):
-    """Live echoes while the runner waits at an operator prompt: the trigger pulses the
-    transducers, the drive stays off. Lets the operator find the bone echo and set each
-    channel's gate (:meth:`Runner.set_gate`) before anything is measured."""
+    """Live echoes while the runner waits at an operator prompt, or in a pause when asked
+    (:meth:`Runner.live_echoes_in_pause`): the trigger pulses the transducers, the drive
+    stays off. Lets the operator find the bone echo and set each channel's gate
+    (:meth:`Runner.set_gate`) before anything is measured, or again before the next step."""
 
     setup_index: int
     echoes: tuple[AimedEcho, ...]
@@ -210,7 +212,8 @@ class Progress(Event):
 
 @dataclass(frozen=True)
 class Paused(Event):
-    """The runner paused between steps (outputs off)."""
+    """The runner paused between steps (outputs off; the trigger pulses again only for
+    live echoes, when asked: :meth:`Runner.live_echoes_in_pause`)."""
 
     reason: str
 
@@ -480,7 +483,7 @@ class Runner:
         self.aim_pulses = int(aim_pulses)
         """Pulses per live echo while the runner waits at a prompt (0: no live echoes)."""
         self.aim_interval_s = float(aim_interval_s)
-        """Seconds between two live echoes at a prompt."""
+        """Seconds between two live echoes at a prompt or in a pause."""
         self._gates: dict[int, tuple[int, int]] = {}
         self._gates_lock = threading.Lock()
         self._current_setup: Setup | None = None  # the setup being placed or measured
@@ -492,6 +495,7 @@ class Runner:
         self._abort_reason = ""
         self._abort_status = "aborted"
         self._pause = threading.Event()
+        self._live_in_pause = threading.Event()
         self._confirm = threading.Event()
         self._wake = threading.Event()
         self._lock = threading.RLock()  # generator commands vs. abort from another thread
@@ -547,8 +551,21 @@ class Runner:
         self._pause.set()
 
     def resume(self) -> None:
-        """Continue after :meth:`pause`."""
+        """Continue after :meth:`pause` (live echoes, if on, stop first)."""
+        self._live_in_pause.clear()
         self._pause.clear()
+        self._wake.set()
+
+    def live_echoes_in_pause(self, on: bool) -> None:
+        """While paused: show live echoes (``on``) or stop them. The trigger then pulses
+        for each live echo (:class:`AimingEchoes`); the drive stays off. For re-placing a
+        transducer that moved during the run and setting its gate again
+        (:meth:`set_gate`) before the next step. Off again at :meth:`resume`; a request
+        outside a pause is kept for the next pause of this run."""
+        if on:
+            self._live_in_pause.set()
+        else:
+            self._live_in_pause.clear()
         self._wake.set()
 
     def confirm(self) -> None:
@@ -765,15 +782,17 @@ class Runner:
 
         return DriverError
 
-    def _aim_configure(self, setup: Setup, first: PlannedStep) -> bool:
-        """Configure short trigger bursts and records for the live echoes, the drive's sine
-        at the first step (its SYNC may trigger the bursts) with its output left off."""
+    def _aim_configure(self, setup: Setup, first: PlannedStep, drive: bool = True) -> bool:
+        """Configure short trigger bursts and records for the live echoes, and (``drive``)
+        the drive's sine at the first step (its SYNC may trigger the bursts) with its
+        output left off. In a pause the drive keeps the sine it had."""
         us = self.protocol.ultrasound
         try:
             with self._lock:
                 self._check()
-                self.bench.drive.configure_sine(
-                    first.frequency_hz, first.drive_vpp or self.protocol.sweep.drive_vpp)
+                if drive:
+                    self.bench.drive.configure_sine(
+                        first.frequency_hz, first.drive_vpp or self.protocol.sweep.drive_vpp)
                 self.bench.trigger.configure_pulse_burst(
                     us.prf_hz, self.aim_pulses, us.trigger_width_s, us.trigger_high_v)
             self.bench.digitizer.configure_sequence(
@@ -853,25 +872,50 @@ class Runner:
         self._log(f"simulated operator placed the shaker at {excitation.name} and the "
                   f"transducers for setup {setup.name!r}")
 
-    def _maybe_pause(self) -> bool:
-        """Honour a pause request; True if the runner paused (outputs were off)."""
+    def _maybe_pause(self, setup_index: int, setup: Setup, step: PlannedStep
+                     ) -> tuple[bool, bool]:
+        """Honour a pause request before ``step``: (paused, reconfigured). Paused: the
+        outputs were off. Live echoes while paused when asked (:meth:`live_echoes_in_pause`);
+        then trigger and digitizer are configured for ``step`` again before it
+        (reconfigured)."""
         if not self._pause.is_set():
-            return False
+            return False, False
         with self._lock:
             self._generators(False)
         self.state = "paused"
         self._emit(Paused(self._t(), "paused by the operator"))
         self._log("paused; outputs off")
         t_wait = self._clock()
+        live = "off"  # "on": configured and pulsing; "failed": said, until asked again
+        reconfigure = False
+        next_aim = self._clock()
         while self._pause.is_set():
             self._check()
+            wanted = self._live_in_pause.is_set() and self.aim_pulses > 0
+            if not wanted and live != "off":
+                if live == "on":
+                    self._log("live echoes off; outputs off")
+                live = "off"
+            elif wanted and live == "off":
+                live = "on" if self._aim_configure(setup, step, drive=False) else "failed"
+                reconfigure = True
+                if live == "on":
+                    self._log("live echoes in the pause: the trigger pulses, the drive "
+                              "stays off")
+                    next_aim = self._clock()
+            if live == "on" and self._clock() >= next_aim:
+                live = "on" if self._aim(setup_index, setup, step) else "failed"
+                next_aim = self._clock() + self.aim_interval_s
+                continue  # a resume during the acquisition is seen at once
             self._wake.wait(0.05)
             self._wake.clear()
         self._waited_s += self._clock() - t_wait
+        if reconfigure:  # the live echoes configured trigger and digitizer for themselves
+            self._configure(step, tuple(sorted(setup.transducers)))
         self.state = "running"
         self._emit(Resumed(self._t()))
         self._log("resumed")
-        return True
+        return True, reconfigure
 
     def _configure(self, step: PlannedStep, channels: tuple[int, ...]) -> None:
         us = self.protocol.ultrasound
@@ -1008,11 +1052,15 @@ class Runner:
                 configured = (first.n_pulses, setup_channels)
             # a pause asked at the prompt holds before the outputs go on, not after one
             # step's ON (GUI review, session 35: ON and OFF again on the subject)
-            self._maybe_pause()
+            if self._maybe_pause(si, setup, first)[1]:
+                configured = (first.n_pulses, setup_channels)
             self._generators(True)
             for step in steps:
                 self._check()
-                if self._maybe_pause():
+                paused, reconfigured = self._maybe_pause(si, setup, step)
+                if reconfigured:
+                    configured = (step.n_pulses, setup_channels)
+                if paused:
                     self._generators(True)
                 self._emit(StepStarted(self._t(), step, n_done, n_total))
                 t_step = self._clock()

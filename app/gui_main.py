@@ -45,6 +45,7 @@ STATE_STYLES = {
     "running": ("RUNNING — OUTPUTS ON", "#2e7d32", "white"),
     "waiting": ("WAITING — drive off", "#fdd835", "black"),  # live echoes pulse
     "paused": ("PAUSED — outputs off", "#1565c0", "white"),
+    "paused_live": ("PAUSED — drive off, live echoes", "#fdd835", "black"),  # trigger pulses
     "stopping": ("STOPPING — outputs off", "#ef6c00", "white"),
     "completed": ("COMPLETED — outputs off", "#cfd8dc", "black"),
     "aborted": ("ABORTED — outputs off", "#ffcc80", "black"),
@@ -280,6 +281,16 @@ class OperatorWindow(QtWidgets.QMainWindow):
         self.confirm_button.setVisible(False)
         self.confirm_button.clicked.connect(self.confirm_prompt)
         run_layout.addWidget(self.confirm_button)
+        # in a pause: live echoes on request (a transducer moved during the run), so that
+        # it can be placed and gated again before the next step; the drive stays off
+        self.live_button = QtWidgets.QPushButton("Live echoes (drive off)")
+        self.live_button.setToolTip(
+            "while paused: pulse the transducers to see their echoes and set the gates "
+            "again; the drive stays off")
+        self.live_button.setCheckable(True)
+        self.live_button.setVisible(False)
+        self.live_button.toggled.connect(self.toggle_live_echoes)
+        run_layout.addWidget(self.live_button)
         # live echoes at the prompt: the gate each channel will track in, and the
         # tracker's notes on it (a second echo that may be the bone)
         self.aim_label = QtWidgets.QLabel()
@@ -346,7 +357,7 @@ class OperatorWindow(QtWidgets.QMainWindow):
     def _set_state(self, state: str) -> None:
         """The state banner: what the run does and whether the outputs are on."""
         if self.outputs_unconfirmed and state not in ("starting", "running", "waiting",
-                                                      "paused"):
+                                                      "paused", "paused_live"):
             state = "unsafe"
         text, background, colour = STATE_STYLES[state]
         self.state_banner.setText(text)
@@ -605,8 +616,28 @@ class OperatorWindow(QtWidgets.QMainWindow):
             self.pause_button.setText("Resume")
             self.eta_label.setText("pause asked: the outputs go off before the next step")
         else:
+            self._hide_live_button()
             runner.resume()
             self.pause_button.setText("Pause")
+
+    def toggle_live_echoes(self, on: bool) -> None:
+        """In a pause: live echoes (trigger pulses, drive off) on or off."""
+        if self.control is None:
+            return
+        self.control.runner.live_echoes_in_pause(on)
+        if self.run_state in ("paused", "paused_live"):
+            self._set_state("paused_live" if on else "paused")
+        if on:
+            self._say("live echoes in the pause (drive off)")
+        else:
+            self._end_aiming()
+
+    def _hide_live_button(self) -> None:
+        """The pause ends: no live echoes button, nothing of the live echoes left."""
+        with QtCore.QSignalBlocker(self.live_button):  # the runner stops them itself
+            self.live_button.setChecked(False)
+        self.live_button.setVisible(False)
+        self._end_aiming()
 
     def confirm_prompt(self) -> None:
         """The operator placed the transducers as prompted."""
@@ -657,8 +688,14 @@ class OperatorWindow(QtWidgets.QMainWindow):
         self._pending_gates = {}
         self._say("automatic gates")
 
+    def _aiming(self) -> bool:
+        """Live echoes are wanted: a prompt not yet answered, or asked for in a pause."""
+        return self.confirm_button.isVisible() or (
+            self.live_button.isChecked() and self.live_button.isVisible())
+
     def _show_aiming(self, event: Any) -> None:
-        """Live echoes at the prompt: each channel's echo, its gate and the notes on it."""
+        """Live echoes at the prompt or in a pause: each channel's echo, its gate and the
+        notes on it."""
         self._aimed = {e.channel: e for e in event.echoes}
         lines = []
         for row, channel in enumerate(self._setup_channels):
@@ -687,7 +724,7 @@ class OperatorWindow(QtWidgets.QMainWindow):
             "Live echoes (drive off): drag a gate onto the bone echo if it is not on it."
             "<br>" + "<br>".join(lines))
         _fit_height(self.aim_label)
-        if self.confirm_button.isVisible():  # a prompt not yet answered
+        if self._aiming():
             self.aim_label.setVisible(True)
             self.auto_gates_button.setVisible(True)
             self.ascan.set_gates_editable(True)
@@ -772,9 +809,11 @@ class OperatorWindow(QtWidgets.QMainWindow):
                     self._say(f"QUALITY {event.channel}: {event.message}")
             elif isinstance(event, r.Paused):
                 self._say("paused: outputs off")
-                self._set_state("paused")
+                self._set_state("paused_live" if self.live_button.isChecked() else "paused")
                 self.eta_label.setText("paused (outputs off): Resume to continue")
+                self.live_button.setVisible(True)
             elif isinstance(event, r.Resumed):
+                self._hide_live_button()
                 self._say("resumed")
             elif isinstance(event, r.LogMessage):
                 if event.level in ("WARNING", "ERROR"):
@@ -790,7 +829,7 @@ class OperatorWindow(QtWidgets.QMainWindow):
             self.eta_label.setText(
                 f"{event.n_done}/{event.n_steps} steps, {event.elapsed_s:.0f} s elapsed, "
                 f"about {event.eta_s:.0f} s left")
-        if latest_aim is not None and self.confirm_button.isVisible():
+        if latest_aim is not None and self._aiming():
             self._show_aiming(latest_aim)
         if changed_frfs:
             self._draw_frf_lines(changed_frfs)
@@ -806,7 +845,7 @@ class OperatorWindow(QtWidgets.QMainWindow):
         self.pause_button.setText("Pause")
         self.prompt_label.setVisible(False)
         self.confirm_button.setVisible(False)
-        self._end_aiming()
+        self._hide_live_button()
         self.bench_box.setVisible(True)
         text = f"run {event.status}: {event.n_done}/{event.n_steps} steps"
         if event.reason:

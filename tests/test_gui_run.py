@@ -532,3 +532,48 @@ def test_live_echoes_mark_the_other_echo_the_note_names(operator_window, qtbot, 
     assert not mark.isVisible()
     window.control.stop("test done")
     qtbot.waitUntil(window.control.finished.is_set, timeout=30_000)
+
+
+def test_live_echoes_in_a_pause_and_a_gate_set_there(operator_window, qtbot, tmp_path):
+    # a transducer moved during the run: pause, ask for live echoes (drive off), drag its
+    # gate; the steps after the pause track in it. Without the request the pause pulses
+    # nothing, and Resume ends the live echoes
+    window = operator_window()
+    out = _demo_past_its_first_prompt(window, qtbot, tmp_path)
+    qtbot.waitUntil(lambda: window.state_banner.text() == "RUNNING — OUTPUTS ON",
+                    timeout=60_000)
+    assert not window.live_button.isVisible()
+    window.toggle_pause()
+    qtbot.waitUntil(lambda: window.state_banner.text() == "PAUSED — outputs off",
+                    timeout=60_000)
+    assert window.live_button.isVisible() and not window.live_button.isChecked()
+    assert not window.aim_label.isVisible()
+    bench = window.control.prepared.bench
+    qtbot.mouseClick(window.live_button, QtCore.Qt.MouseButton.LeftButton)
+    assert window.state_banner.text() == "PAUSED — drive off, live echoes"
+    qtbot.waitUntil(window.aim_label.isVisible, timeout=30_000)
+    assert window.ascan.gates_editable and window.auto_gates_button.isVisible()
+    assert not bench.world.drive.output
+    channel = window._setup_channels[0]
+    echo = window._aimed[channel]
+    start, stop = echo.gate[0] + 10, echo.gate[1] - 10
+    window.ascan._gates[0].setRegion((echo.time_s[start], echo.time_s[stop]))
+    assert window.control.runner.gates == {channel: (start, stop)}
+    # live echoes off again: nothing of them left on the plot's controls
+    qtbot.mouseClick(window.live_button, QtCore.Qt.MouseButton.LeftButton)
+    assert window.state_banner.text() == "PAUSED — outputs off"
+    assert not window.aim_label.isVisible() and not window.ascan.gates_editable
+    qtbot.mouseClick(window.live_button, QtCore.Qt.MouseButton.LeftButton)
+    qtbot.waitUntil(window.aim_label.isVisible, timeout=30_000)
+    n_lines = sum(len(v) for v in window._frf_lines.values())
+    window.toggle_pause()  # Resume
+    assert not window.live_button.isVisible() and not window.aim_label.isVisible()
+    _wait_for_frf_lines(window, qtbot, n_lines + 2)
+    window.control.stop("test done")
+    qtbot.waitUntil(window.control.finished.is_set, timeout=30_000)
+    with SessionReader(out) as reader:
+        sources = [c.quality["gate_source"] for s in reader.steps(with_echoes=False)
+                   for c in s.channels if c.name == f"ch{channel}"]
+        log = "\n".join(reader.log_lines())
+    assert sources[0] == "auto" and sources[-1] == "operator", sources
+    assert "live echoes in the pause" in log

@@ -9,6 +9,8 @@ reflection stronger than the bone echo is gated and tracked instead, the step ``
 
 from __future__ import annotations
 
+import threading
+
 import numpy as np
 import pytest
 
@@ -473,3 +475,72 @@ def test_reprocessing_replaces_a_quality_kept_on_the_echoes(tmp_path):
     with SessionReader(again) as reader:
         second = {c.name: c for c in next(iter(reader.steps(with_echoes=False))).channels}
     assert second["ch2"].quality["ok"] and second["ch2"].quality["gate_source"] == "auto"
+
+
+def test_live_echoes_in_a_pause_let_the_operator_gate_the_bone_before_the_next_step(tmp_path):
+    """A pause after the first step of setup a: live echoes only when asked (the drive
+    off throughout), a gate set on the named echo tracks the steps after the pause, and
+    the steps get their own records again (1000 pulses, not the live echo's 16)."""
+    seen = {"paused": 0, "aims_in_pause": 0, "aims_at_prompt": 0}
+
+    def on_event(runner, bench, event):
+        if isinstance(event, r.StepFinished) and event.step.setup_index == 0 \
+                and seen["paused"] == 0:
+            runner.pause()
+        elif isinstance(event, r.Paused):
+            seen["paused"] += 1
+            runner.live_echoes_in_pause(True)
+        elif isinstance(event, r.AimingEchoes):
+            assert not bench.world.drive.output and not bench.world.trigger.output
+            if runner.state != "paused":
+                seen["aims_at_prompt"] += 1
+                runner.confirm()
+                return
+            seen["aims_in_pause"] += 1
+            if seen["aims_in_pause"] == 1:
+                assert event.setup_index == 0
+                _gate_on_rival(runner, {e.channel: e for e in event.echoes})
+            elif seen["aims_in_pause"] == 2:
+                # the second live echo shows the operator's gate
+                assert {e.channel: e.gate_source for e in event.echoes}[1] == "operator"
+                runner.resume()
+
+    final, bench, events, out = run(tmp_path, on_event)
+    assert final.status == "completed"
+    assert seen["paused"] == 1 and seen["aims_in_pause"] == 2
+    said = [e.text for e in events if isinstance(e, r.LogMessage)]
+    assert any("live echoes in the pause" in t for t in said), said
+    sources = [q["gate_source"] for q in _quality(out)]
+    assert sources == ["auto", "operator", "operator"], sources
+    ratio = ch1_ratio(out)
+    assert ratio[0] < 0.5 and np.all(ratio[1:] > 0.9), ratio
+    with SessionReader(out) as reader:
+        pulses = {s.frequency_hz: s.channels[0].codes.shape[0]
+                  for s in reader.steps() if s.setup == "a"}
+    assert pulses == {40.0: 1000, 100.0: 1000, 160.0: 1000}
+
+
+def test_a_pause_without_live_echoes_keeps_the_trigger_off(tmp_path):
+    trigger_on = []
+
+    def n_on(bench):
+        return sum(text.strip() == "OUTP ON" for _, text in bench.trigger.command_log)
+
+    def on_event(runner, bench, event):
+        if isinstance(event, r.AimingEchoes) and runner.state != "paused":
+            runner.confirm()
+        elif isinstance(event, r.StepFinished) and not trigger_on:
+            runner.pause()
+        elif isinstance(event, r.Paused):
+            trigger_on.append(n_on(bench))
+            # longer than one live echo's interval (0.3 s), had they been on
+            threading.Timer(0.8, runner.resume).start()
+        elif isinstance(event, r.Resumed):
+            trigger_on.append(n_on(bench))
+
+    final, _, events, _ = run(tmp_path, on_event, clutter=False)
+    assert final.status == "completed"
+    assert len(trigger_on) == 2 and trigger_on[0] == trigger_on[1], trigger_on
+    paused_at = next(i for i, e in enumerate(events) if isinstance(e, r.Paused))
+    resumed_at = next(i for i, e in enumerate(events) if isinstance(e, r.Resumed))
+    assert not [e for e in events[paused_at:resumed_at] if isinstance(e, r.AimingEchoes)]
