@@ -451,6 +451,11 @@ def test_the_terminal_says_a_live_echo_again_only_when_it_changes():
     assert quiet.getvalue() == ""  # --quiet: only a note is said
     console(r.AimingEchoes(1.0, 0, (aimed((164, 487), notes=(note.format(1, 2, 3),)),)))
     assert "note: another echo" in quiet.getvalue()
+    # only the channel with the note (every channel of that live echo was said before)
+    other = r.AimedEcho(**{**aimed((150, 450)).__dict__, "channel": 2})
+    console(r.AimingEchoes(2.0, 0, (aimed((164, 487), notes=(note.format(9, 9, 9),)),
+                                    other)))
+    assert "ch2" not in quiet.getvalue()
 
 
 def test_reprocessing_replaces_a_quality_kept_on_the_echoes(tmp_path):

@@ -138,8 +138,11 @@ class ConsoleProgress:
 
     def _say_live_echoes(self, event: Any) -> None:
         """At a prompt: each channel's gate and the tracker's notes on it when the notes or
-        the gate's source change, or an edge moves by more than LIVE_GATE_MOVE_SAMPLES."""
+        the gate's source change, or an edge moves by more than LIVE_GATE_MOVE_SAMPLES.
+        Under --quiet only the channels with a note."""
         for echo in event.echoes:
+            if self.quiet and not echo.notes:
+                continue
             said = self._aim_said.get(echo.channel)
             # the notes' figures jitter too (a rival's level, its sample): compared without
             notes = tuple(re.sub(r"\d+(\.\d+)?", "#", n) for n in echo.notes)
@@ -168,8 +171,7 @@ class ConsoleProgress:
                 self._bar = False
             return
         if isinstance(event, r.AimingEchoes):
-            # --quiet: only what needs the operator's eye (a note)
-            if self.wait_prompts and (not self.quiet or any(e.notes for e in event.echoes)):
+            if self.wait_prompts:  # --quiet: only what needs the operator's eye (a note)
                 self._say_live_echoes(event)
             return
         if isinstance(event, r.OperatorPrompt):
