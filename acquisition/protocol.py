@@ -180,6 +180,10 @@ class Setup:
     prompt: str = ""
     excitation_direction: tuple[float, float, float] = (0.0, 0.0, 0.0)
     """Unit direction of the applied force (default: into the surface, -landmark direction)."""
+    gates: Mapping[int, tuple[int, int]] = field(default_factory=dict)
+    """Channel -> (start, stop) samples of the record to track the bone echo in, for a rig
+    whose echoes are known beforehand (a phantom, a fixed fixture); other channels (and
+    these, once the operator sets or clears a gate) use the automatic gate."""
 
 
 @dataclass(frozen=True)
@@ -333,12 +337,49 @@ class Protocol:
             f"  setups: {len(self.setups)} ("
             + ", ".join(f"{s.name}: {s.excitation} -> "
                         + "/".join(s.transducers[c] for c in sorted(s.transducers))
+                        + "".join(f", ch{c} gate {g[0]}-{g[1]}"
+                                  for c, g in sorted(s.gates.items()))
                         for s in self.setups) + ")",
             f"  estimated duration: {self.estimated_duration_s():.1f} s "
             f"({self.sweep_duration_s():.1f} s per setup sweep; settle + record time, "
             "transducer repositioning not included)",
         ]
         return "\n".join(lines)
+
+
+def _setup_gates(raw: Any, channels: Mapping[int, str], ultrasound: Ultrasound | None,
+                 where: str, p: _Problems) -> dict[int, tuple[int, int]]:
+    """A setup's ``gates = { ch1 = [START, STOP], ... }``: sample indices of the record,
+    for channels of this setup, that the default tracking can use (tracking.gate_problem)."""
+    if raw is None:
+        return {}
+    if not isinstance(raw, Mapping):
+        p.add(where, "must be a table like { ch1 = [START, STOP] } (samples of the record)")
+        return {}
+    from pelvislab.acquisition.tracking import TrackingOptions, gate_problem
+
+    gates: dict[int, tuple[int, int]] = {}
+    for key, value in raw.items():
+        ch = CHANNEL_KEYS.get(key)
+        if ch is None or ch not in channels:
+            p.add(f"{where}.{key}", f"not a channel of this setup (its transducers: "
+                  f"{', '.join(f'ch{c}' for c in sorted(channels)) or 'none'})")
+            continue
+        if not (isinstance(value, list) and len(value) == 2
+                and all(isinstance(v, int) and not isinstance(v, bool) for v in value)
+                and value[0] < value[1]):
+            p.add(f"{where}.{key}", f"must be [START, STOP]: two whole sample numbers, "
+                  f"START < STOP; got {value!r}")
+            continue
+        gate = (int(value[0]), int(value[1]))
+        if ultrasound is not None:
+            problem = gate_problem(gate, TrackingOptions().max_lag_samples,
+                                   ultrasound.samples)
+            if problem:
+                p.add(f"{where}.{key}", problem)
+                continue
+        gates[ch] = gate
+    return gates
 
 
 # --------------------------------------------------------------------------- drive profile
@@ -403,7 +444,7 @@ _US_FLOAT = {"prf_hz", "sample_rate_hz", "delay_s", "speed_of_sound_m_s", "full_
              "offset_v", "trigger_width_s", "trigger_high_v", "gain_db", "damping_ohm",
              "high_pass_hz", "low_pass_hz"}
 _US = _US_FLOAT | {"pulses", "samples", "pulse_energy"}
-_SETUP = {"name", "excitation", "excitation_direction", "transducers", "prompt"}
+_SETUP = {"name", "excitation", "excitation_direction", "transducers", "prompt", "gates"}
 _SUBJECT = {"id", "position", "notes", "age_years", "mass_kg", "height_m", "sex", "side"}
 _POINT = {"bone", "position_m", "position_mm", "direction", "description"}
 
@@ -889,6 +930,7 @@ def parse_protocol(text: str, source: str = "<string>", limits: BenchLimits | No
                     channels[CHANNEL_KEYS[key]] = pname
             if len(set(channels.values())) != len(channels):
                 p.add(f"{where}.transducers", "two channels look at the same point")
+        gates = _setup_gates(raw.get("gates"), channels, ultrasound, f"{where}.gates", p)
         force_dir = None
         if excitation is not None:
             force_dir = tuple(-v for v in known_points[excitation].direction)
@@ -913,7 +955,7 @@ def parse_protocol(text: str, source: str = "<string>", limits: BenchLimits | No
                                             force_dir)  # type: ignore[arg-type]
         if sname is not None and excitation is not None and channels and force_dir:
             setups.append(Setup(sname, excitation, channels, prompt,
-                                force_dir))  # type: ignore[arg-type]
+                                force_dir, gates))  # type: ignore[arg-type]
     names = [s.name for s in setups]
     for dup in sorted({n for n in names if names.count(n) > 1}):
         p.add("setups", f"setup name {dup!r} is used twice")

@@ -44,6 +44,7 @@ from pelvislab.acquisition.session import (
     StepData,
     frf_from_steps,
 )
+from pelvislab.acquisition.tracking import gate_problem
 
 __all__ = [
     "DRIVE_PHASE_AT_FIRST_PULSE_RAD",
@@ -142,8 +143,8 @@ class AimedEcho:
     gate: tuple[int, int] | None
     """The samples the steps will track in (None: no echo to gate on)."""
     gate_source: str
-    """``operator`` (:meth:`Runner.set_gate`), ``options`` (the tracking options' gate) or
-    ``auto`` (the strongest echo)."""
+    """``operator`` (:meth:`Runner.set_gate`), ``protocol`` (the setup's ``gates``),
+    ``options`` (the tracking options' gate) or ``auto`` (the strongest echo)."""
     notes: tuple[str, ...]
     """What the tracker would say about the gate (a rival echo, a clipped gate) or why no
     gate was found."""
@@ -485,10 +486,18 @@ class Runner:
         self.aim_interval_s = float(aim_interval_s)
         """Seconds between two live echoes at a prompt or in a pause."""
         self._gates: dict[int, tuple[int, int]] = {}
+        self._protocol_gated: set[int] = set()  # channels on their protocol gate
         self._gates_lock = threading.Lock()
         self._current_setup: Setup | None = None  # the setup being placed or measured
         self._skip = {(k[0], round(float(k[1]), 9), int(k[2]) if len(k) > 2 else 0)
                       for k in skip}
+        lag = int(self._tracking_options().max_lag_samples)
+        for setup in protocol.setups:  # checked by the protocol with the default lag range
+            for ch, gate in sorted(setup.gates.items()):
+                problem = gate_problem(gate, lag, int(protocol.ultrasound.samples))
+                if problem:
+                    raise ValueError(f"setups {setup.name!r}: gate {gate} for ch{ch} with "
+                                     f"these tracking options: {problem}")
         self._clock = clock
         self._listeners: list[tuple[Listener, bool]] = []
         self._abort = threading.Event()
@@ -606,8 +615,9 @@ class Runner:
         """Track ``channel``'s echoes in ``gate`` (start, stop: sample indices of the
         record) from the next step of the current setup on; None: the automatic gate again.
 
-        Any thread. Cleared when a setup starts (its transducers are placed anew); set it
-        at the prompt, where the live echoes (:class:`AimingEchoes`) show the record.
+        Any thread. When a setup starts (its transducers are placed anew) the gates are
+        the setup's own from the protocol (``Setup.gates``; usually none); set one at the
+        prompt, where the live echoes (:class:`AimingEchoes`) show the record.
         Raises ValueError for a channel the protocol does not record, or a gate that does
         not fit the record with the tracking's lag range (nothing is changed then)."""
         if channel not in self.protocol.channels:
@@ -620,11 +630,12 @@ class Runner:
                              f"(channels {sorted(setup.transducers)})")
         if gate is not None:
             gate = (int(gate[0]), int(gate[1]))
-            problem = _gate_problem(gate, int(self._tracking_options().max_lag_samples),
+            problem = gate_problem(gate, int(self._tracking_options().max_lag_samples),
                                     int(self.protocol.ultrasound.samples))
             if problem:
                 raise ValueError(f"gate {gate} for ch{channel}: {problem}")
         with self._gates_lock:
+            self._protocol_gated.discard(channel)
             if gate is None:
                 self._gates.pop(channel, None)
             else:
@@ -634,7 +645,8 @@ class Runner:
 
     @property
     def gates(self) -> dict[int, tuple[int, int]]:
-        """The gates set with :meth:`set_gate` for the current setup, by channel."""
+        """The gates of the current setup, by channel: the protocol's (``Setup.gates``)
+        and those set with :meth:`set_gate`."""
         with self._gates_lock:
             return dict(self._gates)
 
@@ -644,10 +656,17 @@ class Runner:
         return _with_gate(self.tracking_options, gate if gate is not None
                           else getattr(self.tracking_options, "gate", None))
 
-    def _gate_source(self, gate: tuple[int, int] | None) -> str:
-        """How a channel's gate was chosen (see :attr:`AimedEcho.gate_source`)."""
+    def _gates_now(self) -> dict[int, tuple[tuple[int, int], str]]:
+        """Channel -> (gate, ``protocol`` or ``operator``) of the current setup, at once."""
+        with self._gates_lock:
+            return {ch: (g, "protocol" if ch in self._protocol_gated else "operator")
+                    for ch, g in self._gates.items()}
+
+    def _gate_source(self, gate: tuple[tuple[int, int], str] | None) -> str:
+        """How a channel's gate was chosen (see :attr:`AimedEcho.gate_source`), from its
+        entry in :meth:`_gates_now` (None: none there)."""
         if gate is not None:
-            return "operator"
+            return gate[1]
         return "options" if getattr(self.tracking_options, "gate", None) else "auto"
 
     @property
@@ -830,7 +849,7 @@ class Runner:
         if failure is not None:
             return self._aim_failed(failure)
         self._check()
-        gates = self.gates
+        gates = self._gates_now()
         echoes = []
         for ch in sorted(setup.transducers):
             rec = records.get(ch)
@@ -840,9 +859,11 @@ class Runner:
             gate: tuple[int, int] | None = None
             notes: tuple[str, ...] = ()
             rival = None
+            set_gate = gates.get(ch)
             try:
-                gate, found, rival = gate_preview(codes, float(rec.sample_rate_hz),
-                                                  self._tracking_options(gates.get(ch)))
+                gate, found, rival = gate_preview(
+                    codes, float(rec.sample_rate_hz),
+                    self._tracking_options(None if set_gate is None else set_gate[0]))
                 notes = tuple(found)
             except ValueError as exc:
                 notes = (str(exc),)
@@ -852,7 +873,7 @@ class Runner:
                 time_s=float(rec.delay_s) + np.arange(samples) / float(rec.sample_rate_hz),
                 volts=codes[-1].astype(float) * float(rec.volts_per_count)
                 - float(rec.volts_offset),
-                gate=gate, gate_source=self._gate_source(gates.get(ch)), notes=notes,
+                gate=gate, gate_source=self._gate_source(set_gate), notes=notes,
                 sample_rate_hz=float(rec.sample_rate_hz), delay_s=float(rec.delay_s),
                 rival_sample=rival))
         self._emit(AimingEchoes(self._t(), setup_index, tuple(echoes)))
@@ -1026,10 +1047,13 @@ class Runner:
                 continue
             self._check()
             with self._gates_lock:  # the transducers are placed anew
-                self._gates.clear()
+                self._gates = dict(setup.gates)  # a fixed rig's, from the protocol
+                self._protocol_gated = set(setup.gates)
                 self._current_setup = setup
             self._emit(SetupStarted(self._t(), si, setup.name, setup.excitation,
                                     dict(setup.transducers), n_setups))
+            for ch, gate in sorted(setup.gates.items()):
+                self._log(f"ch{ch}: gate from the protocol, samples {gate[0]}-{gate[1]}")
             first = steps[0]
             aims = not self.auto_continue and self.aim_pulses > 0
             if aims:  # the simulated operator places first, so that the live echoes show it
@@ -1161,7 +1185,7 @@ class Runner:
         proto = self.protocol
         us = proto.ultrasound
         cfg = self.bench.config
-        gates = self.gates  # one snapshot per step (the GUI may set one meanwhile)
+        gates = self._gates_now()  # one snapshot per step (the GUI may set one meanwhile)
         chans: list[ChannelData] = []
         for ch in sorted(setup.transducers):
             if ch not in records:
@@ -1178,7 +1202,7 @@ class Runner:
                 output=proto.points[setup.transducers[ch]])
             gate = gates.get(ch)
             process_channel(cd, step.frequency_hz, self.tracking_options if gate is None
-                            else self._tracking_options(gate))
+                            else self._tracking_options(gate[0]))
             cd.quality["gate_source"] = self._gate_source(gate)
             chans.append(cd)
         level = float(level_vpp if level_vpp is not None else
@@ -1543,17 +1567,6 @@ def _first_table_difference(a: dict[str, Any], b: dict[str, Any]) -> str:
 
 
 # --------------------------------------------------------------------------- reprocessing
-def _gate_problem(gate: tuple[int, int], lag_samples: int, samples: int) -> str:
-    """Why ``gate`` (start, stop samples) cannot be tracked in a ``samples``-long record
-    with a lag range of +-``lag_samples``; empty when it can (as track_echoes checks)."""
-    start, stop = gate
-    if start - lag_samples >= 0 and stop + lag_samples <= samples and stop - start >= 16:
-        return ""
-    return (f"it must hold 16 samples or more and leave the lag range ({lag_samples} "
-            f"samples) inside the {samples}-sample record: start {lag_samples} to stop "
-            f"{samples - lag_samples}")
-
-
 def _with_gate(options: Any, gate: tuple[int, int] | None) -> Any:
     """``options`` (the defaults when None) with ``gate`` (None: automatic)."""
     from dataclasses import replace
@@ -1563,12 +1576,14 @@ def _with_gate(options: Any, gate: tuple[int, int] | None) -> Any:
     return replace(options or TrackingOptions(), gate=gate)
 
 
-def _recorded_operator_gate(channel: ChannelData) -> tuple[int, int] | None:
-    """The gate the operator set for this channel record at acquisition, if any."""
+def _recorded_gate(channel: ChannelData) -> tuple[tuple[int, int], str] | None:
+    """The gate set for this channel record at acquisition, if any, with who set it:
+    ``operator`` (at a prompt) or ``protocol`` (the setup's ``gates``)."""
     q = channel.quality or {}
-    if q.get("gate_source") != "operator" or "gate_start" not in q or "gate_stop" not in q:
+    source = q.get("gate_source")
+    if source not in ("operator", "protocol") or "gate_start" not in q or "gate_stop" not in q:
         return None
-    return int(q["gate_start"]), int(q["gate_stop"])
+    return (int(q["gate_start"]), int(q["gate_stop"])), str(source)
 
 
 def reprocess_session(source: Path | str, target: Path | str, tracking_options: Any = None,
@@ -1589,10 +1604,11 @@ def reprocess_session(source: Path | str, target: Path | str, tracking_options: 
 
     Gates, per channel record: ``channel_gates[name]`` (``"ch1"``: a (start, stop) gate for
     that channel in every step, or None for the automatic gate) first, then the gate of
-    ``tracking_options`` (every channel), then the gate the operator set at acquisition
-    (recorded as ``gate_source = "operator"``: kept unless ``keep_operator_gates`` is
-    False, so that re-tracking with another estimator does not silently drop it), else the
-    automatic gate. A gate for a channel no step has is refused (nothing written).
+    ``tracking_options`` (every channel), then the gate set at acquisition by the operator
+    or the protocol (recorded as ``gate_source = "operator"`` or ``"protocol"``: kept
+    unless ``keep_operator_gates`` is False, so that re-tracking with another estimator
+    does not silently drop it), else the automatic gate. A gate for a channel no step has
+    is refused (nothing written).
     """
     import os
 
@@ -1642,7 +1658,7 @@ def reprocess_session(source: Path | str, target: Path | str, tracking_options: 
             done: list[StepData] = []
             chosen = dict(channel_gates or {})
             options_gate = getattr(tracking_options, "gate", None)
-            kept_operator = 0
+            kept: dict[str, int] = {}  # recorded gates kept, by who set them
             for n, step in enumerate(reader.steps()):
                 for c in step.channels:
                     if c.name in chosen:  # given for this channel: it decides
@@ -1652,24 +1668,24 @@ def reprocess_session(source: Path | str, target: Path | str, tracking_options: 
                     elif options_gate is not None:  # given for every channel
                         options, gate_source = tracking_options, "options"
                     else:
-                        gate = _recorded_operator_gate(c) if keep_operator_gates else None
+                        recorded = _recorded_gate(c) if keep_operator_gates else None
+                        gate, gate_source = recorded or (None, "auto")
                         options = (tracking_options if gate is None
                                    else _with_gate(tracking_options, gate))
-                        gate_source = "auto" if gate is None else "operator"
-                        kept_operator += gate is not None
+                        kept[gate_source] = kept.get(gate_source, 0) + 1
                     if gate_source != "auto" and options is not None and options.gate:
                         # a channel's gate that cannot be tracked lost that channel in
                         # every step, and the command said nothing (review, session 38)
-                        problem = _gate_problem(options.gate, int(options.max_lag_samples),
+                        problem = gate_problem(options.gate, int(options.max_lag_samples),
                                                 int(np.shape(c.codes)[1]))
                         if problem:
-                            by_operator = gate_source == "operator"
+                            recorded_by = gate_source in ("operator", "protocol")
                             raise ValueError(
                                 f"gate {options.gate} for {c.name} (step {step.index}"
-                                + (", set by the operator at acquisition" if by_operator
-                                   else "") + f"): {problem}"
+                                + (f", set by the {gate_source} at acquisition"
+                                   if recorded_by else "") + f"): {problem}"
                                 + (f"; --gate {c.name}=auto tracks the automatic gate"
-                                   if by_operator else "") + "; nothing written")
+                                   if recorded_by else "") + "; nothing written")
                     process_channel(c, step.frequency_hz, options, speed_of_sound_m_s)
                     c.quality["gate_source"] = gate_source
                 failed = [str(c.quality.get("message", "")) for c in step.channels
@@ -1713,10 +1729,11 @@ def reprocess_session(source: Path | str, target: Path | str, tracking_options: 
             if unknown:
                 raise ValueError(f"gate for {', '.join(unknown)}: no such channel in "
                                  f"{source}'s steps; nothing written")
-            if kept_operator:
-                out["log"].resize((out["log"].shape[0] + 1,))
-                out["log"][-1] = log_entry(f"kept the gate the operator set at acquisition "
-                                           f"on {kept_operator} channel record(s)")
+            for who in ("operator", "protocol"):
+                if kept.get(who):
+                    out["log"].resize((out["log"].shape[0] + 1,))
+                    out["log"][-1] = log_entry(f"kept the gate the {who} set at acquisition "
+                                               f"on {kept[who]} channel record(s)")
             if not done:  # an empty copy is no reprocessing (it exited 0: review, session 36)
                 raise ValueError(f"{source} holds no complete step to reprocess"
                                  + (f" ({len(reader.damaged + reader.incomplete)} damaged or "

@@ -919,6 +919,18 @@ def _choose_gate(codes: np.ndarray, fs: float, opts: TrackingOptions,
     return start, stop, None if rival is None else rival[0]
 
 
+def gate_problem(gate: tuple[int, int], lag_samples: int, samples: int) -> str:
+    """Why ``gate`` (start, stop: sample indices) cannot be tracked in a ``samples``-long
+    record with a lag range of +-``lag_samples``; empty when it can (the rule
+    :func:`track_echoes` applies to a given gate: 16 samples or more, lag range inside)."""
+    start, stop = gate
+    if start - lag_samples >= 0 and stop + lag_samples <= samples and stop - start >= 16:
+        return ""
+    return (f"it must hold 16 samples or more and leave the lag range ({lag_samples} "
+            f"samples) inside the {samples}-sample record: start {lag_samples} to stop "
+            f"{samples - lag_samples}")
+
+
 def _zero_segments_not_finite(codes: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """``codes`` with every segment that holds a sample that is not a number (float codes
     only) zeroed, and which segments those were (a NaN among the first echoes had spread

@@ -702,21 +702,23 @@ class OperatorWindow(QtWidgets.QMainWindow):
             echo = self._aimed.get(channel)
             if echo is None:
                 continue
-            gate, operator = echo.gate, echo.gate_source == "operator"
+            gate, source = echo.gate, echo.gate_source
             notes, rival = echo.notes, getattr(echo, "rival_sample", None)
             pending = self._pending_gates.get(channel)
-            if pending is not None and not (operator and gate == pending):
+            if pending is not None and not (source == "operator" and gate == pending):
                 # acquired before the drag: its gate and notes are not the steps' any more
-                gate, operator, notes, rival = pending, True, (), None
+                gate, source, notes, rival = pending, "operator", (), None
             else:
                 self._pending_gates.pop(channel, None)
             gate_s = None if gate is None else tuple(
                 echo.delay_s + g / echo.sample_rate_hz for g in gate)
-            self.ascan.show_echo(row, echo.time_s, echo.volts, gate_s, operator=operator)
+            # green: a gate someone chose (at the bed, or in the protocol for a fixed rig)
+            self.ascan.show_echo(row, echo.time_s, echo.volts, gate_s,
+                                 operator=source in ("operator", "protocol"))
             self.ascan.show_rival(row, None if rival is None
                                   else echo.delay_s + rival / echo.sample_rate_hz)
             where = ("no gate" if gate is None else
-                     f"gate {gate[0]}-{gate[1]} ({'yours' if operator else echo.gate_source})")
+                     f"gate {gate[0]}-{gate[1]} ({'yours' if source == 'operator' else source})")
             lines.append(f"<b>ch{channel}</b>: {html.escape(where)}" + "".join(
                 f"<br><span style='color:#b35900'>{html.escape(n)}</span>"
                 for n in notes))

@@ -405,7 +405,8 @@ def draw_step(ascan: AScanPanel, displacement: DisplacementPanel, quality: Quali
     for i, ch in enumerate(step.channels):
         time_s, volts = echo_trace(ch, echo_index)
         ascan.show_echo(i, time_s, volts, gate_seconds(ch),
-                        operator=(ch.quality or {}).get("gate_source") == "operator")
+                        operator=(ch.quality or {}).get("gate_source") in ("operator",
+                                                                          "protocol"))
         if ch.displacement_m is not None:
             displacement.show_trace(i, np.arange(ch.displacement_m.size) / ch.prf_hz,
                                     ch.displacement_m)

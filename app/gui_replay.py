@@ -216,7 +216,7 @@ class ReplayView(QtWidgets.QWidget):
         self.retrack_button = QtWidgets.QPushButton("Re-track")
         self.retrack_button.setToolTip(
             "a channel's gate: the one dragged on its A-scan, else the sample boxes, else "
-            "the one the operator set at acquisition, else the strongest echo")
+            "the one set at acquisition (operator or protocol), else the strongest echo")
         self.retrack_button.clicked.connect(self.retrack_step)
         form.addRow(self.retrack_button)
         self.dragged_gates_label = QtWidgets.QLabel("")
@@ -499,8 +499,9 @@ class ReplayView(QtWidgets.QWidget):
 
     def channel_gate(self, step: Any, channel: Any) -> tuple[tuple[int, int] | None, str]:
         """The gate a re-track uses for ``channel`` of ``step`` and where it comes from:
-        dragged on its A-scan, the sample boxes (every channel), the operator's at
-        acquisition (as ``pelvislab reprocess`` keeps it), else automatic (None)."""
+        dragged on its A-scan, the sample boxes (every channel), the one set at acquisition
+        by the operator or the protocol (as ``pelvislab reprocess`` keeps it), else
+        automatic (None)."""
         dragged = self._dragged_gates.get((step.setup, channel.name))
         if dragged is not None:
             return dragged, "dragged"
@@ -508,8 +509,9 @@ class ReplayView(QtWidgets.QWidget):
         if boxes is not None:
             return boxes, "boxes"
         q = channel.quality or {}
-        if q.get("gate_source") == "operator" and "gate_start" in q and "gate_stop" in q:
-            return (int(q["gate_start"]), int(q["gate_stop"])), "operator's"
+        source = q.get("gate_source")
+        if source in ("operator", "protocol") and "gate_start" in q and "gate_stop" in q:
+            return (int(q["gate_start"]), int(q["gate_stop"])), f"{source}'s"
         return None, "auto"
 
     def _gate_dragged(self, row: int, start_s: float, stop_s: float) -> None:

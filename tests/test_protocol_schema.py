@@ -158,6 +158,19 @@ def test_down_order_and_list():
          "unknown point"),
         (lambda d: d["setups"][0]["transducers"].update(ch3="c"), "setups[0].transducers.ch3",
          "unknown channel"),
+        # a fixed rig's gates: a channel of the setup, two whole samples, trackable
+        (lambda d: d["setups"][0].update(gates={"ch3": [100, 200]}), "setups[0].gates.ch3",
+         "not a channel of this setup"),
+        (lambda d: d["setups"][0].update(gates={"ch1": [200, 100]}), "setups[0].gates.ch1",
+         "START < STOP"),
+        (lambda d: d["setups"][0].update(gates={"ch1": [100.5, 200]}), "setups[0].gates.ch1",
+         "two whole sample numbers"),
+        (lambda d: d["setups"][0].update(gates={"ch1": [5, 200]}), "setups[0].gates.ch1",
+         "start 12 to stop 488"),
+        (lambda d: d["setups"][0].update(gates={"ch2": [100, 110]}), "setups[0].gates.ch2",
+         "16 samples or more"),
+        (lambda d: d["setups"][0].update(gates=[100, 200]), "setups[0].gates",
+         "must be a table"),
         (lambda d: d.update(schema_version=2), "schema_version", "reads version 1"),
         (lambda d: d.update(setups=[]), "setups", "non-empty"),
         (lambda d: d["subject"].update(position="upside-down"), "subject.position",
@@ -172,6 +185,15 @@ def test_each_rule_names_key_and_rule(mutate, key, rule):
     mutate(data)
     message = problems_of(data)
     assert f"{key}:" in message and rule in message, message
+
+
+def test_setup_gates_are_read_and_summarised():
+    data = base()
+    data["setups"][0]["gates"] = {"ch2": [300, 420]}
+    p = parse(data)
+    assert p.setups[0].gates == {2: (300, 420)}
+    assert "ch2 gate 300-420" in p.summary()
+    assert parse(base()).setups[0].gates == {}
 
 
 def test_all_problems_are_reported_on_one_line():

@@ -48,9 +48,10 @@ CLUTTER = effects.StaticClutter(depth_m=(BONE_DEPTH_M - 0.3e-6 * 1540.0 / 2,),
                                 level_db=(3.5,), channels=(1,))
 
 
-def run(tmp_path, on_event, *, sim_faults=(), clutter=True, auto_continue=False):
+def run(tmp_path, on_event, *, sim_faults=(), clutter=True, auto_continue=False,
+        protocol_text=PROTOCOL):
     protocol = tmp_path / "p.toml"
-    protocol.write_text(PROTOCOL)
+    protocol.write_text(protocol_text)
     bench = sim_bench.open_simulated_bench(
         generators="python", effects=[CLUTTER] if clutter else [], faults=list(sim_faults))
     events = []
@@ -549,3 +550,74 @@ def test_a_pause_without_live_echoes_keeps_the_trigger_off(tmp_path):
     paused_at = next(i for i, e in enumerate(events) if isinstance(e, r.Paused))
     resumed_at = next(i for i, e in enumerate(events) if isinstance(e, r.Resumed))
     assert not [e for e in events[paused_at:resumed_at] if isinstance(e, r.AimingEchoes)]
+
+
+def test_a_fixed_rigs_gate_from_the_protocol_tracks_the_bone_headless(tmp_path):
+    """A setup's ``gates`` (a rig whose echoes are known: here the bone echo at sample 354
+    of ch1, named by the live echoes' note above) hold from the setup's first step, also
+    headless, are recorded as ``protocol`` and kept by reprocessing; other channels and
+    setups stay automatic."""
+    gated = PROTOCOL.replace('transducers = { ch1 = "SIAS_R_x", ch2 = "sacrum_x" }',
+                             'transducers = { ch1 = "SIAS_R_x", ch2 = "sacrum_x" }\n'
+                             'gates = { ch1 = [304, 404] }')
+    protocol = tmp_path / "p.toml"
+    protocol.write_text(gated)
+    bench = sim_bench.open_simulated_bench(generators="python", effects=[CLUTTER])
+    out = tmp_path / "s.h5"
+    events = []
+    with prepare_session(protocol, out, bench=bench, auto_continue=True) as session:
+        session.runner.subscribe(events.append)
+        final = session.run()
+    assert final.status == "completed"
+    assert all(q["gate_source"] == "protocol" and (q["gate_start"], q["gate_stop"])
+               == (304, 404) for q in _quality(out))
+    assert all(q["gate_source"] == "auto" for q in _quality(out, "a", "ch2"))
+    assert all(q["gate_source"] == "auto" for q in _quality(out, "b", "ch1"))
+    assert np.all(ch1_ratio(out) > 0.9), ch1_ratio(out)
+    said = [e.text for e in events if isinstance(e, r.LogMessage)]
+    assert "ch1: gate from the protocol, samples 304-404" in said
+    kept = tmp_path / "kept.h5"
+    r.reprocess_session(out, kept)
+    assert all(q["gate_source"] == "protocol" for q in _quality(kept))
+    with SessionReader(kept) as reader:
+        assert any("kept the gate the protocol set at acquisition on 3 channel record(s)"
+                   in line for line in reader.log_lines())
+
+
+def test_the_operator_may_replace_or_clear_the_protocols_gate(tmp_path):
+    gated = PROTOCOL.replace('transducers = { ch1 = "SIAS_R_x", ch2 = "sacrum_x" }',
+                             'transducers = { ch1 = "SIAS_R_x", ch2 = "sacrum_x" }\n'
+                             'gates = { ch1 = [304, 404], ch2 = [150, 480] }')
+    shown = []
+
+    def on_event(runner, bench, event):
+        if isinstance(event, r.AimingEchoes) and event.setup_index == 0:
+            shown.append({e.channel: (e.gate, e.gate_source) for e in event.echoes})
+            if len(shown) == 1:
+                assert runner.gates == {1: (304, 404), 2: (150, 480)}
+                runner.set_gate(1, None)  # automatic instead
+                runner.set_gate(2, (160, 470))
+            else:
+                runner.confirm()
+        elif isinstance(event, r.AimingEchoes):
+            runner.confirm()
+
+    final, _, _, out = run(tmp_path, on_event, clutter=False, protocol_text=gated)
+    assert final.status == "completed"
+    assert shown[0] == {1: ((304, 404), "protocol"), 2: ((150, 480), "protocol")}
+    assert shown[1][1][1] == "auto" and shown[1][2] == ((160, 470), "operator")
+    assert all(q["gate_source"] == "auto" for q in _quality(out))
+    assert all(q["gate_source"] == "operator" for q in _quality(out, "a", "ch2"))
+
+
+def test_a_protocol_gate_the_runs_lag_range_cannot_use_is_refused_before_the_run(tmp_path):
+    from pelvislab.acquisition.protocol import load_protocol
+    from pelvislab.acquisition.tracking import TrackingOptions
+
+    protocol = tmp_path / "p.toml"
+    protocol.write_text(PROTOCOL.replace(
+        'transducers = { ch1 = "SIAS_R_x", ch2 = "sacrum_x" }',
+        'transducers = { ch1 = "SIAS_R_x", ch2 = "sacrum_x" }\ngates = { ch1 = [20, 404] }'))
+    with pytest.raises(ValueError, match=r"setups 'a': gate \(20, 404\) for ch1"):
+        r.Runner(load_protocol(protocol), bench=None,
+                 tracking_options=TrackingOptions(max_lag_samples=30))

@@ -65,7 +65,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--gate", action="append", default=[], metavar="[chN=]START:STOP",
                    help="bone echo window, samples: for every channel, or chN=START:STOP for "
                    "one (repeatable); 'auto' or chN=auto for the automatic gate. Without it, "
-                   "gates the operator set at acquisition are kept")
+                   "gates set at acquisition (by the operator or the protocol) are kept")
     p.add_argument("--speed-of-sound", type=float, metavar="M_S",
                    help="speed of sound to assume instead of the recorded one, m/s")
     p.add_argument("--tracking", action="append", default=[], metavar="KEY=VALUE",
