@@ -631,7 +631,7 @@ class Runner:
         if gate is not None:
             gate = (int(gate[0]), int(gate[1]))
             problem = gate_problem(gate, int(self._tracking_options().max_lag_samples),
-                                    int(self.protocol.ultrasound.samples))
+                                   int(self.protocol.ultrasound.samples))
             if problem:
                 raise ValueError(f"gate {gate} for ch{channel}: {problem}")
         with self._gates_lock:
@@ -1677,7 +1677,7 @@ def reprocess_session(source: Path | str, target: Path | str, tracking_options: 
                         # a channel's gate that cannot be tracked lost that channel in
                         # every step, and the command said nothing (review, session 38)
                         problem = gate_problem(options.gate, int(options.max_lag_samples),
-                                                int(np.shape(c.codes)[1]))
+                                               int(np.shape(c.codes)[1]))
                         if problem:
                             recorded_by = gate_source in ("operator", "protocol")
                             raise ValueError(
