@@ -92,6 +92,17 @@ _DRIVER_OPTIONS: dict[str, dict[str, dict[str, tuple[type, ...]]]] = {
         }
     },
 }
+# Ranges of the numeric options (inclusive upper bound; each must be finite and > 0, or
+# >= 0 where 0 means something: external_clock_hz = 0 is the internal clock):
+# a timeout of -1 s or 1e9 s reached the instrument and was reported as "no answer ...
+# (instrument off, cable unplugged)", blaming the hardware for the file (review, session 39)
+_OPTION_MAX: dict[str, float] = {
+    "timeout_s": 600.0,
+    "max_vpp": 20.0,  # the 33220A's largest output (into a high-impedance load)
+    "external_clock_hz": 100e6,
+    "baudrate": 1_000_000,
+    "channel": 64,
+}
 _DEFAULT_DRIVER = {
     "trigger": "agilent33220a",
     "drive": "agilent33220a",
@@ -355,6 +366,12 @@ class BenchConfig:
                     raise err(f"{label}.{k}", f"wrong type {type(v).__name__}")
                 if not isinstance(v, types):
                     raise err(f"{label}.{k}", f"wrong type {type(v).__name__}")
+                if k in _OPTION_MAX:
+                    low = 0 if k == "external_clock_hz" else None
+                    if not (math.isfinite(v) and (v >= 0 if low == 0 else v > 0)
+                            and v <= _OPTION_MAX[k]):
+                        raise err(f"{label}.{k}", f"must be {'>=' if low == 0 else '>'} 0 "
+                                  f"and <= {_OPTION_MAX[k]:g}, got {v!r}")
                 opts[k] = v
             if "resource" not in raw:
                 raise err(f"{label}.resource", "missing")

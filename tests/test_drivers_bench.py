@@ -75,6 +75,17 @@ def test_good_bench_file_parses(tmp_path):
         (("2 = 1600.0", "zero = 1600.0"), "calibration.channel_speed_of_sound_m_s.zero"),
         (('[digitizer]\nresource = "PCI::INSTR0"', '[digitizer]\nresource = "PCI::INSTR0"\n'
           'driver = "tektronix"'), "digitizer.driver"),
+        # a timeout of -1 s reached the instrument: "no answer within -1 s (instrument off,
+        # cable unplugged ...)" blamed the hardware for the file (review, session 39)
+        (("load_ohm = 50\n", "load_ohm = 50\ntimeout_s = -1\n"), "trigger.timeout_s"),
+        (("load_ohm = 50\n", "load_ohm = 50\ntimeout_s = 0\n"), "trigger.timeout_s"),
+        (("load_ohm = 50\n", "load_ohm = 50\ntimeout_s = nan\n"), "trigger.timeout_s"),
+        (("load_ohm = 50\n", "load_ohm = 50\ntimeout_s = 1e9\n"), "trigger.timeout_s"),
+        (('resource = "PCI::INSTR0"', 'resource = "PCI::INSTR0"\ntimeout_s = -2.0'),
+         "digitizer.timeout_s"),
+        (('load_ohm = "inf"', 'load_ohm = "inf"\nmax_vpp = -1.0'), "drive.max_vpp"),
+        (('resource = "PCI::INSTR0"', 'resource = "PCI::INSTR0"\nexternal_clock_hz = -1'),
+         "digitizer.external_clock_hz"),
     ],
 )
 def test_bad_bench_file_names_the_key(tmp_path, edit, key):
@@ -82,6 +93,13 @@ def test_bad_bench_file_names_the_key(tmp_path, edit, key):
     assert text != GOOD
     with pytest.raises(BenchConfigError, match=f"{key.replace('.', '[.]')}: "):
         BenchConfig.load(write(tmp_path, text))
+
+
+def test_an_external_clock_of_zero_is_the_internal_clock(tmp_path):
+    text = GOOD.replace('resource = "PCI::INSTR0"',
+                        'resource = "PCI::INSTR0"\nexternal_clock_hz = 0\ntimeout_s = 2.5')
+    cfg = BenchConfig.load(write(tmp_path, text))
+    assert cfg.digitizer.options == {"external_clock_hz": 0, "timeout_s": 2.5}
 
 
 def test_missing_section_and_missing_file(tmp_path):
