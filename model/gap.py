@@ -467,7 +467,14 @@ def prepare_data(frequency_hz: np.ndarray, H: np.ndarray, H_std: np.ndarray | No
         if b == "":
             mask[:, :, i] = False
     if mask.sum() < 20:
-        raise ValueError(f"only {int(mask.sum())} usable FRF lines; the diagnosis needs >= 20")
+        off = ([f"output {n}" for n, b in zip(outputs.name, bones_out, strict=True) if b == ""]
+               + [f"input {n}" for n, b in zip(inputs.name, bones_in, strict=True) if b == ""])
+        # a file of another structure gave "only 0 usable FRF lines" (review, session 39)
+        why = (f" ({len(off)} of its {len(bones_out) + len(bones_in)} points are on no "
+               f"modelled bone: {', '.join(off[:4])}{', ...' if len(off) > 4 else ''})"
+               if off else "")
+        raise ValueError(f"only {int(mask.sum())} usable FRF lines{why}; the diagnosis "
+                         "needs >= 20")
     return GapData(f, H, sigma, mask, tuple(outputs.name), bones_out,
                    np.asarray(outputs.position_m, float), np.asarray(outputs.direction, float),
                    tuple(inputs.name), bones_in, np.asarray(inputs.position_m, float),

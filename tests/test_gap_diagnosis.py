@@ -379,3 +379,13 @@ def test_where_names_an_output_on_no_bone_with_the_empty_string():
     assert bones[0] == {"bone": "sacrum", "share": 1.0}
     assert {"bone": "", "share": 0.0} in bones
     assert {b["bone"] for b in bones} == {"", "sacrum", "innominate_right", "innominate_left"}
+
+
+def test_a_file_on_no_modelled_bone_is_refused_with_that_reason():
+    # a beam's FRFs gave "only 0 usable FRF lines" for 1000 lines (review, session 39)
+    out = Channels(["n1", "n2"], ["", ""], np.zeros((2, 3)), np.array([[1.0, 0, 0]] * 2))
+    inp = Channels(["n1"], [""], np.zeros((1, 3)), np.array([[1.0, 0, 0]]))
+    H = np.ones((F_HZ.size, 2, 1), complex) * (1 + 1j)
+    with pytest.raises(ValueError, match=r"3 of its 3 points are on no modelled bone: "
+                                         r"output n1, output n2, input n1"):
+        prepare_data(F_HZ, H, None, out, inp)
