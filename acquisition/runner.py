@@ -504,6 +504,8 @@ class Runner:
         self._abort_reason = ""
         self._abort_status = "aborted"
         self._pause = threading.Event()
+        self._pause_lock = threading.Lock()
+        self._resumes = 0  # resume() calls: each ends the pause under way
         self._live_in_pause = threading.Event()
         self._confirm = threading.Event()
         self._wake = threading.Event()
@@ -560,9 +562,13 @@ class Runner:
         self._pause.set()
 
     def resume(self) -> None:
-        """Continue after :meth:`pause` (live echoes, if on, stop first)."""
-        self._live_in_pause.clear()
-        self._pause.clear()
+        """Continue after :meth:`pause` (live echoes, if on, stop first). Every resume ends
+        the pause under way, also when :meth:`pause` follows before the runner saw it: a
+        new pause (``Resumed``, then ``Paused``) begins then, with the outputs still off."""
+        with self._pause_lock:
+            self._live_in_pause.clear()
+            self._resumes += 1
+            self._pause.clear()
         self._wake.set()
 
     def live_echoes_in_pause(self, on: bool) -> None:
@@ -821,13 +827,18 @@ class Runner:
             return self._aim_failed(exc)
         return True
 
-    def _aim(self, setup_index: int, setup: Setup, first: PlannedStep) -> bool:
+    def _aim(self, setup_index: int, setup: Setup, first: PlannedStep,
+             sync_hz: float | None = None) -> bool:
         """One live echo per channel (trigger on for ``aim_pulses`` pulses, then off; the
-        drive stays off), emitted as :class:`AimingEchoes`. False after a failure (said)."""
+        drive stays off), emitted as :class:`AimingEchoes`. False after a failure (said).
+        ``sync_hz``: the frequency of the sine the drive holds (default ``first``'s)."""
         from pelvislab.acquisition.tracking import gate_preview
 
         us = self.protocol.ultrasound
-        sync_wait_s = 1.0 / first.frequency_hz  # a burst may wait for the drive's SYNC
+        # a burst may wait for the drive's SYNC: one period of the sine it holds (in a
+        # pause the previous step's: 1 s at 1 Hz, where the next step's 40 Hz gave 0.53 s
+        # and every live echo timed out; review, session 39)
+        sync_wait_s = 1.0 / (sync_hz or first.frequency_hz)
         failure: Exception | None = None
         try:
             with self._lock:
@@ -893,16 +904,33 @@ class Runner:
         self._log(f"simulated operator placed the shaker at {excitation.name} and the "
                   f"transducers for setup {setup.name!r}")
 
-    def _maybe_pause(self, setup_index: int, setup: Setup, step: PlannedStep
-                     ) -> tuple[bool, bool]:
+    def _maybe_pause(self, setup_index: int, setup: Setup, step: PlannedStep,
+                     drive_hz: float) -> tuple[bool, bool]:
         """Honour a pause request before ``step``: (paused, reconfigured). Paused: the
-        outputs were off. Live echoes while paused when asked (:meth:`live_echoes_in_pause`);
-        then trigger and digitizer are configured for ``step`` again before it
-        (reconfigured)."""
+        outputs were off. Live echoes while paused when asked (:meth:`live_echoes_in_pause`;
+        the drive holds its sine at ``drive_hz``, whose SYNC may trigger the bursts); then
+        trigger and digitizer are configured for ``step`` again before it (reconfigured)."""
         if not self._pause.is_set():
             return False, False
         with self._lock:
             self._generators(False)
+        reconfigure = False
+        # a resume and a pause asked again before this thread saw the resume (it was in a
+        # live echo's acquisition) are two pauses, each said: the GUI ends the first's
+        # live echoes at Resume and offers them again at the second's Paused (review,
+        # session 39: the window showed live echoes that Resume had stopped)
+        while self._pause.is_set():
+            reconfigure |= self._one_pause(setup_index, setup, step, drive_hz)
+        if reconfigure:  # the live echoes configured trigger and digitizer for themselves
+            self._configure(step, tuple(sorted(setup.transducers)))
+        return True, reconfigure
+
+    def _one_pause(self, setup_index: int, setup: Setup, step: PlannedStep,
+                   drive_hz: float) -> bool:
+        """One pause, from ``Paused`` to ``Resumed`` (outputs off throughout, the live
+        echoes when asked); True if live echoes configured trigger and digitizer."""
+        with self._pause_lock:
+            resumes = self._resumes
         self.state = "paused"
         self._emit(Paused(self._t(), "paused by the operator"))
         self._log("paused; outputs off")
@@ -910,7 +938,7 @@ class Runner:
         live = "off"  # "on": configured and pulsing; "failed": said, until asked again
         reconfigure = False
         next_aim = self._clock()
-        while self._pause.is_set():
+        while self._pause.is_set() and self._resumes == resumes:
             self._check()
             wanted = self._live_in_pause.is_set() and self.aim_pulses > 0
             if not wanted and live != "off":
@@ -925,18 +953,17 @@ class Runner:
                               "stays off")
                     next_aim = self._clock()
             if live == "on" and self._clock() >= next_aim:
-                live = "on" if self._aim(setup_index, setup, step) else "failed"
+                ok = self._aim(setup_index, setup, step, sync_hz=drive_hz)
+                live = "on" if ok else "failed"
                 next_aim = self._clock() + self.aim_interval_s
                 continue  # a resume during the acquisition is seen at once
             self._wake.wait(0.05)
             self._wake.clear()
         self._waited_s += self._clock() - t_wait
-        if reconfigure:  # the live echoes configured trigger and digitizer for themselves
-            self._configure(step, tuple(sorted(setup.transducers)))
         self.state = "running"
         self._emit(Resumed(self._t()))
         self._log("resumed")
-        return True, reconfigure
+        return reconfigure
 
     def _configure(self, step: PlannedStep, channels: tuple[int, ...]) -> None:
         us = self.protocol.ultrasound
@@ -1076,12 +1103,13 @@ class Runner:
                 configured = (first.n_pulses, setup_channels)
             # a pause asked at the prompt holds before the outputs go on, not after one
             # step's ON (GUI review, session 35: ON and OFF again on the subject)
-            if self._maybe_pause(si, setup, first)[1]:
+            drive_hz = first.frequency_hz  # the sine the drive holds (its SYNC)
+            if self._maybe_pause(si, setup, first, drive_hz)[1]:
                 configured = (first.n_pulses, setup_channels)
             self._generators(True)
             for step in steps:
                 self._check()
-                paused, reconfigured = self._maybe_pause(si, setup, step)
+                paused, reconfigured = self._maybe_pause(si, setup, step, drive_hz)
                 if reconfigured:
                     configured = (step.n_pulses, setup_channels)
                 if paused:
@@ -1093,6 +1121,7 @@ class Runner:
                 with self._lock:
                     self._check()
                     bench.drive.set_frequency(step.frequency_hz)
+                    drive_hz = step.frequency_hz
                     if planned != level:  # drive profile: a new level for this step
                         bench.drive.set_amplitude(planned)
                         level = planned

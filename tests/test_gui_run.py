@@ -577,3 +577,57 @@ def test_live_echoes_in_a_pause_and_a_gate_set_there(operator_window, qtbot, tmp
         log = "\n".join(reader.log_lines())
     assert sources[0] == "auto" and sources[-1] == "operator", sources
     assert "live echoes in the pause" in log
+
+
+def test_resume_then_pause_during_a_live_echo_keeps_the_gui_in_step(operator_window, qtbot,
+                                                                    tmp_path):
+    """Paused with live echoes; Resume, then Pause again while a live echo is being
+    acquired (an acquisition that waits, e.g. up to its 0.5 s timeout). The runner stayed
+    in its pause (no Resumed, no new Paused) but Resume had ended its live echoes: the
+    window hid the live echoes button for good and its banner still said live echoes
+    (helper review, session 39). Now each resume ends the pause and a new one begins."""
+    import threading
+
+    window = operator_window()
+    window.subject_edit.setText("T001")
+    window.protocol_combo.setCurrentIndex(window.protocol_combo.findText("demo"))
+    window.out_edit.setText(str(tmp_path / "gui.h5"))
+    window.start_run()
+    qtbot.waitUntil(window.confirm_button.isVisible, timeout=30_000)
+    window.confirm_prompt()
+    qtbot.waitUntil(lambda: window.state_banner.text() == "RUNNING — OUTPUTS ON",
+                    timeout=60_000)
+    runner = window.control.runner
+    bench = window.control.prepared.bench
+    window.toggle_pause()
+    qtbot.waitUntil(lambda: window.state_banner.text() == "PAUSED — outputs off",
+                    timeout=60_000)
+    n_drive_on = sum(text.strip() == "OUTP ON" for _, text in bench.drive.command_log)
+    entered, release = threading.Event(), threading.Event()
+    real_acquire = bench.digitizer.acquire
+
+    def slow_acquire(*args, **kwargs):
+        if runner.state == "paused" and not release.is_set():
+            entered.set()
+            release.wait(10)
+        return real_acquire(*args, **kwargs)
+
+    bench.digitizer.acquire = slow_acquire
+    try:
+        qtbot.mouseClick(window.live_button, QtCore.Qt.MouseButton.LeftButton)
+        qtbot.waitUntil(entered.is_set, timeout=30_000)
+        window.toggle_pause()  # Resume ...
+        window.toggle_pause()  # ... no: Pause again
+    finally:
+        release.set()
+    qtbot.wait(1500)
+    assert runner.state == "paused"  # a new pause, the outputs off in between
+    assert not runner._live_in_pause.is_set()  # Resume ended the live echoes
+    banner = window.state_banner.text()
+    # the banner says what the runner does, and live echoes can be asked for again
+    assert banner == "PAUSED — outputs off", banner
+    assert window.live_button.isVisible() and not window.live_button.isChecked()
+    drive_on = [t for t, text in bench.drive.command_log if text.strip() == "OUTP ON"]
+    assert len(drive_on) == n_drive_on  # no step between the two pauses
+    window.control.stop("test done")
+    qtbot.waitUntil(window.control.finished.is_set, timeout=30_000)

@@ -621,3 +621,58 @@ def test_a_protocol_gate_the_runs_lag_range_cannot_use_is_refused_before_the_run
     with pytest.raises(ValueError, match=r"setups 'a': gate \(20, 404\) for ch1"):
         r.Runner(load_protocol(protocol), bench=None,
                  tracking_options=TrackingOptions(max_lag_samples=30))
+
+
+# setup a is swept up from 1 Hz: in the pause before its 40 Hz step the drive still holds
+# the 1 Hz sine whose SYNC triggers the live echoes' bursts
+LOW_FIRST = """
+schema = "pelvislab-protocol"
+schema_version = 1
+name = "low-first"
+[sweep]
+frequencies_hz = [1.0, 40.0]
+drive_vpp = 0.2
+settle_s = 0.05
+periods_per_step = 2
+[ultrasound]
+samples = 500
+[[setups]]
+name = "a"
+excitation = "SIAS_R_x"
+transducers = { ch1 = "SIAS_R_x", ch2 = "sacrum_x" }
+"""
+
+
+def test_live_echoes_in_a_pause_wait_for_the_sync_of_the_sine_the_drive_holds(tmp_path):
+    """Pause after the 1 Hz step, live echoes on: the drive keeps its 1 Hz sine (its SYNC
+    triggers the bursts, up to 1 s apart). Sized for the next step's 40 Hz (25 ms + 0.5 s)
+    the acquisition timed out at every live echo of the pause (helper review, session 39)."""
+    protocol = tmp_path / "p.toml"
+    protocol.write_text(LOW_FIRST)
+    bench = sim_bench.open_simulated_bench(generators="python")
+    seen = {"aims_in_pause": 0, "warnings": []}
+
+    def on_event(event):
+        runner = session.runner
+        if isinstance(event, r.AimingEchoes):
+            if runner.state == "waiting":
+                runner.confirm()
+            else:
+                seen["aims_in_pause"] += 1
+                runner.resume()
+        elif isinstance(event, r.StepFinished) and event.step.frequency_hz == 1.0:
+            runner.pause()
+        elif isinstance(event, r.Paused):
+            runner.live_echoes_in_pause(True)
+        elif isinstance(event, r.LogMessage) and "no live echoes" in event.text \
+                and runner.state == "paused":
+            seen["warnings"].append(event.text)
+            runner.resume()  # do not wait for ever
+
+    with prepare_session(protocol, tmp_path / "s.h5", bench=bench,
+                         auto_continue=False) as session:
+        session.runner.subscribe(on_event)
+        final = session.run()
+    assert final.status == "completed"
+    assert not seen["warnings"], seen["warnings"]
+    assert seen["aims_in_pause"] == 1
