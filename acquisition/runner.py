@@ -465,6 +465,10 @@ def better_record(first: StepData, second: StepData, max_displacement_m: float) 
     return second if score(second) < score(first) else first
 
 
+NO_LIVE_ECHOES = "no live echoes"
+"""How the WARNING of a failed live echo begins (the GUI ends its live echoes on it)."""
+
+
 # --------------------------------------------------------------------------- runner
 class Runner:
     """Runs ``protocol`` on an open ``bench`` (see module docstring).
@@ -794,7 +798,7 @@ class Runner:
         self._log(f"operator confirmed setup {setup.name!r}")
 
     def _aim_failed(self, exc: Exception) -> bool:
-        self._log(f"no live echoes while placing the transducers: {type(exc).__name__}: "
+        self._log(f"{NO_LIVE_ECHOES} while placing the transducers: {type(exc).__name__}: "
                   f"{' '.join(str(exc).split())} (the steps configure the bench anew)",
                   "WARNING")
         return False

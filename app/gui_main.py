@@ -627,6 +627,8 @@ class OperatorWindow(QtWidgets.QMainWindow):
         self.control.runner.live_echoes_in_pause(on)
         if self.run_state in ("paused", "paused_live"):
             self._set_state("paused_live" if on else "paused")
+            self.eta_label.setText("paused (drive off, live echoes): Resume to continue" if on
+                                   else "paused (outputs off): Resume to continue")
         if on:
             self._say("live echoes in the pause (drive off)")
         else:
@@ -820,6 +822,11 @@ class OperatorWindow(QtWidgets.QMainWindow):
             elif isinstance(event, r.LogMessage):
                 if event.level in ("WARNING", "ERROR"):
                     self._say(f"{event.level}: {event.text}")
+                if (event.level == "WARNING" and event.text.startswith(r.NO_LIVE_ECHOES)
+                        and self.live_button.isChecked()):
+                    # they stopped (a timeout): the button and banner say so; pressed
+                    # again, the runner tries anew (review, session 39)
+                    self.live_button.setChecked(False)
             elif isinstance(event, r.Fault):
                 self._say(f"FAULT: {event.reason}")
             elif isinstance(event, r.RunFinished):
