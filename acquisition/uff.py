@@ -495,6 +495,7 @@ def read_uff(path: str | Path, points: dict[int, PointInfo] | None = None
             bone = info.bone
         return key, (name, bone, np.asarray(position, dtype=float), direction)
 
+    converted: dict[int, int] = {}  # records per ordinate quantity converted
     for dset in records:
         ko, out = channel(dset, "out")
         ki, inp = channel(dset, "in")
@@ -510,6 +511,16 @@ def read_uff(path: str | Path, points: dict[int, PointInfo] | None = None
             notes.append(f"record {out[0]}/{inp[0]} has denominator type {denom}, taken as force")
         values = to_receptance(x, values, quantity) * (force_factor / length_factor)
         entries.append((ko, ki, x, values))
+        converted[quantity] = converted.get(quantity, 0) + 1
+
+    for quantity, what, by in ((SPEC_VELOCITY, "mobility", "(i w)"),
+                               (SPEC_ACCELERATION, "accelerance", "-w^2")):
+        if converted.get(quantity):
+            # said: the division multiplies the noise of the lowest lines (by up to 1/w^2),
+            # which then dominate a fit without H_std (first-day review, session 39)
+            notes.append(f"{converted[quantity]} {what} record(s) converted to receptance "
+                         f"(divided by {by}): the lowest lines' noise grows with it; "
+                         "`pelvislab ema` says when they dominate")
 
     out_keys = list(outputs)
     in_keys = list(inputs)

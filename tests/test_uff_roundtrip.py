@@ -188,6 +188,8 @@ def test_foreign_accelerance_in_mm_with_points_file(tmp_path):
     )
     frf, notes = read_uff(tmp_path / "f.uff", read_points_file(tmp_path / "p.toml"))
     assert any("function type 6" in n for n in notes)  # the coherence record is skipped
+    # the conversion is said (it multiplies the lowest lines' noise: review, session 39)
+    assert any("4 accelerance record(s) converted to receptance" in n for n in notes), notes
     assert frf.outputs.name == ["SIAS_R+Z", "SIAS_R-X", "node2+Z", "node2-X"]
     assert frf.outputs.bone == ["innominate_right", "innominate_right", "", ""]
     assert frf.inputs.name == ["drive+Z"] and frf.inputs.bone == ["sacrum"]
