@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import argparse
 import logging
+import os
 import signal
 import sys
 from collections.abc import Sequence
@@ -23,6 +24,8 @@ EXIT_OK = 0
 EXIT_FAILURE = 1
 EXIT_USAGE = 2
 EXIT_INTERRUPTED = 130
+EXIT_BROKEN_PIPE = 141
+"""The reader of stdout went away (``| head``): 128 + SIGPIPE, as a shell tool ends then."""
 
 
 def package_version() -> str:
@@ -130,6 +133,16 @@ def _run_handler(args: argparse.Namespace) -> int:
     except KeyboardInterrupt:
         print("pelvislab: interrupted", file=sys.stderr)
         return EXIT_INTERRUPTED
+    except BrokenPipeError:
+        # `pelvislab model modes --json | head -1` said "error: [Errno 32] Broken pipe":
+        # the reader had all it wanted. Quiet, and stdout pointed at nothing so that the
+        # interpreter's final flush does not fail again (review, session 39)
+        try:
+            devnull = os.open(os.devnull, os.O_WRONLY)
+            os.dup2(devnull, sys.stdout.fileno())
+        except (OSError, ValueError, AttributeError):
+            pass
+        return EXIT_BROKEN_PIPE
     except Exception as exc:  # the one place that turns any failure into one line
         if args.verbose:
             log.exception("command failed")

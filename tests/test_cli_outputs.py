@@ -94,3 +94,20 @@ def test_frf_and_uff_files_appear_only_complete_and_never_over_another(tmp_path,
         uff_module.write_uff(target, frf)
     assert target.read_text() == "someone else's file"
     assert sorted(p.name for p in tmp_path.iterdir()) == ["a.h5", "b.uff"]
+
+
+def test_a_reader_that_stops_early_ends_the_command_quietly():
+    # `pelvislab model frf ... | head -c 10` said "error: [Errno 32] Broken pipe", exit 1
+    # (first-day review, session 39): as a shell tool, quiet, 128 + SIGPIPE
+    import subprocess
+    import sys
+
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "pelvislab.app", "model", "frf", "--points",
+         "sacrum_x,SIAS_R_x,SIAS_L_x", "--json", "--step-hz", "0.05"],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    assert proc.stdout.read(10).startswith(b"{")
+    proc.stdout.close()
+    err = proc.stderr.read().decode()
+    assert proc.wait(timeout=120) == 141, err
+    assert "Broken pipe" not in err and "error" not in err, err
