@@ -53,6 +53,7 @@ __all__ = [
     "Event",
     "Fault",
     "LogMessage",
+    "NothingToResume",
     "OperatorPrompt",
     "Paused",
     "PreparedSession",
@@ -463,6 +464,11 @@ def better_record(first: StepData, second: StepData, max_displacement_m: float) 
         return bad, round(_max_lost(d), 3), over
 
     return second if score(second) < score(first) else first
+
+
+class NothingToResume(Exception):
+    """``prepare_session(resume=True)`` on a session that already holds every step of its
+    plan: nothing is opened or written."""
 
 
 NO_LIVE_ECHOES = "no live echoes"
@@ -1458,6 +1464,15 @@ def prepare_session(protocol_path: Path | str, out_path: Path | str,
             raise ValueError(f"--resume: {out} is the session of subject {recorded!r}, not "
                              f"{subject_id!r}; resume without --subject-id, or start a new "
                              "session for that subject")
+        planned = {(s.setup, round(float(s.frequency_hz), 9), int(s.repeat))
+                   for s in protocol.steps()}
+        kept = {(k[0], round(float(k[1]), 9), int(k[2])) for k in skip}
+        if not problems and planned <= kept:
+            # it opened the bench and wrote a run record into a finished file (first-day
+            # review, session 39): the file is left as it is
+            raise NothingToResume(f"{out} already holds every step of {protocol.name!r} "
+                                  f"(last run {previous_run[0] if previous_run else '?'}): "
+                                  "nothing to measure; the file is left as it is")
     elif out.exists():
         raise FileExistsError(f"{out} exists; not overwriting it (use --resume to continue "
                               "that session, or choose another --out)")

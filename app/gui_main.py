@@ -511,9 +511,14 @@ class OperatorWindow(QtWidgets.QMainWindow):
         if resume and self.replay.path is not None and self.replay.path.resolve() == \
                 out.resolve():
             self.replay.close_session()  # HDF5 opens a file once: read-only here blocks it
+        from pelvislab.acquisition.runner import NothingToResume
+
         try:
             self.control = SessionControl(protocol, out, self.subject_edit.text().strip(),
                                           self.bench_path, resume=resume)
+        except NothingToResume as exc:  # a finished session: nothing opened or written
+            alert(self, "Nothing to continue", str(exc), critical=False)
+            return
         except Exception as exc:
             alert(self, "Cannot start", str(exc))
             return

@@ -62,3 +62,26 @@ def test_a_channel_speed_of_sound_added_or_removed_is_a_difference():
     assert bench_differences(plain, with_ch1) and bench_differences(with_ch1, plain)
     same_as_default = dict(plain, speed_of_sound_m_s_ch1=1540.0)
     assert bench_differences(plain, same_as_default) == []
+
+
+def test_resuming_a_finished_session_opens_and_writes_nothing(tmp_path, capsys):
+    # it said "0 steps to go", exit 0, but opened the bench and wrote a run record into
+    # the finished file (first-day review, session 39)
+    import argparse
+    import hashlib
+
+    from pelvislab.acquisition.runner import NothingToResume
+    from pelvislab.app.commands.run import run_command
+
+    protocol, out = _aborted_session(tmp_path)
+    with prepare_session(protocol, out, resume=True, bench=sim_bench.open_simulated_bench(
+            generators="python")) as session:
+        assert session.run().status == "completed"
+    before = hashlib.sha256(out.read_bytes()).hexdigest()
+    with pytest.raises(NothingToResume, match="already holds every step"):
+        prepare_session(protocol, out, resume=True, bench=None)
+    args = argparse.Namespace(protocol=str(protocol), out=str(out), bench=None, resume=True,
+                              wait_prompts=False, subject_id=None, quiet=True)
+    assert run_command(args) == 0
+    assert "nothing to measure; the file is left as it is" in capsys.readouterr().out
+    assert hashlib.sha256(out.read_bytes()).hexdigest() == before

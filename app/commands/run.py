@@ -224,7 +224,7 @@ class ConsoleProgress:
 # --------------------------------------------------------------------------- run
 def run_command(args: argparse.Namespace) -> int:
     """``pelvislab run``."""
-    from pelvislab.acquisition.runner import prepare_session
+    from pelvislab.acquisition.runner import NothingToResume, prepare_session
     from pelvislab.app.cli import package_version
     from pelvislab.drivers.interfaces import DriverError
 
@@ -234,6 +234,9 @@ def run_command(args: argparse.Namespace) -> int:
                                    auto_continue=not args.wait_prompts,
                                    software_version=package_version(),
                                    subject_id=args.subject_id)
+    except NothingToResume as exc:
+        print(f"pelvislab run: {exc}")
+        return 0
     except DriverError as exc:
         # an instrument that does not open is an instrument fault (exit 3), not bad input
         # (a missing VISA backend exited 1: a first-day review, session 36); the bench
