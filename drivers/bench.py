@@ -740,14 +740,17 @@ def _open_simulated(config: BenchConfig | None) -> Bench:
     return open_simulated_bench(config) if config is not None else open_simulated_bench()
 
 
-def open_bench(path: Path | None) -> Bench:
+def open_bench(path: Path | None,
+               on_open: Callable[[str, Any], None] | None = None) -> Bench:
     """Open the bench described by the TOML file ``path``.
 
     ``None`` opens the simulated bench (``pelvislab.sim_instruments``, imported lazily, the
     only non-test import of it); so does a bench file with ``[bench] simulated = true``,
     which then supplies the calibration constants and limits.
     If any instrument fails to open, those already opened are made safe and closed before
-    the error propagates.
+    the error propagates. ``on_open(role, instrument)`` is called after each instrument of
+    a real bench opens (``bench check`` lists those that answered before one that did not);
+    what it raises is handled as a failure to open that instrument.
     """
     if path is None:
         return _open_simulated(None)
@@ -760,20 +763,20 @@ def open_bench(path: Path | None) -> Bench:
     try:
         assert config.trigger is not None and config.drive is not None  # validated in load
         assert config.digitizer is not None
-        current = config.trigger
-        trigger = _open_instrument(config.trigger, config)
-        opened.append(trigger)
-        current = config.drive
-        drive = _open_instrument(config.drive, config)
-        opened.append(drive)
-        current = config.digitizer
-        digitizer = _open_instrument(config.digitizer, config)
-        opened.append(digitizer)
-        pulsers = []
-        for p in config.pulsers:
-            current = p
-            pulsers.append(_open_instrument(p, config))
-            opened.append(pulsers[-1])
+
+        def open_one(section: InstrumentConfig) -> Any:
+            nonlocal current
+            current = section
+            instrument = _open_instrument(section, config)
+            opened.append(instrument)
+            if on_open is not None:
+                on_open(section.role, instrument)
+            return instrument
+
+        trigger = open_one(config.trigger)
+        drive = open_one(config.drive)
+        digitizer = open_one(config.digitizer)
+        pulsers = [open_one(p) for p in config.pulsers]
     except BaseException as exc:
         if isinstance(exc, Exception) and current is not None and len(exc.args) == 1 \
                 and isinstance(exc.args[0], str):

@@ -87,9 +87,15 @@ resource = "loop://"
 def test_an_instrument_that_does_not_answer_is_named_with_its_role(tmp_path, capsys):
     bench = _lab_with_a_silent_drive(tmp_path)
     assert main(["bench", "check", str(bench)]) == 3
-    err = capsys.readouterr().err
+    captured = capsys.readouterr()
+    err = captured.err
     assert err.startswith(f"pelvislab bench check: instrument fault: {bench}: [drive] "
                           "USB0::0x0957::0x0407::MY99999999::INSTR: ")
+    # the trigger, opened before it, answered: listed (only the failure was: first-day
+    # review, session 39)
+    lines = captured.out.splitlines()
+    assert any(line.startswith("  trigger ") and "33220A" in line for line in lines), lines
+    assert not any(line.startswith("  drive     ") for line in lines), lines
     assert main(["bench", "check", str(tmp_path / "none.toml")]) == 1
 
 

@@ -54,35 +54,51 @@ def drive_calibration_text(config: Any) -> str:
             f"{config.drive_calibration_source}")
 
 
+def _print_instrument(role: str, instrument: Any, lock: str) -> None:
+    print(f"  {role:10s} {getattr(instrument, 'identity', '?')}  "
+          f"[{getattr(instrument, 'resource', '')}]" + (f"  {lock}" if lock else ""),
+          flush=True)
+
+
 def check_command(args: argparse.Namespace) -> int:
     """Open, list, make safe, close; the exit code says what failed."""
-    from pelvislab.drivers.bench import open_bench
+    from pelvislab.drivers.bench import BenchConfig, open_bench
     from pelvislab.drivers.interfaces import DriverError
 
     path = Path(args.file)
     if not path.is_file():
         raise FileNotFoundError(f"bench file not found: {path}")
+    config = BenchConfig.load(path)
+    print(f"{config.name}{' (SIMULATED)' if config.simulated else ''}")
+    print(f"  drive calibration: {drive_calibration_text(config)}")
+    listed: set[str] = set()
+
+    def answered(role: str, instrument: Any) -> None:
+        # each instrument as it opens: when a later one does not, those that answered
+        # are listed (only the failure was printed: first-day review, session 39)
+        _print_instrument(role, instrument, _lock_text(instrument))
+        listed.add(role)
+
     try:
-        bench = open_bench(path)
+        bench = open_bench(path, on_open=answered)
     except DriverError as exc:
         print(f"pelvislab bench check: instrument fault: {' '.join(str(exc).split())}",
               file=sys.stderr)
         return EXIT_FAULT
     fault = None
     try:
-        print(f"{bench.config.name}{' (SIMULATED)' if bench.simulated else ''}")
-        print(f"  drive calibration: {drive_calibration_text(bench.config)}")
         roles = [("trigger", bench.trigger), ("drive", bench.drive),
                  ("digitizer", bench.digitizer)]
         roles += [(f"pulsers[{i}]", p) for i, p in enumerate(bench.pulsers)]
         for role, instrument in roles:
+            if role in listed:
+                continue
             try:
                 lock = _lock_text(instrument)
             except DriverError as exc:  # answered at open, not now: a fault, named
                 fault = f"{path}: [{role}] {getattr(instrument, 'resource', '')}: {exc}"
                 break
-            print(f"  {role:10s} {getattr(instrument, 'identity', '?')}  "
-                  f"[{getattr(instrument, 'resource', '')}]" + (f"  {lock}" if lock else ""))
+            _print_instrument(role, instrument, lock)
     finally:
         # the safe state's and the close's failures, whatever happened above
         seen = len(bench.safe_state_errors)
