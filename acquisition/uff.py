@@ -446,8 +446,15 @@ def read_uff(path: str | Path, points: dict[int, PointInfo] | None = None
                      f"pelvislab header's {header[0]} and {header[1]}: datasets were added "
                      "after the export (all imported)")
     if not records:
+        # the function types say why: a file of time responses read "set types: [58]"
+        # (first-day review, session 39)
+        skipped = sorted({int(d.get("func_type", -1)) for d in sets
+                          if int(d.get("type", -1)) == 58})
         raise ValueError(f"{path} holds no dataset 58 FRF (set types: "
-                         f"{sorted({int(t) for t in types})})")
+                         f"{sorted({int(t) for t in types})}"
+                         + (f"; its datasets 58 are of function type "
+                            f"{', '.join(map(str, skipped))}, not 4 (FRF)" if skipped else "")
+                         + ")")
     for n in coords:
         coords[n] = coords[n] / length_factor
     points = points or {}

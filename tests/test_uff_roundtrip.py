@@ -346,3 +346,15 @@ def test_channels_of_one_point_share_a_node(tmp_path):
     assert back.outputs.name == out.name and back.inputs.name == inp.name
     np.testing.assert_array_equal(back.H, H)
     np.testing.assert_array_equal(back.outputs.position_m, out.position_m)
+
+
+def test_a_file_of_time_responses_is_refused_with_their_function_type(tmp_path):
+    # "holds no dataset 58 FRF (set types: [58])" did not say why (review, session 39)
+    uff = pyuff.UFF(str(tmp_path / "t.uff"))
+    t = np.arange(0.0, 1.0, 0.01)
+    uff.write_sets(pyuff.prepare_58(func_type=1, rsp_node=1, rsp_dir=3, ref_node=1,
+                                    ref_dir=3, abscissa_spacing=1, x=t, data=np.sin(t),
+                                    abscissa_spec_data_type=17, ordinate_spec_data_type=8,
+                                    orddenom_spec_data_type=0), mode="overwrite")
+    with pytest.raises(ValueError, match=r"function type 1, not 4 \(FRF\)"):
+        read_uff(tmp_path / "t.uff")
