@@ -80,6 +80,10 @@ def read_points_file(path: str | Path) -> dict[int, PointInfo]:
         name = "SIAS_R"              # landmark / channel base name
         bone = "innominate_right"    # one of the design-4.1 bones, or "" (default)
         position_m = [0.0, -0.12, 0.0]   # optional: overrides the UFF coordinates
+
+    A node without ``position_m`` keeps its UFF coordinates; without those either, a name
+    of the landmark catalogue (``SIAS_R_x``, or ``SIAS_R`` when ``SIAS_R_x/_y/_z`` share a
+    position) gives the catalogue's position, else the origin (each said in a note).
     """
     path = Path(path)
     if not path.is_file():
@@ -108,6 +112,21 @@ def read_points_file(path: str | Path) -> dict[int, PointInfo]:
     if not points:
         raise ValueError(f"{path} lists no [[point]] tables")
     return points
+
+
+def _catalogue_position(name: str) -> np.ndarray | None:
+    """Position (m, model frame) of landmark ``name`` in the shipped catalogue, or of the
+    landmarks ``name_x``, ``name_y``, ``name_z`` when they share one; None otherwise."""
+    from pelvislab.acquisition.protocol import load_landmarks
+
+    catalogue = load_landmarks()
+    if name in catalogue:
+        return np.asarray(catalogue[name].position_m, dtype=float)
+    same = [np.asarray(catalogue[f"{name}_{a}"].position_m, dtype=float)
+            for a in "xyz" if f"{name}_{a}" in catalogue]
+    if same and all(np.allclose(p, same[0]) for p in same):
+        return same[0]
+    return None
 
 
 def direction_code(direction: np.ndarray) -> int:
@@ -481,6 +500,16 @@ def read_uff(path: str | Path, points: dict[int, PointInfo] | None = None
         info = points.get(node)
         if info is not None and info.position_m is not None:
             position = info.position_m
+        if position is None and info is not None:
+            # a node mapped to a landmark of the catalogue sits where the catalogue says
+            # (it was put at the origin, where identify would model it: review, session 39)
+            found = _catalogue_position(info.name)
+            if found is not None:
+                position = found
+                if node not in unplaced:
+                    unplaced.add(node)
+                    notes.append(f"node {node} ({info.name}) has no coordinates; placed at "
+                                 "the landmark catalogue's position for that name")
         if position is None:
             position = np.zeros(3)
             if node not in unplaced:

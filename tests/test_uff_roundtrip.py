@@ -358,3 +358,27 @@ def test_a_file_of_time_responses_is_refused_with_their_function_type(tmp_path):
                                     orddenom_spec_data_type=0), mode="overwrite")
     with pytest.raises(ValueError, match=r"function type 1, not 4 \(FRF\)"):
         read_uff(tmp_path / "t.uff")
+
+
+def test_a_node_named_after_a_landmark_without_coordinates_takes_the_catalogues(tmp_path):
+    # it was put at the origin, where identify would model it (first-day review, session 39)
+    from pelvislab.acquisition.protocol import load_landmarks
+
+    f = np.arange(1.0, 20.0, 1.0)
+    uff = pyuff.UFF(str(tmp_path / "n.uff"))
+    for node in (1, 2):
+        uff.write_sets(pyuff.prepare_58(
+            func_type=4, rsp_node=node, rsp_dir=1, ref_node=1, ref_dir=1, abscissa_spacing=1,
+            abscissa_spec_data_type=18, ordinate_spec_data_type=8,
+            orddenom_spec_data_type=13, x=f, data=np.exp(1j * f) * 1e-6),
+            mode="overwrite" if node == 1 else "add")
+    (tmp_path / "p.toml").write_text(
+        '[[point]]\nnode = 1\nname = "SIPS_R_x"\nbone = "innominate_right"\n'
+        '[[point]]\nnode = 2\nname = "somewhere"\n')
+    frf, notes = read_uff(tmp_path / "n.uff", read_points_file(tmp_path / "p.toml"))
+    catalogue = load_landmarks()
+    np.testing.assert_allclose(frf.outputs.position_m[0], catalogue["SIPS_R_x"].position_m)
+    np.testing.assert_allclose(frf.outputs.position_m[1], 0.0)
+    assert any("node 1 (SIPS_R_x) has no coordinates; placed at the landmark catalogue"
+               in n for n in notes), notes
+    assert any("node 2 has no coordinates; placed at the origin" in n for n in notes), notes
