@@ -1439,6 +1439,9 @@ def prepare_session(protocol_path: Path | str, out_path: Path | str,
     skip: list[tuple[str, float, int]] = []
     problems: list[str] = []
     previous_run: tuple[str, str] | None = None
+    if out.is_dir():  # "exists; use --resume" sent the user the wrong way (review, session 39)
+        raise IsADirectoryError(f"{out} is a folder: give the session file's name, e.g. "
+                                f"{out / 'session.h5'}")
     if resume:
         if not out.is_file():
             raise FileNotFoundError(f"--resume: no session file {out} to continue")

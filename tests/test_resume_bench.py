@@ -85,3 +85,16 @@ def test_resuming_a_finished_session_opens_and_writes_nothing(tmp_path, capsys):
     assert run_command(args) == 0
     assert "nothing to measure; the file is left as it is" in capsys.readouterr().out
     assert hashlib.sha256(out.read_bytes()).hexdigest() == before
+
+
+def test_an_output_that_is_a_folder_is_named_as_such(tmp_path, capsys):
+    # "exists; not overwriting it (use --resume ...)" sent the user the wrong way
+    # (first-day review, session 39)
+    from pelvislab.app.cli import main
+
+    protocol = tmp_path / "p.toml"
+    protocol.write_text(PROTOCOL)
+    for extra in ([], ["--resume"]):
+        assert main(["run", str(protocol), "--out", str(tmp_path), *extra]) == 1
+        err = capsys.readouterr().err
+        assert f"{tmp_path} is a folder: give the session file's name" in err, err
