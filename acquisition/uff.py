@@ -114,12 +114,10 @@ def read_points_file(path: str | Path) -> dict[int, PointInfo]:
     return points
 
 
-def _catalogue_position(name: str) -> np.ndarray | None:
-    """Position (m, model frame) of landmark ``name`` in the shipped catalogue, or of the
-    landmarks ``name_x``, ``name_y``, ``name_z`` when they share one; None otherwise."""
-    from pelvislab.acquisition.protocol import load_landmarks
-
-    catalogue = load_landmarks()
+def _catalogue_position(name: str, catalogue: dict) -> np.ndarray | None:
+    """Position (m, model frame) of landmark ``name`` in ``catalogue`` (the shipped one,
+    :func:`load_landmarks`), or of the landmarks ``name_x``, ``name_y``, ``name_z`` when
+    they share one; None otherwise."""
     if name in catalogue:
         return np.asarray(catalogue[name].position_m, dtype=float)
     same = [np.asarray(catalogue[f"{name}_{a}"].position_m, dtype=float)
@@ -483,6 +481,7 @@ def read_uff(path: str | Path, points: dict[int, PointInfo] | None = None
     entries = []
     scalar_warned = False
     unplaced: set[int] = set()  # nodes already named in a "no coordinates" note
+    catalogue: dict = {}  # the landmark catalogue, for nodes named after a landmark
 
     def channel(dset: dict, role: str) -> tuple[object, tuple[str, str, np.ndarray, np.ndarray]]:
         nonlocal scalar_warned
@@ -503,7 +502,11 @@ def read_uff(path: str | Path, points: dict[int, PointInfo] | None = None
         if position is None and info is not None:
             # a node mapped to a landmark of the catalogue sits where the catalogue says
             # (it was put at the origin, where identify would model it: review, session 39)
-            found = _catalogue_position(info.name)
+            if not catalogue:  # read once, when a node needs it
+                from pelvislab.acquisition.protocol import load_landmarks
+
+                catalogue.update(load_landmarks())
+            found = _catalogue_position(info.name, catalogue)
             if found is not None:
                 position = found
                 if node not in unplaced:
