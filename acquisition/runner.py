@@ -471,6 +471,18 @@ class NothingToResume(Exception):
     plan: nothing is opened or written."""
 
 
+def check_protocol_gates(protocol: Protocol, tracking_options: Any) -> None:
+    """Raise ValueError when a setup's ``gates`` (checked by the protocol with the default
+    lag range) cannot be tracked with ``tracking_options`` (its lag range)."""
+    lag = int(_with_gate(tracking_options, None).max_lag_samples)
+    for setup in protocol.setups:
+        for ch, gate in sorted(setup.gates.items()):
+            problem = gate_problem(gate, lag, int(protocol.ultrasound.samples))
+            if problem:
+                raise ValueError(f"setups {setup.name!r}: gate {gate} for ch{ch} with these "
+                                 f"tracking options: {problem}")
+
+
 NO_LIVE_ECHOES = "no live echoes"
 """How the WARNING of a failed live echo begins (the GUI ends its live echoes on it)."""
 
@@ -501,13 +513,7 @@ class Runner:
         self._current_setup: Setup | None = None  # the setup being placed or measured
         self._skip = {(k[0], round(float(k[1]), 9), int(k[2]) if len(k) > 2 else 0)
                       for k in skip}
-        lag = int(self._tracking_options().max_lag_samples)
-        for setup in protocol.setups:  # checked by the protocol with the default lag range
-            for ch, gate in sorted(setup.gates.items()):
-                problem = gate_problem(gate, lag, int(protocol.ultrasound.samples))
-                if problem:
-                    raise ValueError(f"setups {setup.name!r}: gate {gate} for ch{ch} with "
-                                     f"these tracking options: {problem}")
+        check_protocol_gates(protocol, self._tracking_options())
         self._clock = clock
         self._listeners: list[tuple[Listener, bool]] = []
         self._abort = threading.Event()
@@ -1436,6 +1442,8 @@ def prepare_session(protocol_path: Path | str, out_path: Path | str,
     else:
         config = BenchConfig.default()
     protocol = load_protocol(protocol_path, BenchLimits.from_config(config))
+    # before any file or instrument is opened (it left a new session file behind: review)
+    check_protocol_gates(protocol, tracking_options)
     skip: list[tuple[str, float, int]] = []
     problems: list[str] = []
     previous_run: tuple[str, str] | None = None
@@ -1470,12 +1478,18 @@ def prepare_session(protocol_path: Path | str, out_path: Path | str,
         planned = {(s.setup, round(float(s.frequency_hz), 9), int(s.repeat))
                    for s in protocol.steps()}
         kept = {(k[0], round(float(k[1]), 9), int(k[2])) for k in skip}
-        if not problems and planned <= kept:
+        if planned <= kept:
             # it opened the bench and wrote a run record into a finished file (first-day
-            # review, session 39): the file is left as it is
-            raise NothingToResume(f"{out} already holds every step of {protocol.name!r} "
-                                  f"(last run {previous_run[0] if previous_run else '?'}): "
-                                  "nothing to measure; the file is left as it is")
+            # review, session 39); a cut step measured again since (an incomplete group
+            # left in the file) does not change that. Only /frf lines lost to a kill after
+            # the last step's flush are written (repair_frf), nothing else
+            repaired = _repair_frf_only(out, protocol.text)
+            last = previous_run[0] if previous_run else "?"
+            raise NothingToResume(
+                f"{out} already holds every step of {protocol.name!r} (last run {last}): "
+                "nothing to measure; " + ("/frf was rebuilt from its steps (lines lost to "
+                                          "a kill), nothing else changed" if repaired else
+                                          "the file is left as it is"))
     elif out.exists():
         raise FileExistsError(f"{out} exists; not overwriting it (use --resume to continue "
                               "that session, or choose another --out)")
@@ -1618,6 +1632,28 @@ def _first_table_difference(a: dict[str, Any], b: dict[str, Any]) -> str:
 
 
 # --------------------------------------------------------------------------- reprocessing
+def _repair_frf_only(path: Path, protocol_text: str) -> bool:
+    """Rebuild ``path``'s /frf from its complete steps when it differs from them (a kill
+    between a step's flush and its /frf lines); True if it did. Nothing else is written
+    but one log line."""
+    with SessionReader(path) as reader:
+        layout = reader.frf_layout()
+        if layout is None:
+            return False
+        stored = reader.frf()
+        rebuilt = frf_from_steps(list(reader.steps(with_echoes=False)), *layout)
+    same = (np.array_equal(np.isfinite(stored.H), np.isfinite(rebuilt.H))
+            and np.allclose(np.nan_to_num(stored.H), np.nan_to_num(rebuilt.H),
+                            rtol=1e-9, atol=0.0))
+    if same:
+        return False
+    with SessionWriter.resume(path, protocol_text) as writer:
+        lines = writer.repair_frf()
+        writer.log(f"resume: every step already measured; /frf rebuilt from the steps "
+                   f"({lines} lines)", "WARNING")
+    return True
+
+
 def _with_gate(options: Any, gate: tuple[int, int] | None) -> Any:
     """``options`` (the defaults when None) with ``gate`` (None: automatic)."""
     from dataclasses import replace

@@ -1,0 +1,103 @@
+"""--resume of a session that already holds every step, and a protocol gate the runner
+refuses: found by a helper's review of session 39's commits (each failed before its fix)."""
+
+from __future__ import annotations
+
+import h5py
+import numpy as np
+import pytest
+
+from pelvislab.acquisition.runner import NothingToResume, prepare_session
+from pelvislab.acquisition.session import SessionReader
+
+sim_bench = pytest.importorskip("pelvislab.sim_instruments.bench")
+
+PROTOCOL = """
+schema = "pelvislab-protocol"
+schema_version = 1
+name = "review39b"
+[sweep]
+frequencies_hz = [40.0, 100.0, 160.0]
+drive_vpp = 0.2
+settle_s = 0.05
+[ultrasound]
+pulses = 1000
+samples = 500
+[[setups]]
+name = "a"
+excitation = "SIAS_R_x"
+transducers = { ch1 = "SIAS_R_x", ch2 = "sacrum_x" }
+"""
+
+
+def _finished(tmp_path, text=PROTOCOL):
+    protocol = tmp_path / "p.toml"
+    protocol.write_text(text)
+    out = tmp_path / "s.h5"
+    with prepare_session(protocol, out, bench=sim_bench.open_simulated_bench(
+            generators="python")) as session:
+        assert session.run().status == "completed"
+    return protocol, out
+
+
+def test_a_protocol_gate_the_runner_refuses_leaves_no_session_file(tmp_path):
+    """Runner.__init__ refuses a protocol gate its lag range cannot use "before anything
+    runs", but prepare_session has created (and published) the session file by then: the
+    same command again says 'exists; use --resume'."""
+    from pelvislab.acquisition.tracking import TrackingOptions
+
+    protocol = tmp_path / "p.toml"
+    protocol.write_text(PROTOCOL.replace(
+        'transducers = { ch1 = "SIAS_R_x", ch2 = "sacrum_x" }',
+        'transducers = { ch1 = "SIAS_R_x", ch2 = "sacrum_x" }\ngates = { ch1 = [20, 404] }'))
+    out = tmp_path / "s.h5"
+    with pytest.raises(ValueError, match="gate"):
+        prepare_session(protocol, out, bench=sim_bench.open_simulated_bench(
+            generators="python"), tracking_options=TrackingOptions(max_lag_samples=30))
+    assert not out.exists()
+
+
+def test_resume_still_repairs_frf_after_a_kill_between_the_last_flush_and_its_lines(
+        tmp_path):
+    """A kill between append_step's flush and _write_frf_lines (the case repair_frf exists
+    for) on the last step leaves every step complete and /frf without its lines. Resume
+    repairs it, without a bench or a run record (NothingToResume had left /frf short for
+    good, and the analyses read /frf)."""
+    protocol, out = _finished(tmp_path)
+    with SessionReader(out) as reader:
+        steps = list(reader.steps(with_echoes=False))
+        last = steps[-1]
+    with h5py.File(out, "r+") as h5:
+        freqs = h5["frf"]["frequency_hz"][()]
+        i = int(np.argmin(np.abs(freqs - last.frequency_hz)))
+        H = h5["frf"]["H"][()]
+        H[i] = np.nan  # its lines never written: the kill
+        h5["frf"]["H"][...] = H
+    with h5py.File(out, "r") as h5:
+        runs_before = len(h5["runs"])
+    with pytest.raises(NothingToResume, match="/frf was rebuilt from its steps"):
+        prepare_session(protocol, out, resume=True, bench=None)
+    with SessionReader(out) as reader:
+        assert np.isfinite(reader.frf().H[i]).any(), "the last step's /frf lines are lost"
+        assert len(reader.handle["runs"]) == runs_before
+    with pytest.raises(NothingToResume, match="the file is left as it is"):
+        prepare_session(protocol, out, resume=True, bench=None)
+
+
+def test_a_finished_session_that_once_had_a_cut_step_is_left_as_it_is(tmp_path):
+    """A step cut short by a kill and measured again on resume stays in the file as an
+    incomplete group. Every planned step is then kept, yet that group made a further
+    --resume open the bench, append a run record and log 'measured again' for a step it
+    does not measure: what NothingToResume is for."""
+    protocol, out = _finished(tmp_path)
+    with h5py.File(out, "r+") as h5:
+        steps = h5["steps"]
+        first = sorted(n for n in steps if n.isdigit())[0]
+        h5.copy(steps[first], steps, name=f"{9:06d}")
+        steps[f"{9:06d}"].attrs["status"] = "incomplete"
+        runs_before = len(h5["runs"])
+    with pytest.raises(NothingToResume):
+        prepare_session(protocol, out, resume=True, bench=sim_bench.open_simulated_bench(
+            generators="python")).close()
+    with h5py.File(out, "r") as h5:
+        assert len(h5["runs"]) == runs_before
