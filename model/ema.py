@@ -881,6 +881,8 @@ def low_lines_dominate(frequency_hz: np.ndarray, H: np.ndarray, share: float = 0
     EMA finds its modes there). The note names the lowest band start at which no FRF is
     so dominated any more, if one within the lowest tenth of the lines is."""
     f = np.asarray(frequency_hz, dtype=float)
+    if f.size < 2:
+        return ""
     order = np.argsort(f)
     f = f[order]
     power = np.nan_to_num(np.abs(np.asarray(H)[order]) ** 2).reshape(f.size, -1)
@@ -899,16 +901,16 @@ def low_lines_dominate(frequency_hz: np.ndarray, H: np.ndarray, share: float = 0
         return ""
     n_low = max(1, int(np.ceil(lowest * f.size)))
     # the first start that is not so dominated, among the lowest tenth of the lines (a
-    # bounded search: each step reads every line)
-    last = min(f.size - 8, max(10, f.size // 10))
+    # bounded search: each step reads every line), leaving the 4 lines ema needs
+    last = min(f.size - 3, max(10, f.size // 10))
     start = next((k for k in range(1, last) if not dominated(k)[0]), None)
-    where = ("start the band higher" if start is None
-             else f"start the band at {f[start]:.4g} Hz or above")
+    advice = ("give H_std, or measure more lines above them" if start is None
+              else f"start the band at {f[start]:.4g} Hz or above (--band), or give H_std")
     return (f"without H_std every line of an FRF weighs alike, and the lowest {n_low} "
             f"line(s) ({f[0]:.4g}-{f[n_low - 1]:.4g} Hz) hold {top:.1%} of an FRF's |H|^2: "
             "they decide the fit, and modes above may be dropped or poorly fitted (a "
             "receptance converted from accelerance or mobility multiplies the noise of its "
-            f"lowest lines); {where} (--band), or give H_std")
+            f"lowest lines); {advice}")
 
 
 def mode_significance(

@@ -274,3 +274,37 @@ def test_receptance_converted_from_noisy_accelerance_is_named_and_a_band_start_g
     np.testing.assert_allclose(banded.frequency_hz, in_band, rtol=5e-3)
     clean = ema(f, add_noise(receptance(M, K, C, f, [0, 2, 4], [0]), 0.01, 4))
     assert not any("weighs alike" in n for n in clean.notes), clean.notes
+
+
+def test_the_suggested_band_start_leaves_a_band_ema_can_fit():
+    """Short bands (helper review, session 39): for 4-9 lines the note named the second line
+    unchecked; with four lines the suggested band had 3, which ema refuses."""
+    from pelvislab.model.ema import low_lines_dominate
+
+    f = np.array([1.0, 2.0, 3.0, 4.0])
+    H = (1.0 / f**4).reshape(-1, 1, 1).astype(complex)
+    note = low_lines_dominate(f, H)
+    assert note.endswith("give H_std, or measure more lines above them"), note
+    f = np.arange(1.0, 9.0)
+    H = (1.0 / f**4).reshape(-1, 1, 1).astype(complex)
+    note = low_lines_dominate(f, H)
+    if "start the band at " in note:
+        start = float(note.split("start the band at ")[1].split()[0])
+        assert np.count_nonzero(f >= start) >= 4, note
+
+
+def test_the_suggested_band_start_is_not_itself_dominated():
+    from pelvislab.model.ema import low_lines_dominate
+
+    f = np.arange(1.0, 7.0)  # 6 lines, |H| ~ 1/f^4 (receptance from white accelerance)
+    H = (1.0 / f**4).reshape(-1, 1, 1).astype(complex)
+    note = low_lines_dominate(f, H)
+    start = float(note.split("start the band at ")[1].split()[0])
+    keep = f >= start
+    assert low_lines_dominate(f[keep], H[keep]) == "", (start, note)
+
+
+def test_a_single_line_does_not_crash():
+    from pelvislab.model.ema import low_lines_dominate
+
+    low_lines_dominate(np.array([5.0]), np.array([[[1.0 + 0j]]]))  # IndexError: f[1]
