@@ -508,19 +508,23 @@ class OperatorWindow(QtWidgets.QMainWindow):
         if problem is not None:
             alert(self, "Cannot start", problem, critical=False)
             return
+        replayed = None
         if resume and self.replay.path is not None and self.replay.path.resolve() == \
                 out.resolve():
+            replayed = self.replay.path
             self.replay.close_session()  # HDF5 opens a file once: read-only here blocks it
         from pelvislab.acquisition.runner import NothingToResume
 
         try:
             self.control = SessionControl(protocol, out, self.subject_edit.text().strip(),
                                           self.bench_path, resume=resume)
-        except NothingToResume as exc:  # a finished session: nothing opened or written
-            alert(self, "Nothing to continue", str(exc), critical=False)
-            return
         except Exception as exc:
-            alert(self, "Cannot start", str(exc))
+            if replayed is not None:  # shown again (it went blank: helper review)
+                self.replay.open_session(replayed)
+            if isinstance(exc, NothingToResume):  # a finished session: nothing opened
+                alert(self, "Nothing to continue", str(exc), critical=False)
+            else:
+                alert(self, "Cannot start", str(exc))
             return
         self._frf_lines.clear()
         self.frf.clear_curves()

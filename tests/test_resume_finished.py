@@ -101,3 +101,35 @@ def test_a_finished_session_that_once_had_a_cut_step_is_left_as_it_is(tmp_path):
             generators="python")).close()
     with h5py.File(out, "r") as h5:
         assert len(h5["runs"]) == runs_before
+
+
+def test_gui_nothing_to_continue_keeps_the_replay_of_that_file(operator_window, qtbot,
+                                                               tmp_path, monkeypatch):
+    """Start on a finished session shown in the replay: start_run closes the replay's
+    reader (HDF5 opens a file once) before SessionControl raises NothingToResume; the
+    'Nothing to continue' path returned without opening it again and the replay went
+    blank (helper review, session 39)."""
+    from PySide6 import QtWidgets
+
+    from pelvislab.app import gui_main
+
+    protocol = tmp_path / "p.toml"
+    protocol.write_text(PROTOCOL)
+    out = tmp_path / "s.h5"
+    with prepare_session(protocol, out, bench=sim_bench.open_simulated_bench(
+            generators="python"), subject_id="T001") as session:
+        assert session.run().status == "completed"
+    said = []
+    monkeypatch.setattr(gui_main, "alert", lambda parent, title, text, critical=True:
+                        said.append(title))
+    monkeypatch.setattr(QtWidgets.QMessageBox, "question",
+                        lambda *args, **kwargs: QtWidgets.QMessageBox.StandardButton.Yes)
+    window = operator_window()
+    window.protocol_combo.addItem("review39b", str(protocol))
+    window.protocol_combo.setCurrentIndex(window.protocol_combo.count() - 1)
+    window.subject_edit.setText("T001")
+    window.out_edit.setText(str(out))
+    window.replay.open_session(out)
+    window.start_run()
+    assert said == ["Nothing to continue"], said
+    assert window.replay.path == out and window.replay.reader is not None
