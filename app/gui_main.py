@@ -521,8 +521,14 @@ class OperatorWindow(QtWidgets.QMainWindow):
         except Exception as exc:
             if replayed is not None:  # shown again (it went blank: helper review)
                 self.replay.open_session(replayed)
+            unsafe = list(getattr(exc, "unsafe", []) or [])
             if isinstance(exc, NothingToResume):  # a finished session: nothing opened
                 alert(self, "Nothing to continue", str(exc), critical=False)
+            elif unsafe:  # an instrument opened before the failure was not made safe
+                self.outputs_unconfirmed = True
+                self._set_state("unsafe")
+                alert(self, "Outputs not confirmed off", f"{exc}\n\n" + "\n".join(unsafe)
+                      + "\n\nSwitch the shaker amplifier off by hand.")
             else:
                 alert(self, "Cannot start", str(exc))
             return

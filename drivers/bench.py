@@ -748,7 +748,8 @@ def open_bench(path: Path | None,
     only non-test import of it); so does a bench file with ``[bench] simulated = true``,
     which then supplies the calibration constants and limits.
     If any instrument fails to open, those already opened are made safe and closed before
-    the error propagates. ``on_open(role, instrument)`` is called after each instrument of
+    the error propagates; what they could not make safe is in the error's ``unsafe``
+    attribute (a list of messages). ``on_open(role, instrument)`` is called after each instrument of
     a real bench opens (``bench check`` lists those that answered before one that did not);
     what it raises is handled as a failure to open that instrument.
     """
@@ -768,7 +769,7 @@ def open_bench(path: Path | None,
             nonlocal current
             current = section
             instrument = _open_instrument(section, config)
-            opened.append(instrument)
+            opened.append((section.role, instrument))
             if on_open is not None:
                 on_open(section.role, instrument)
             return instrument
@@ -783,11 +784,22 @@ def open_bench(path: Path | None,
             # which instrument of which bench file (a VISA address alone did not say it:
             # a first-day review, session 36); the exception keeps its type
             exc.args = (f"{path}: [{current.role}] {current.resource}: {exc.args[0]}",)
-        for inst in reversed(opened):
+        # what the instruments opened so far could not make safe goes with the error
+        # (``unsafe``): it was only logged, and bench check / run said exit 3, not that an
+        # output was not confirmed off (helper review, session 39)
+        unsafe: list[str] = []
+        for role, inst in reversed(opened):
+            own = getattr(inst, "safe_state_errors", None)
+            seen = len(own) if isinstance(own, list) else 0
             try:
                 inst.close()
-            except Exception as exc:  # report the original error instead
-                log.error("closing %s after a failed bench open: %s", inst, exc)
+            except Exception as close_exc:  # report the original error instead
+                log.error("closing %s after a failed bench open: %s", inst, close_exc)
+                unsafe.append(f"{role}: close failed: {close_exc}")
+            if isinstance(own, list):
+                unsafe += [f"{role}: {message}" for message in own[seen:]]
+        if unsafe and isinstance(exc, Exception):
+            exc.unsafe = unsafe  # type: ignore[attr-defined]
         raise
     return Bench(trigger=trigger, drive=drive, digitizer=digitizer, pulsers=pulsers,
                  config=config, simulated=False)

@@ -54,14 +54,24 @@ def drive_calibration_text(config: Any) -> str:
             f"{config.drive_calibration_source}")
 
 
-def _print_instrument(role: str, instrument: Any, lock: str) -> None:
-    print(f"  {role:10s} {getattr(instrument, 'identity', '?')}  "
-          f"[{getattr(instrument, 'resource', '')}]" + (f"  {lock}" if lock else ""),
-          flush=True)
+def _instrument_line(role: str, instrument: Any, lock: str) -> str:
+    return (f"  {role:10s} {getattr(instrument, 'identity', '?')}  "
+            f"[{getattr(instrument, 'resource', '')}]" + (f"  {lock}" if lock else ""))
+
+
+def _report_unsafe(unsafe: list[str]) -> None:
+    for message in unsafe:
+        print(f"pelvislab bench check: {message}", file=sys.stderr)
+    print("pelvislab bench check: OUTPUTS NOT CONFIRMED OFF: switch the shaker amplifier "
+          "off by hand", file=sys.stderr)
 
 
 def check_command(args: argparse.Namespace) -> int:
-    """Open, list, make safe, close; the exit code says what failed."""
+    """Open, list, make safe, close; the exit code says what failed: 5 an output not
+    confirmed off, 3 an instrument fault, 141 stdout's reader gone (``| head``), else 0."""
+    import os
+
+    from pelvislab.app.cli import EXIT_BROKEN_PIPE
     from pelvislab.drivers.bench import BenchConfig, open_bench
     from pelvislab.drivers.interfaces import DriverError
 
@@ -69,14 +79,31 @@ def check_command(args: argparse.Namespace) -> int:
     if not path.is_file():
         raise FileNotFoundError(f"bench file not found: {path}")
     config = BenchConfig.load(path)
-    print(f"{config.name}{' (SIMULATED)' if config.simulated else ''}")
-    print(f"  drive calibration: {drive_calibration_text(config)}")
+    piped_away = False
+
+    def say(text: str) -> None:
+        # stdout's reader may go away (`| head -1`): the check goes on to its safe state
+        # and its report on stderr (a BrokenPipeError skipped them: helper review)
+        nonlocal piped_away
+        if piped_away:
+            return
+        try:
+            print(text, flush=True)
+        except BrokenPipeError:
+            piped_away = True
+            try:
+                os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+            except (OSError, ValueError, AttributeError):
+                pass
+
+    say(f"{config.name}{' (SIMULATED)' if config.simulated else ''}")
+    say(f"  drive calibration: {drive_calibration_text(config)}")
     listed: set[str] = set()
 
     def answered(role: str, instrument: Any) -> None:
         # each instrument as it opens: when a later one does not, those that answered
         # are listed (only the failure was printed: first-day review, session 39)
-        _print_instrument(role, instrument, _lock_text(instrument))
+        say(_instrument_line(role, instrument, _lock_text(instrument)))
         listed.add(role)
 
     try:
@@ -84,6 +111,10 @@ def check_command(args: argparse.Namespace) -> int:
     except DriverError as exc:
         print(f"pelvislab bench check: instrument fault: {' '.join(str(exc).split())}",
               file=sys.stderr)
+        unsafe = list(getattr(exc, "unsafe", []) or [])
+        if unsafe:  # the instruments opened before it could not all be made safe
+            _report_unsafe(unsafe)
+            return EXIT_UNSAFE
         return EXIT_FAULT
     fault = None
     try:
@@ -98,7 +129,7 @@ def check_command(args: argparse.Namespace) -> int:
             except DriverError as exc:  # answered at open, not now: a fault, named
                 fault = f"{path}: [{role}] {getattr(instrument, 'resource', '')}: {exc}"
                 break
-            _print_instrument(role, instrument, lock)
+            say(_instrument_line(role, instrument, lock))
     finally:
         # the safe state's and the close's failures, whatever happened above
         seen = len(bench.safe_state_errors)
@@ -108,12 +139,9 @@ def check_command(args: argparse.Namespace) -> int:
         print(f"pelvislab bench check: instrument fault: {' '.join(fault.split())}",
               file=sys.stderr)
     if unsafe:
-        for message in unsafe:
-            print(f"pelvislab bench check: {message}", file=sys.stderr)
-        print("pelvislab bench check: OUTPUTS NOT CONFIRMED OFF: switch the shaker amplifier "
-              "off by hand", file=sys.stderr)
+        _report_unsafe(unsafe)
         return EXIT_UNSAFE
     if fault is not None:
         return EXIT_FAULT
-    print("ok: every instrument answered; outputs off")
-    return 0
+    say("ok: every instrument answered; outputs off")
+    return EXIT_BROKEN_PIPE if piped_away else 0

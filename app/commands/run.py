@@ -243,6 +243,13 @@ def run_command(args: argparse.Namespace) -> int:
         # was made safe and closed, no session file was written
         print(f"pelvislab run: instrument fault: {' '.join(str(exc).split())}; nothing "
               f"written to {args.out}", file=sys.stderr)
+        unsafe = list(getattr(exc, "unsafe", []) or [])
+        if unsafe:  # an instrument opened before it could not be made safe
+            for message in unsafe:
+                print(f"pelvislab run: {message}", file=sys.stderr)
+            print("pelvislab run: OUTPUTS NOT CONFIRMED OFF: switch the shaker amplifier off "
+                  "by hand", file=sys.stderr)
+            return EXIT_UNSAFE
         return EXIT_FAULT
     restore: dict[int, Any] = {}  # signal handlers to put back once the summary is out
     try:
