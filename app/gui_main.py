@@ -300,7 +300,8 @@ class OperatorWindow(QtWidgets.QMainWindow):
         run_layout.addWidget(self.aim_label)
         self.auto_gates_button = QtWidgets.QPushButton("Automatic gates")
         self.auto_gates_button.setToolTip(
-            "forget the gates you set: track the strongest echo of each channel")
+            "forget the gates set for this setup (yours, and the protocol's): track the "
+            "strongest echo of each channel")
         self.auto_gates_button.setVisible(False)
         self.auto_gates_button.clicked.connect(self.automatic_gates)
         run_layout.addWidget(self.auto_gates_button)

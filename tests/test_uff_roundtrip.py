@@ -382,3 +382,26 @@ def test_a_node_named_after_a_landmark_without_coordinates_takes_the_catalogues(
     assert any("node 1 (SIPS_R_x) has no coordinates; placed at the landmark catalogue"
                in n for n in notes), notes
     assert any("node 2 has no coordinates; placed at the origin" in n for n in notes), notes
+
+
+def test_import_uff_reads_the_landmark_catalogue_once(tmp_path, monkeypatch):
+    """The catalogue was parsed on every call, twice per record (output and input node):
+    1200 records took 3.3 s instead of 0.18 s (helper review, session 39)."""
+    from pelvislab.acquisition import protocol as protocol_module
+
+    f = np.arange(1.0, 20.0)
+    uff = pyuff.UFF(str(tmp_path / "n.uff"))
+    uff.write_sets([pyuff.prepare_58(
+        func_type=4, rsp_node=node, rsp_dir=d, ref_node=100, ref_dir=3, abscissa_spacing=1,
+        abscissa_spec_data_type=18, ordinate_spec_data_type=8, orddenom_spec_data_type=13,
+        x=f, data=np.exp(1j * f) * 1e-6) for node in (1, 2) for d in (1, 2, 3)],
+        mode="overwrite")
+    (tmp_path / "p.toml").write_text(
+        '[[point]]\nnode = 1\nname = "SIPS_R_x"\n[[point]]\nnode = 2\nname = "sacrum_x"\n'
+        '[[point]]\nnode = 100\nname = "drive"\n')
+    calls = []
+    original = protocol_module.load_landmarks
+    monkeypatch.setattr(protocol_module, "load_landmarks",
+                        lambda *a, **k: calls.append(1) or original(*a, **k))
+    read_uff(tmp_path / "n.uff", read_points_file(tmp_path / "p.toml"))
+    assert len(calls) <= 1, f"the catalogue was parsed {len(calls)} times for 6 records"
