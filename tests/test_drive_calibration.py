@@ -243,6 +243,8 @@ def test_resume_on_the_same_table_through_the_file(tmp_path):
             cfg, generators="python")) as session:
         session.runner.abort("stopped for the test")
         session.run()
+    aborted = tmp_path / "aborted.h5"  # a finished session is not resumed at all
+    aborted.write_bytes(out.read_bytes())
     with prepare_session(protocol, out, resume=True, bench=sim_bench.open_simulated_bench(
             cfg, generators="python")) as session:
         assert session.run().status == "completed"
@@ -252,7 +254,7 @@ def test_resume_on_the_same_table_through_the_file(tmp_path):
                                          r"\): a per-frequency table \(3 rows, 20-200 Hz\) in "
                                          r"the session, another table \(row 1 at 10 Hz, "
                                          r"was 20 Hz\)"):
-        prepare_session(protocol, out, resume=True, bench=sim_bench.open_simulated_bench(
+        prepare_session(protocol, aborted, resume=True, bench=sim_bench.open_simulated_bench(
             BenchConfig.load(tmp_path / "bench.toml"), generators="python"))
 
 
