@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import math
 import sys
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -52,6 +53,10 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--starts", type=int, default=None, metavar="N",
                    help="maximum number of starts of the global strategy")
     p.add_argument("--seed", type=int, default=0, help="random seed of the multi-start")
+    p.add_argument("--gain-std", type=float, default=0.0, metavar="FRACTION",
+                   help="standard uncertainty of each FRF's gain (a calibration error common "
+                   "to its lines, e.g. 0.003), added to the std (default 0: the std are then "
+                   "the noise's share only)")
     p.add_argument("--json", required=True, metavar="OUT", help="write the result JSON here")
     p.set_defaults(handler=_identify)
 
@@ -86,7 +91,8 @@ def identify_file(path: str | Path, method: str = "frf", params: list[str] | Non
                   model_path: str | Path | None = None,
                   progress: Callable[[str], None] | None = None, *, symmetric: bool = False,
                   version_b: bool = False, residual: str = "auto", a_b: float | None = None,
-                  starts: int | None = None, seed: int = 0) -> IdentificationReport:
+                  starts: int | None = None, seed: int = 0,
+                  gain_std: float = 0.0) -> IdentificationReport:
     """Identify the pelvis model's parameters from the /frf of ``path`` (session or FRF-only).
 
     The one entry point of the CLI and the GUI's replay view; the numerics are
@@ -127,6 +133,8 @@ def identify_file(path: str | Path, method: str = "frf", params: list[str] | Non
                                  "lines: ignored")
     f_k, f_c = model.frequency_dependence.f_k, model.frequency_dependence.f_c
     if method == "modal":
+        if gain_std:
+            raise ValueError("--gain-std applies to --method frf (the FRF fit)")
         data = modes_from_frf(frf.frequency_hz, frf.H)
         result = identify_modal(problem, data, free=free, progress=progress)
         extra: dict[str, Any] = {"method": "modal",
@@ -159,9 +167,9 @@ def identify_file(path: str | Path, method: str = "frf", params: list[str] | Non
         result = identify_frf(
             problem, frf.frequency_hz, frf.H, H_std, free=free, residual=spec,
             strategy=strategy, version_b=version_b, start_freq_dep=(f_k, f_c),
-            progress=progress,
+            progress=progress, gain_std=gain_std,
         )
-        extra = {"method": "frf"}
+        extra = {"method": "frf", "gain_std": float(gain_std)}
         if kind in ("eq610", "log"):  # the weights of the std residual are its H_std
             extra["a_over_b"] = float(a_b)
     else:
@@ -190,6 +198,9 @@ def _identify(args: argparse.Namespace) -> int:
         raise ValueError(f"--starts {args.starts}: must be >= 1")
     if args.seed < 0:
         raise ValueError(f"--seed {args.seed}: must be >= 0")
+    if not (math.isfinite(args.gain_std) and 0 <= args.gain_std < 0.5):
+        raise ValueError(f"--gain-std {args.gain_std}: must be a fraction in [0, 0.5), "
+                         "e.g. 0.003 for 0.3 %")
     out = check_new_output(args.json)
     free = comma_list(args.params) if args.params else None
     warning = incomplete_session_warning(args.session)
@@ -200,7 +211,7 @@ def _identify(args: argparse.Namespace) -> int:
         args.session, args.method, free, args.model, progress, symmetric=args.symmetric,
         version_b=args.version_b, residual=args.residual,
         a_b=None if args.a_b is None else float(args.a_b),
-        starts=args.starts, seed=args.seed)
+        starts=args.starts, seed=args.seed, gain_std=args.gain_std)
     write_json(out, report.to_json())
     for note in report.document.get("notes", []):
         print(f"note: {note}", file=sys.stderr)
