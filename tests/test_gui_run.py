@@ -664,3 +664,30 @@ def test_live_echoes_that_fail_in_a_pause_end_and_can_be_asked_for_again(operato
     qtbot.waitUntil(window.aim_label.isVisible, timeout=30_000)
     window.control.stop("test done")
     qtbot.waitUntil(window.control.finished.is_set, timeout=30_000)
+
+
+def test_a_bench_that_fails_to_open_with_an_output_not_confirmed_off_says_so(
+        operator_window, tmp_path, monkeypatch):
+    # an instrument opened before a failing one could not confirm its output off: the
+    # window shows the red banner and says so (it said only "Cannot start"; session 39)
+    from pelvislab.app import gui_main
+    from pelvislab.drivers.interfaces import InstrumentTimeoutError
+
+    def failing(*args, **kwargs):
+        exc = InstrumentTimeoutError("lab.toml: [drive] USB0::...: no answer to *IDN?")
+        exc.unsafe = ["trigger: OUTP OFF not confirmed"]
+        raise exc
+
+    said = []
+    monkeypatch.setattr(gui_main, "SessionControl", failing)
+    monkeypatch.setattr(gui_main, "alert", lambda parent, title, text, critical=True:
+                        said.append((title, text)))
+    window = operator_window()
+    window.subject_edit.setText("T001")
+    window.protocol_combo.setCurrentIndex(window.protocol_combo.findText("demo"))
+    window.out_edit.setText(str(tmp_path / "s.h5"))
+    window.start_run()
+    assert said and said[0][0] == "Outputs not confirmed off"
+    assert "trigger: OUTP OFF not confirmed" in said[0][1]
+    assert window.state_banner.text().startswith("OUTPUTS NOT CONFIRMED OFF")
+    assert window.start_button.isEnabled()
