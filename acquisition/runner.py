@@ -1457,8 +1457,15 @@ def prepare_session(protocol_path: Path | str, out_path: Path | str,
             if reader.protocol_text != protocol.text:
                 raise ValueError(f"{out}: its /protocol differs from {protocol_path}; resume "
                                  "with the protocol the session started with")
-            skip = [s.key for s in reader.steps(with_echoes=False)]
-            problems = reader.damaged + reader.incomplete
+            every = list(reader.steps(include_incomplete=True, with_echoes=False))
+            skip = [s.key for s in every if s.status == STATUS_COMPLETE]
+            done = {(k[0], round(float(k[1]), 9), int(k[2])) for k in skip}
+            # a group cut short whose step was measured again since is history, not a step
+            # to measure: no "measured again" for it (helper review, session 39)
+            problems = reader.damaged + [
+                f"{s.index:06d}: status {s.status!r}" for s in every
+                if s.status != STATUS_COMPLETE
+                and (s.key[0], round(float(s.key[1]), 9), int(s.key[2])) not in done]
             previous_run = reader.status
             source = reader.attrs.get("reprocessed_from")
             if source is not None:

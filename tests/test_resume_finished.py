@@ -133,3 +133,27 @@ def test_gui_nothing_to_continue_keeps_the_replay_of_that_file(operator_window, 
     window.start_run()
     assert said == ["Nothing to continue"], said
     assert window.replay.path == out and window.replay.reader is not None
+
+
+def test_resume_warns_only_of_cut_steps_it_measures_again(tmp_path):
+    """A group cut short whose step is complete elsewhere in the file was announced as
+    'measured again' on every resume (helper review, session 39); one whose step is
+    missing is measured again, and said."""
+    protocol, out = _finished(tmp_path)
+    with h5py.File(out, "r+") as h5:
+        steps = h5["steps"]
+        names = sorted(n for n in steps if n.isdigit())
+        h5.copy(steps[names[0]], steps, name="000010")  # its step is complete: history
+        steps["000010"].attrs["status"] = "incomplete"
+        h5.copy(steps[names[-1]], steps, name="000011")  # its step is gone: measured again
+        steps["000011"].attrs["status"] = "incomplete"
+        del steps[names[-1]]
+    with prepare_session(protocol, out, resume=True, bench=sim_bench.open_simulated_bench(
+            generators="python")) as session:
+        assert session.run().status == "completed"
+    with SessionReader(out) as reader:
+        lines = reader.log_lines()
+        assert len(list(reader.steps(with_echoes=False))) == 3
+    said = [line for line in lines if "measured again" in line]
+    assert any("000011" in line for line in said), said
+    assert not any("000010" in line for line in said), said
