@@ -1,5 +1,6 @@
-"""--resume of a session that already holds every step, and a protocol gate the runner
-refuses: found by a helper's review of session 39's commits (each failed before its fix)."""
+"""--resume of a session that already holds every step, a protocol gate the runner
+refuses, resume's warnings and reprocess's progress: found by reviews of session 39's
+commits and by its first-day review (each failed before its fix)."""
 
 from __future__ import annotations
 
@@ -157,3 +158,16 @@ def test_resume_warns_only_of_cut_steps_it_measures_again(tmp_path):
     said = [line for line in lines if "measured again" in line]
     assert any("000011" in line for line in said), said
     assert not any("000010" in line for line in said), said
+
+
+def test_reprocess_says_its_progress_without_a_terminal_when_asked(tmp_path, capsys):
+    # 35 s of silence on a face_up session when stderr was a log (first-day review,
+    # session 39): --progress prints a line about every tenth of the steps
+    from pelvislab.app.cli import main
+
+    _, out = _finished(tmp_path)
+    assert main(["reprocess", str(out), "--out", str(tmp_path / "r.h5"), "--progress"]) == 0
+    err = capsys.readouterr().err
+    assert "reprocessing step 3/3" in err and "reprocessed 3 steps" in err
+    assert main(["reprocess", str(out), "--out", str(tmp_path / "q.h5")]) == 0
+    assert "reprocessing step" not in capsys.readouterr().err
