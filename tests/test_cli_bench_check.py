@@ -60,7 +60,9 @@ def test_outputs_not_confirmed_off_are_exit_5(tmp_path, capsys, monkeypatch):
     assert "drive: OUTP OFF not confirmed" in err and "OUTPUTS NOT CONFIRMED OFF" in err
 
 
-def _lab_with_a_silent_drive(tmp_path):
+def _lab_with_a_silent_drive(tmp_path, drive_serial="MY99999999"):
+    """A lab bench file on pyvisa-sim; the drive's serial MY99999999 answers nothing (the
+    simulated 33220A is MY44000001)."""
     bench = tmp_path / "lab.toml"
     bench.write_text(f"""
 [bench]
@@ -74,7 +76,7 @@ resource = "USB0::0x0957::0x0407::MY44000001::INSTR"
 load_ohm = 50
 visa_library = "{SIM_YAML}@sim"
 [drive]
-resource = "USB0::0x0957::0x0407::MY99999999::INSTR"
+resource = "USB0::0x0957::0x0407::{drive_serial}::INSTR"
 load_ohm = "inf"
 visa_library = "{SIM_YAML}@sim"
 [digitizer]
@@ -149,28 +151,7 @@ def test_bench_check_lock_failure_at_open_still_reports_unconfirmed_outputs(
     from pelvislab.drivers.agilent33220a import Agilent33220A
     from pelvislab.drivers.interfaces import InstrumentTimeoutError
 
-    sim_yaml = SIM_YAML
-    bench = tmp_path / "lab.toml"
-    bench.write_text(f"""
-[bench]
-name = "lab"
-[limits]
-max_drive_vpp = 1.0
-[calibration]
-drive_newton_per_volt = 8.0
-[trigger]
-resource = "USB0::0x0957::0x0407::MY44000001::INSTR"
-load_ohm = 50
-visa_library = "{sim_yaml}@sim"
-[drive]
-resource = "USB0::0x0957::0x0407::MY44000001::INSTR"
-load_ohm = "inf"
-visa_library = "{sim_yaml}@sim"
-[digitizer]
-resource = "PCI::INSTR0"
-[[pulsers]]
-resource = "loop://"
-""")
+    bench = _lab_with_a_silent_drive(tmp_path, drive_serial="MY44000001")  # answers
 
     def silent(self):
         raise InstrumentTimeoutError("no answer to PHAS:UNL:ERR:STAT?")

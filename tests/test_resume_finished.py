@@ -10,25 +10,12 @@ import pytest
 
 from pelvislab.acquisition.runner import NothingToResume, prepare_session
 from pelvislab.acquisition.session import SessionReader
+from pelvislab.tests.test_runner_aiming import PROTOCOL as AIM_PROTOCOL
 
 sim_bench = pytest.importorskip("pelvislab.sim_instruments.bench")
 
-PROTOCOL = """
-schema = "pelvislab-protocol"
-schema_version = 1
-name = "review39b"
-[sweep]
-frequencies_hz = [40.0, 100.0, 160.0]
-drive_vpp = 0.2
-settle_s = 0.05
-[ultrasound]
-pulses = 1000
-samples = 500
-[[setups]]
-name = "a"
-excitation = "SIAS_R_x"
-transducers = { ch1 = "SIAS_R_x", ch2 = "sacrum_x" }
-"""
+# setup a of the live-echo tests' protocol: three steps, two channels
+PROTOCOL = AIM_PROTOCOL.split("[[setups]]\nname = \"b\"")[0]
 
 
 def _finished(tmp_path, text=PROTOCOL):
