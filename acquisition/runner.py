@@ -1097,6 +1097,7 @@ class Runner:
                                     dict(setup.transducers), n_setups))
             for ch, gate in sorted(setup.gates.items()):
                 self._log(f"ch{ch}: gate from the protocol, samples {gate[0]}-{gate[1]}")
+            cut_said: set[tuple[Any, ...]] = set()  # gates said to cut the echo
             first = steps[0]
             aims = not self.auto_continue and self.aim_pulses > 0
             if aims:  # the simulated operator places first, so that the live echoes show it
@@ -1156,6 +1157,14 @@ class Runner:
                                        float(q.get("lost_fraction", np.nan)),
                                        float(q.get("snr_db_median", np.nan)),
                                        str(q.get("message", ""))))
+                    cut = _cut_gate_note(q)
+                    said = (c.name, q.get("gate_start"), q.get("gate_stop"))
+                    if cut and said not in cut_said:
+                        # an `ok` step's note is only stored: a gate through the echo (5x
+                        # the noise) is said once per gate, in the CLI and the GUI's log
+                        cut_said.add(said)
+                        self._log(f"{c.name} (setup {setup.name!r}, from "
+                                  f"{step.frequency_hz:g} Hz): {cut}", "WARNING")
                 n_done += 1
                 self._n_new += 1
                 est_done += remaining_est.pop(0)
@@ -1680,12 +1689,21 @@ def _recorded_gate(channel: ChannelData) -> tuple[tuple[int, int], str] | None:
     return (int(q["gate_start"]), int(q["gate_stop"])), str(source)
 
 
+def _cut_gate_note(quality: Mapping[str, Any]) -> str:
+    """The tracker's note on a gate that cuts the echo, from a channel's quality, else ""."""
+    from pelvislab.acquisition.tracking import GATE_CUT_NOTE
+
+    found = GATE_CUT_NOTE.search(str(quality.get("tracking_warnings", "")))
+    return found.group(0) if found else ""
+
+
 def reprocess_session(source: Path | str, target: Path | str, tracking_options: Any = None,
                       speed_of_sound_m_s: float | None = None,
                       progress: Callable[[int, int], None] | None = None,
                       software_version: str = "",
                       channel_gates: Mapping[str, tuple[int, int] | None] | None = None,
-                      keep_operator_gates: bool = True) -> tuple[int, list[str]]:
+                      keep_operator_gates: bool = True,
+                      notes: list[str] | None = None) -> tuple[int, list[str]]:
     """Recompute displacement, phasors and /frf of ``source`` from its raw echoes alone.
 
     Writes a new session ``target`` (never over an existing file) with the same /protocol,
@@ -1703,6 +1721,10 @@ def reprocess_session(source: Path | str, target: Path | str, tracking_options: 
     unless ``keep_operator_gates`` is False, so that re-tracking with another estimator
     does not silently drop it), else the automatic gate. A gate for a channel no step has
     is refused (nothing written).
+
+    ``notes`` (when given) receives, per channel, the tracker's note on a gate set by hand
+    that cuts the echo (:data:`pelvislab.acquisition.tracking.GATE_CUT_LEVEL`) with the
+    number of steps it was made on; the file's log gets the same lines.
     """
     import os
 
@@ -1753,6 +1775,8 @@ def reprocess_session(source: Path | str, target: Path | str, tracking_options: 
             chosen = dict(channel_gates or {})
             options_gate = getattr(tracking_options, "gate", None)
             kept: dict[str, int] = {}  # recorded gates kept, by who set them
+            cut_gates: dict[str, tuple[int, str]] = {}  # steps, first note, per channel
+            records: dict[str, int] = {}  # steps, per channel
             for n, step in enumerate(reader.steps()):
                 for c in step.channels:
                     if c.name in chosen:  # given for this channel: it decides
@@ -1782,6 +1806,11 @@ def reprocess_session(source: Path | str, target: Path | str, tracking_options: 
                                    if recorded_by else "") + "; nothing written")
                     process_channel(c, step.frequency_hz, options, speed_of_sound_m_s)
                     c.quality["gate_source"] = gate_source
+                    records[c.name] = records.get(c.name, 0) + 1
+                    cut = _cut_gate_note(c.quality)
+                    if cut:
+                        count, first = cut_gates.get(c.name, (0, cut))
+                        cut_gates[c.name] = (count + 1, first)
                 failed = [str(c.quality.get("message", "")) for c in step.channels
                           if str(c.quality.get("message", "")).startswith("tracking failed")]
                 if not done and step.channels and len(failed) == len(step.channels):
@@ -1823,6 +1852,13 @@ def reprocess_session(source: Path | str, target: Path | str, tracking_options: 
             if unknown:
                 raise ValueError(f"gate for {', '.join(unknown)}: no such channel in "
                                  f"{source}'s steps; nothing written")
+            for name, (count, note) in sorted(cut_gates.items()):
+                # the gate is the caller's: said once, not in every step's quality only
+                line = f"{name}, {count} of its {records[name]} steps: {note}"
+                if notes is not None:
+                    notes.append(line)
+                out["log"].resize((out["log"].shape[0] + 1,))
+                out["log"][-1] = log_entry(line)
             for who in ("operator", "protocol"):
                 if kept.get(who):
                     out["log"].resize((out["log"].shape[0] + 1,))

@@ -124,7 +124,9 @@ def test_live_echoes_name_the_rival_and_the_operator_gate_tracks_the_bone(tmp_pa
     assert first[1].volts.shape == first[1].time_s.shape == (500,)
     gate = {e.channel: e for e in aims[1].echoes}[1]
     assert gate.gate_source == "operator" and gate.gate[1] - gate.gate[0] == 100
-    assert not gate.notes  # a gate the operator set is not second-guessed
+    # a gate the operator set is not second-guessed about rivals; that it cuts the bone's
+    # echo (+-50 samples of its peak, the envelope still ~70 %) is said
+    assert len(gate.notes) == 1 and "the gate cuts the echo" in gate.notes[0], gate.notes
     said = [e.text for e in events if isinstance(e, r.LogMessage) and e.level == "INFO"]
     assert f"ch1: gate set by the operator to samples {gate.gate[0]}-{gate.gate[1]}" in said
     # setup b: placed anew, automatic again
@@ -576,8 +578,16 @@ def test_a_fixed_rigs_gate_from_the_protocol_tracks_the_bone_headless(tmp_path):
     assert np.all(ch1_ratio(out) > 0.9), ch1_ratio(out)
     said = [e.text for e in events if isinstance(e, r.LogMessage)]
     assert "ch1: gate from the protocol, samples 304-404" in said
+    # +-50 samples of the bone echo's peak cut it (its envelope ~70 % there): said once,
+    # as a warning, though each step is `ok`
+    cut = [e.text for e in events if isinstance(e, r.LogMessage) and e.level == "WARNING"
+           and "the gate cuts the echo" in e.text]
+    assert len(cut) == 1 and cut[0].startswith("ch1 (setup 'a', from "), cut
+    assert all(q["ok"] for q in _quality(out))
     kept = tmp_path / "kept.h5"
-    r.reprocess_session(out, kept)
+    notes = []
+    r.reprocess_session(out, kept, notes=notes)
+    assert len(notes) == 1 and notes[0].startswith("ch1, 3 of its 6 steps: gate (304, 404)")
     assert all(q["gate_source"] == "protocol" for q in _quality(kept))
     with SessionReader(kept) as reader:
         assert any("kept the gate the protocol set at acquisition on 3 channel record(s)"

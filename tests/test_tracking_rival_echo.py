@@ -120,7 +120,11 @@ def test_gate_preview_is_the_gate_tracking_uses(rel):
         assert rival is None
     else:
         assert f"another echo at sample {rival} " in notes[-1]
-    assert gate_preview(codes, FS, TrackingOptions(gate=(250, 350))) == ((250, 350), [], None)
+    # a gate set by hand: no rival named; the echo's envelope at its edges (+-50 samples:
+    # ~70 % of the peak) is
+    by_hand = gate_preview(codes, FS, TrackingOptions(gate=(250, 350)))
+    assert by_hand.gate == (250, 350) and by_hand.rival_sample is None
+    assert len(by_hand.notes) == 1 and "the gate cuts the echo" in by_hand.notes[0]
     with pytest.raises(ValueError, match="does not fit"):
         gate_preview(codes, FS, TrackingOptions(gate=(2, 100)))
 

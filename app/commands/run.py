@@ -546,12 +546,15 @@ def reprocess_command(args: argparse.Namespace) -> int:
                 said[0] = tenth
                 print(f"reprocessing step {done}/{total}", file=sys.stderr, flush=True)
 
+    notes: list[str] = []
     n, problems = reprocess_session(args.session, args.out, options, args.speed_of_sound,
                                     progress, package_version(), channel_gates=gates,
-                                    keep_operator_gates=keep_operator)
+                                    keep_operator_gates=keep_operator, notes=notes)
     if tty:
         sys.stderr.write("\n")
     for problem in problems:
         print(f"warning: skipped step {problem}", file=sys.stderr)
+    for note in notes:  # a gate through the echo: noisier FRFs, each step still `ok`
+        print(f"note: {note}", file=sys.stderr)
     print(f"reprocessed {n} steps -> {args.out}", file=sys.stderr)
     return 0
