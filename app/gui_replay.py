@@ -145,7 +145,11 @@ def identification_summary(document: dict[str, Any]) -> str:
     else:
         head = "<b style='color:#b71c1c'>NOT converged</b>: " + html.escape(
             str(document.get("message", "")).strip("; "))
-    return head + (f" — {misfit}" if misfit else "")
+    gain_std = document.get("gain_std") or 0.0
+    std = ("" if document.get("method") != "frf" else
+           f"; std include an FRF gain std of {100 * gain_std:.3g} %" if gain_std
+           else "; std: the noise's share only")
+    return head + (f" — {misfit}" if misfit else "") + std
 
 
 def _summary_page(text: str) -> tuple[QtWidgets.QWidget, QtWidgets.QVBoxLayout,
@@ -233,6 +237,24 @@ class ReplayView(QtWidgets.QWidget):
         self.ema_button = QtWidgets.QPushButton("Modal analysis (EMA)")
         self.ema_button.clicked.connect(self.run_ema)
         analysis_layout.addWidget(self.identify_button)
+        # identify --gain-std: without it the std are the noise's share only (~1.9x too
+        # small on the simulated chain's sessions, docs/identification.md)
+        gain_row = QtWidgets.QHBoxLayout()
+        gain_label = QtWidgets.QLabel("FRF gain std")
+        self.gain_std_box = QtWidgets.QDoubleSpinBox()
+        self.gain_std_box.setRange(0.0, 49.9)
+        self.gain_std_box.setDecimals(2)
+        self.gain_std_box.setSingleStep(0.1)
+        self.gain_std_box.setSuffix(" %")
+        self.gain_std_box.setValue(0.0)
+        tip = ("Standard uncertainty of each FRF's gain (a calibration error common to its "
+               "lines), added to the identified parameters' std; 0: the std are the noise's "
+               "share only (identify --gain-std)")
+        gain_label.setToolTip(tip)
+        self.gain_std_box.setToolTip(tip)
+        gain_row.addWidget(gain_label)
+        gain_row.addWidget(self.gain_std_box, 1)
+        analysis_layout.addLayout(gain_row)
         analysis_layout.addWidget(self.gap_button)
         analysis_layout.addWidget(self.ema_button)
         self.analysis_status = QtWidgets.QLabel("")
@@ -588,11 +610,12 @@ class ReplayView(QtWidgets.QWidget):
         if self.path is None:
             return
         path = self.path
+        gain_std = self.gain_std_box.value() / 100.0
 
         def work() -> Any:
             from pelvislab.app.commands.identify import identify_file
 
-            return identify_file(path)
+            return identify_file(path, gain_std=gain_std)
 
         self.submit(work, self.show_identification, "identification", self.identify_button)
 
