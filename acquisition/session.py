@@ -820,6 +820,10 @@ def bench_description(bench: Any) -> dict[str, Any]:
         out["drive_calibration_newton_per_volt"] = np.asarray(
             cfg.drive_calibration_newton_per_volt, dtype=np.complex128)
         out["drive_calibration_file"] = str(cfg.drive_calibration_source or "")
+    u_rel = tuple(getattr(cfg, "drive_calibration_u_rel", ()))
+    if u_rel:
+        # one value (for drive_newton_per_volt) or one per row of the table
+        out["drive_calibration_u_rel"] = np.asarray(u_rel, dtype=float)
     for ch, c in dict(cfg.channel_speed_of_sound_m_s).items():
         out[f"speed_of_sound_m_s_ch{ch}"] = float(c)
     roles = [("trigger", bench.trigger), ("drive", bench.drive), ("digitizer", bench.digitizer)]

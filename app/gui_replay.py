@@ -146,8 +146,14 @@ def identification_summary(document: dict[str, Any]) -> str:
         head = "<b style='color:#b71c1c'>NOT converged</b>: " + html.escape(
             str(document.get("message", "")).strip("; "))
     gain_std = document.get("gain_std") or 0.0
+    calibration_std = document.get("calibration_std") or 0.0
+    terms = [f"an FRF gain std of {100 * gain_std:.3g} %"] if gain_std else []
+    if calibration_std:
+        source = (" (bench file)" if document.get("calibration_std_source") == "bench"
+                  else "")
+        terms.append(f"the drive calibration's {100 * calibration_std:.3g} %{source}")
     std = ("" if document.get("method") != "frf" else
-           f"; std include an FRF gain std of {100 * gain_std:.3g} %" if gain_std
+           f"; std include {' and '.join(terms)}" if terms
            else "; std: the noise's share only")
     return head + (f" — {misfit}" if misfit else "") + std
 

@@ -161,6 +161,10 @@ class BenchConfig:
     """The drive chain's N/V at each of ``drive_calibration_frequency_hz``."""
     drive_calibration_source: Path | None = None
     """The calibration file the table was read from."""
+    drive_calibration_u_rel: tuple[float, ...] = ()
+    """Relative standard uncertainty (k = 1) of the drive chain's N/V: one value for
+    ``drive_newton_per_volt`` (bench key ``drive_newton_per_volt_u_rel``) or one per row of
+    the table (its ``u_rel`` column); empty when the bench file does not state it."""
     max_drive_vpp: float = DEFAULT_MAX_DRIVE_VPP
     """Hard limit on the shaker-drive amplitude, V pk-pk; enforced in the driver."""
     max_trigger_vpp: float | None = None
@@ -285,13 +289,17 @@ class BenchConfig:
         cal = attempt(lambda: _table(data, "calibration", err), {})
         attempt(lambda: _check_keys(
             cal,
-            {"drive_newton_per_volt", "drive_calibration_file", "speed_of_sound_m_s",
-             "channel_speed_of_sound_m_s", "reference_clock_hz"},
+            {"drive_newton_per_volt", "drive_newton_per_volt_u_rel", "drive_calibration_file",
+             "speed_of_sound_m_s", "channel_speed_of_sound_m_s", "reference_clock_hz"},
             "calibration", err,
         ))
 
         def drive_calibration() -> tuple[complex, tuple[float, ...], tuple[complex, ...],
-                                         Path | None]:
+                                         Path | None, tuple[float, ...]]:
+            if "drive_newton_per_volt_u_rel" in cal and "drive_calibration_file" in cal:
+                raise err("calibration.drive_newton_per_volt_u_rel",
+                          "belongs to drive_newton_per_volt; a drive_calibration_file states "
+                          "its uncertainty in a u_rel column")
             if "drive_newton_per_volt" in cal and "drive_calibration_file" in cal:
                 raise err("calibration.drive_calibration_file",
                           "give either drive_newton_per_volt (one constant) or "
@@ -304,9 +312,10 @@ class BenchConfig:
                 table_source = Path(raw_file).expanduser()
                 if not table_source.is_absolute() and source is not None:
                     table_source = Path(source).parent / table_source
-                table_hz, table_n_per_v = _read_drive_calibration(
+                table_hz, table_n_per_v, table_u = _read_drive_calibration(
                     table_source, lambda msg: err("calibration.drive_calibration_file", msg))
-                return complex(math.nan, math.nan), table_hz, table_n_per_v, table_source
+                return (complex(math.nan, math.nan), table_hz, table_n_per_v, table_source,
+                        table_u)
             if "drive_newton_per_volt" not in cal:
                 raise err("calibration.drive_newton_per_volt",
                           "missing: the drive chain calibration (N per V, or a "
@@ -315,10 +324,15 @@ class BenchConfig:
                                "calibration.drive_newton_per_volt", err)
             if n_per_v == 0 or not cmath.isfinite(n_per_v):
                 raise err("calibration.drive_newton_per_volt", "must be finite and non-zero")
-            return n_per_v, (), (), None
+            u_rel: tuple[float, ...] = ()
+            if "drive_newton_per_volt_u_rel" in cal:
+                u_rel = (_u_rel(cal["drive_newton_per_volt_u_rel"],
+                                lambda msg: err("calibration.drive_newton_per_volt_u_rel",
+                                                msg)),)
+            return n_per_v, (), (), None, u_rel
 
-        n_per_v, table_hz, table_n_per_v, table_source = attempt(
-            drive_calibration, (complex(1.0, 0.0), (), (), None))
+        n_per_v, table_hz, table_n_per_v, table_source, drive_u_rel = attempt(
+            drive_calibration, (complex(1.0, 0.0), (), (), None, ()))
         c_default = attempt(lambda: _positive(
             cal.get("speed_of_sound_m_s", DEFAULT_SPEED_OF_SOUND_M_S),
             "calibration.speed_of_sound_m_s", err), DEFAULT_SPEED_OF_SOUND_M_S)
@@ -431,6 +445,7 @@ class BenchConfig:
             drive_calibration_frequency_hz=table_hz,
             drive_calibration_newton_per_volt=table_n_per_v,
             drive_calibration_source=table_source,
+            drive_calibration_u_rel=drive_u_rel,
             max_drive_vpp=max_drive_vpp,
             max_trigger_vpp=max_trigger_vpp,
             speed_of_sound_m_s=c_default,
@@ -498,7 +513,23 @@ DRIVE_CALIBRATION_COLUMNS = {
     ("frequency_hz", "newton_per_volt_re", "newton_per_volt_im"): "re/im",
     ("frequency_hz", "newton_per_volt_abs", "newton_per_volt_phase_deg"): "abs/phase",
 }
-"""The header lines a drive calibration file may have, and what its columns hold."""
+"""The header lines a drive calibration file may have, and what its columns hold; each may
+end with a fourth column ``u_rel``: the relative standard uncertainty (k = 1) of that row's
+N/V."""
+
+MAX_CALIBRATION_U_REL = 0.5
+"""Largest relative standard uncertainty of the drive calibration accepted (50 %)."""
+
+
+def _u_rel(value: Any, err: Callable[[str], BenchConfigError]) -> float:
+    """A relative standard uncertainty: a number in [0, :data:`MAX_CALIBRATION_U_REL`]."""
+    if isinstance(value, bool) or not isinstance(value, int | float):
+        raise err(f"must be a number (a fraction, e.g. 0.02 for 2 %), got {value!r}")
+    v = float(value)
+    if not (math.isfinite(v) and 0.0 <= v <= MAX_CALIBRATION_U_REL):
+        raise err(f"must be a fraction in [0, {MAX_CALIBRATION_U_REL:g}] (e.g. 0.02 for "
+                  f"2 %), got {value!r}")
+    return v
 
 
 MAX_CALIBRATION_PHASE_STEP_DEG = 90.0
@@ -507,14 +538,16 @@ the interpolation's branch is a guess (a 200 degree turn read as -160 flips the 
 
 
 def _read_drive_calibration(path: Path, err: Callable[[str], BenchConfigError]
-                            ) -> tuple[tuple[float, ...], tuple[complex, ...]]:
+                            ) -> tuple[tuple[float, ...], tuple[complex, ...],
+                                       tuple[float, ...]]:
     """A drive calibration CSV: ``#`` comment lines, a header naming the columns (one of
     :data:`DRIVE_CALIBRATION_COLUMNS`), then one row per frequency (Hz, increasing
     strictly, at least two rows): the chain's N per V peak as real and imaginary parts, or
-    as magnitude and phase (degrees). Neighbouring rows may turn the phase by at most
-    :data:`MAX_CALIBRATION_PHASE_STEP_DEG`. Every problem names the file and line; the
-    usual spreadsheet exports (a UTF-8 byte-order mark, trailing empty cells, a non-UTF-8
-    comment) are read, and ``;``- or tab-separated files are named as such."""
+    as magnitude and phase (degrees), and with a ``u_rel`` column its relative standard
+    uncertainty (returned third; empty without the column). Neighbouring rows may turn the
+    phase by at most :data:`MAX_CALIBRATION_PHASE_STEP_DEG`. Every problem names the file
+    and line; the usual spreadsheet exports (a UTF-8 byte-order mark, trailing empty cells,
+    a non-UTF-8 comment) are read, and ``;``- or tab-separated files are named as such."""
     import csv
 
     if not path.is_file():
@@ -526,8 +559,10 @@ def _read_drive_calibration(path: Path, err: Callable[[str], BenchConfigError]
     except OSError as exc:
         raise err(f"{path}: cannot be read: {exc}") from None
     kind = None
+    with_u = False
     freqs: list[float] = []
     values: list[complex] = []
+    u_rel: list[float] = []
     phases_deg: list[float] = []
     for line_no, line in enumerate(text.splitlines(), start=1):
         # each physical line on its own: a quoted cell over two lines (a spreadsheet note)
@@ -547,18 +582,23 @@ def _read_drive_calibration(path: Path, err: Callable[[str], BenchConfigError]
             raise err(f"{where}: separated by {sep} ({line.strip()!r}; a European "
                       "spreadsheet?): save it comma-separated with '.' decimals")
         if kind is None:
-            kind = DRIVE_CALIBRATION_COLUMNS.get(tuple(c.lower() for c in cells))
+            head = tuple(c.lower() for c in cells)
+            with_u = len(head) == 4 and head[3] == "u_rel"
+            kind = DRIVE_CALIBRATION_COLUMNS.get(head[:3] if with_u else head)
             if kind is None:
                 heads = " or ".join(",".join(h) for h in DRIVE_CALIBRATION_COLUMNS)
                 raise err(f"{where}: the first line must name the columns: {heads} "
-                          f"(read: {line.strip()!r})")
+                          f"(each optionally followed by ,u_rel; read: {line.strip()!r})")
             continue
-        if len(cells) != 3:
-            raise err(f"{where}: 3 values expected, got {len(cells)}")
+        n_columns = 4 if with_u else 3
+        if len(cells) != n_columns:
+            raise err(f"{where}: {n_columns} values expected, got {len(cells)}")
         try:
-            f_hz, a, b = (float(c) for c in cells)
+            f_hz, a, b, *u = (float(c) for c in cells)
         except ValueError:
             raise err(f"{where}: not numbers: {','.join(cells)}") from None
+        if u:
+            u_rel.append(_u_rel(u[0], lambda msg, where=where: err(f"{where}: u_rel {msg}")))
         if not (math.isfinite(f_hz) and f_hz > 0):
             raise err(f"{where}: frequency must be finite and > 0 Hz, got {cells[0]}")
         if freqs and not f_hz > freqs[-1]:
@@ -585,7 +625,7 @@ def _read_drive_calibration(path: Path, err: Callable[[str], BenchConfigError]
     if kind is None or len(freqs) < 2:
         raise err(f"{path}: needs a header line and at least two rows "
                   "(frequency_hz, N/V); the calibration is not extrapolated")
-    return tuple(freqs), tuple(values)
+    return tuple(freqs), tuple(values), tuple(u_rel)
 
 
 def _load_ohm(value: Any, key: str, err: _ErrFactory) -> float:

@@ -424,24 +424,40 @@ class _Evaluator:
 
 def _with_gain_uncertainty(final: _Evaluator, x: np.ndarray, jac_log: np.ndarray,
                            residual: np.ndarray, names: Sequence[str], values: np.ndarray,
-                           absolute: bool, gain_std: float) -> tuple[np.ndarray, np.ndarray]:
-    """std and correlation of the parameters with one relative gain per FRF marginalised:
-    the Jacobian gains a column per FRF (d residual / d gain, the model FRF on that FRF's
-    lines) and a prior row per gain (1 / ``gain_std``); the parameters' block of the
-    covariance of that augmented problem (GUM: a type-B uncertainty of the calibration)."""
+                           absolute: bool, gain_std: float,
+                           chain_gain_std: float) -> tuple[np.ndarray, np.ndarray]:
+    """std and correlation of the parameters with relative gains marginalised: one per FRF
+    (prior ``gain_std``, when > 0) and one shared by every FRF (prior ``chain_gain_std``,
+    when > 0: the drive chain's calibration). The Jacobian gains a
+    column per gain (d residual / d gain: the model FRF on the lines it scales) and a prior
+    row per gain (1 / its std); the parameters' block of the covariance of that augmented
+    problem (GUM: type-B uncertainties of the calibration)."""
     H_model = final._eval(x)[0]
     mask = final.target.mask
-    frfs = [(o, i) for o in range(mask.shape[1]) for i in range(mask.shape[2])
-            if mask[:, o, i].any()]
-    dH = np.zeros((mask.shape[0], len(frfs), *mask.shape[1:]), dtype=complex)
-    for k, (o, i) in enumerate(frfs):
-        dH[:, k, o, i] = H_model[:, o, i]
+    columns: list[np.ndarray] = []  # (n_f, n_out, n_in) bool: the FRF entries a gain scales
+    priors: list[float] = []
+    labels: list[str] = []
+    if gain_std > 0:
+        for o in range(mask.shape[1]):
+            for i in range(mask.shape[2]):
+                if mask[:, o, i].any():
+                    scaled = np.zeros(mask.shape, dtype=bool)
+                    scaled[:, o, i] = True
+                    columns.append(scaled)
+                    priors.append(gain_std)
+                    labels.append(f"gain_{o}_{i}")
+    if chain_gain_std > 0:
+        columns.append(np.ones(mask.shape, dtype=bool))
+        priors.append(chain_gain_std)
+        labels.append("chain_gain")
+    dH = np.zeros((mask.shape[0], len(columns), *mask.shape[1:]), dtype=complex)
+    for k, scaled in enumerate(columns):
+        dH[:, k][scaled] = H_model[scaled]
     G = final.target.jacobian(H_model, dH)
-    n, k = jac_log.shape[1], len(frfs)
-    augmented = np.block([[jac_log, G], [np.zeros((k, n)), np.eye(k) / gain_std]])
+    n, k = jac_log.shape[1], len(columns)
+    augmented = np.block([[jac_log, G], [np.zeros((k, n)), np.diag(1.0 / np.asarray(priors))]])
     std, corr, _, _ = covariance_report(
-        augmented, np.concatenate([residual, np.zeros(k)]),
-        list(names) + [f"gain_{o}_{i}" for o, i in frfs],
+        augmented, np.concatenate([residual, np.zeros(k)]), list(names) + labels,
         np.concatenate([values, np.ones(k)]), absolute_sigma=absolute)
     return std[:n], corr[:n, :n]
 
@@ -660,6 +676,7 @@ def identify_frf(
     bounds_factor: float = 10.0,
     progress: Callable[[str], None] | None = None,
     gain_std: float = 0.0,
+    chain_gain_std: float = 0.0,
 ) -> FitResult:
     """Identify the ``free`` parameters (default: all) of ``problem`` from measured FRFs.
 
@@ -671,10 +688,17 @@ def identify_frf(
     marginalised in the covariance (the fit itself is unchanged). Measured on six
     simulated-chain sessions: per-FRF gains of -0.47 to +0.37 % made the std ~1.9x too
     small without it (docs/identification.md).
+    ``chain_gain_std`` (relative): standard uncertainty of one gain common to every FRF, the
+    drive chain's calibration (N/V: one shaker, amplifier and calibration drive every
+    input); when > 0 marginalised in the std the same way. It is a common scale of the
+    masses, stiffnesses and dampings, which the data cannot tell apart from the gain.
     Returns a :class:`FitResult` with values, standard errors and identifiability.
     """
     if not (np.isfinite(gain_std) and gain_std >= 0):
         raise ValueError(f"gain_std must be a finite relative uncertainty >= 0, got {gain_std}")
+    if not (np.isfinite(chain_gain_std) and chain_gain_std >= 0):
+        raise ValueError("chain_gain_std must be a finite relative uncertainty >= 0, got "
+                         f"{chain_gain_std}")
     t0 = time.perf_counter()
     residual = residual or (ResidualSpec("std") if H_std is not None else ResidualSpec("log"))
     strategy = strategy or Strategy()
@@ -798,10 +822,11 @@ def identify_frf(
             scale_vals[inner], absolute_sigma=absolute)
         std[inner] = std_in
         corr[np.ix_(inner, inner)] = corr_in
-        if gain_std > 0:
+        if gain_std > 0 or chain_gain_std > 0:
             std_g, corr_g = _with_gain_uncertainty(
                 final, x, J[:, inner], r, [n for n, b in zip(out_names, inner, strict=True)
-                                           if b], scale_vals[inner], absolute, gain_std)
+                                           if b], scale_vals[inner], absolute, gain_std,
+                chain_gain_std)
             # a direction unresolved without the gains stays so (NaN kept)
             std[inner] = np.where(np.isnan(std_in), np.nan, std_g)
             corr[np.ix_(inner, inner)] = np.where(np.isnan(corr_in), np.nan, corr_g)

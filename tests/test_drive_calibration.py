@@ -111,7 +111,7 @@ def test_magnitude_and_phase_columns(tmp_path):
     ("frequency_hz;newton_per_volt_re;newton_per_volt_im\n10;8,5;0\n",
      "cal.csv:1: separated by ';' ('frequency_hz;newton_per_volt_re;newton_per_volt_im'; "
      "a European spreadsheet?)"),
-    ("freq,re,im\n", "(read: 'freq,re,im')"),
+    ("freq,re,im\n", "(each optionally followed by ,u_rel; read: 'freq,re,im')"),
 ])
 def test_a_bad_calibration_file_is_named_with_its_line(tmp_path, text, message):
     with pytest.raises(BenchConfigError, match="calibration.drive_calibration_file: .*"

@@ -348,7 +348,7 @@ def test_the_bench_box_names_the_drive_calibration(qtbot, tmp_path):
     window = OperatorWindow(bench_path=real)
     qtbot.addWidget(window)
     assert window.calibration_label.text() == ("drive calibration: 8.5-0.4j N/V at every "
-                                               "frequency")
+                                               "frequency; its uncertainty not stated")
     table = OperatorWindow(bench_path=write_bench(tmp_path))
     qtbot.addWidget(table)
     assert table.calibration_label.text() == ("drive calibration: 3 rows, 20-200 Hz (not "

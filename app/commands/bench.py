@@ -47,10 +47,17 @@ def drive_calibration_text(config: Any) -> str:
     """The bench's drive chain calibration in a few words: the constant, or the table's
     rows, range and file."""
     span = config.drive_calibration_range_hz
+    u_rel = tuple(getattr(config, "drive_calibration_u_rel", ()))
+    if not u_rel:  # (a simulated chain is exact)
+        stated = "" if getattr(config, "simulated", False) else "; its uncertainty not stated"
+    elif len(u_rel) == 1:
+        stated = f", u = {100 * u_rel[0]:.3g} % (k = 1)"
+    else:
+        stated = f", u = {100 * min(u_rel):.3g}-{100 * max(u_rel):.3g} % (k = 1)"
     if span is None:
-        return f"{complex(config.drive_newton_per_volt):g} N/V at every frequency"
+        return f"{complex(config.drive_newton_per_volt):g} N/V at every frequency{stated}"
     rows = len(config.drive_calibration_frequency_hz)
-    return (f"{rows} rows, {span[0]:g}-{span[1]:g} Hz (not extrapolated), from "
+    return (f"{rows} rows, {span[0]:g}-{span[1]:g} Hz (not extrapolated){stated}, from "
             f"{config.drive_calibration_source}")
 
 

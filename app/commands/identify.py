@@ -57,6 +57,10 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                    help="standard uncertainty of each FRF's gain (a calibration error common "
                    "to its lines, e.g. 0.003), added to the std (default 0: the std are then "
                    "the noise's share only)")
+    p.add_argument("--calibration-std", type=float, default=None, metavar="FRACTION",
+                   help="standard uncertainty of the drive chain's calibration (N/V), one "
+                   "gain common to every FRF (e.g. 0.02), added to the std; default: the "
+                   "one the session's bench file stated, else 0")
     p.add_argument("--json", required=True, metavar="OUT", help="write the result JSON here")
     p.set_defaults(handler=_identify)
 
@@ -92,11 +96,15 @@ def identify_file(path: str | Path, method: str = "frf", params: list[str] | Non
                   progress: Callable[[str], None] | None = None, *, symmetric: bool = False,
                   version_b: bool = False, residual: str = "auto", a_b: float | None = None,
                   starts: int | None = None, seed: int = 0,
-                  gain_std: float = 0.0) -> IdentificationReport:
+                  gain_std: float = 0.0,
+                  calibration_std: float | None = None) -> IdentificationReport:
     """Identify the pelvis model's parameters from the /frf of ``path`` (session or FRF-only).
 
     The one entry point of the CLI and the GUI's replay view; the numerics are
     :func:`pelvislab.model.identification.identify_frf` / ``identify_modal``.
+    ``calibration_std``: relative standard uncertainty of the drive chain's calibration,
+    one gain common to every FRF (``identify_frf(chain_gain_std=)``); None: the session's
+    recorded one (:func:`recorded_calibration_std`), else 0.
     """
     import numpy as np
 
@@ -132,9 +140,18 @@ def identify_file(path: str | Path, method: str = "frf", params: list[str] | Non
         H_std, std_note = None, ("H_std holds no positive finite value on the measured "
                                  "lines: ignored")
     f_k, f_c = model.frequency_dependence.f_k, model.frequency_dependence.f_c
+    calibration_note = None
+    if calibration_std is None:
+        calibration_std, calibration_source, calibration_note = recorded_calibration_std(
+            path, frf.frequency_hz[np.isfinite(frf.H).any(axis=(1, 2))])
+    else:
+        calibration_source = "option"
     if method == "modal":
         if gain_std:
             raise ValueError("--gain-std applies to --method frf (the FRF fit)")
+        if calibration_source == "option" and calibration_std:
+            raise ValueError("--calibration-std applies to --method frf (the FRF fit)")
+        calibration_note = None
         data = modes_from_frf(frf.frequency_hz, frf.H)
         result = identify_modal(problem, data, free=free, progress=progress)
         extra: dict[str, Any] = {"method": "modal",
@@ -167,9 +184,11 @@ def identify_file(path: str | Path, method: str = "frf", params: list[str] | Non
         result = identify_frf(
             problem, frf.frequency_hz, frf.H, H_std, free=free, residual=spec,
             strategy=strategy, version_b=version_b, start_freq_dep=(f_k, f_c),
-            progress=progress, gain_std=gain_std,
+            progress=progress, gain_std=gain_std, chain_gain_std=calibration_std,
         )
-        extra = {"method": "frf", "gain_std": float(gain_std)}
+        extra = {"method": "frf", "gain_std": float(gain_std),
+                 "calibration_std": float(calibration_std),
+                 "calibration_std_source": calibration_source}
         if kind in ("eq610", "log"):  # the weights of the std residual are its H_std
             extra["a_over_b"] = float(a_b)
     else:
@@ -178,7 +197,7 @@ def identify_file(path: str | Path, method: str = "frf", params: list[str] | Non
     doc.update(extra)
     doc["units"] = {"m_": "kg", "k_": "N/m", "c_": "N s/m", "f_": "1"}
     doc["source"] = str(path)
-    notes = [n for n in (infinite_note, std_note) if n]
+    notes = [n for n in (infinite_note, std_note, calibration_note) if n]
     if notes:
         doc["notes"] = notes
     doc["model"] = model.name
@@ -193,6 +212,37 @@ def identify_file(path: str | Path, method: str = "frf", params: list[str] | Non
     return IdentificationReport(doc, frf, model_H, bool(result.converged), str(result.message))
 
 
+def recorded_calibration_std(path: str | Path, frequency_hz: Any
+                             ) -> tuple[float, str, str | None]:
+    """The drive calibration's relative standard uncertainty a session recorded (/bench
+    ``drive_calibration_u_rel``, docs/bench-file.md): (value, source, note). One value as
+    it is; a table's rms over ``frequency_hz`` (interpolated linearly as the calibration
+    is), read as one gain common to the band. Source ``bench``; ``none`` (0.0) for an
+    FRF-only file, a simulated bench (its chain is exact) or a bench file that did not
+    state it, with a note in the last case."""
+    import h5py
+    import numpy as np
+
+    with h5py.File(path, "r") as handle:
+        bench = handle.get("bench")
+        if not isinstance(bench, h5py.Group):
+            return 0.0, "none", None
+        attrs = dict(bench.attrs)
+    u_rel = np.atleast_1d(np.asarray(attrs.get("drive_calibration_u_rel", []), dtype=float))
+    if u_rel.size == 0:
+        if bool(attrs.get("simulated", False)):
+            return 0.0, "none", None
+        return 0.0, "none", ("the bench file stated no uncertainty of the drive calibration "
+                             "(drive_newton_per_volt_u_rel or a u_rel column, "
+                             "docs/bench-file.md): the std hold none; --calibration-std "
+                             "FRACTION adds it")
+    if u_rel.size == 1:
+        return float(u_rel[0]), "bench", None
+    table_hz = np.asarray(attrs["drive_calibration_frequency_hz"], dtype=float)
+    at_lines = np.interp(np.asarray(frequency_hz, dtype=float), table_hz, u_rel)
+    return float(np.sqrt(np.mean(at_lines ** 2))), "bench", None
+
+
 def _identify(args: argparse.Namespace) -> int:
     if args.starts is not None and args.starts < 1:
         raise ValueError(f"--starts {args.starts}: must be >= 1")
@@ -201,6 +251,10 @@ def _identify(args: argparse.Namespace) -> int:
     if not (math.isfinite(args.gain_std) and 0 <= args.gain_std < 0.5):
         raise ValueError(f"--gain-std {args.gain_std}: must be a fraction in [0, 0.5), "
                          "e.g. 0.003 for 0.3 %")
+    if args.calibration_std is not None and not (
+            math.isfinite(args.calibration_std) and 0 <= args.calibration_std <= 0.5):
+        raise ValueError(f"--calibration-std {args.calibration_std}: must be a fraction in "
+                         "[0, 0.5], e.g. 0.02 for 2 %")
     out = check_new_output(args.json)
     free = comma_list(args.params) if args.params else None
     warning = incomplete_session_warning(args.session)
@@ -211,7 +265,8 @@ def _identify(args: argparse.Namespace) -> int:
         args.session, args.method, free, args.model, progress, symmetric=args.symmetric,
         version_b=args.version_b, residual=args.residual,
         a_b=None if args.a_b is None else float(args.a_b),
-        starts=args.starts, seed=args.seed, gain_std=args.gain_std)
+        starts=args.starts, seed=args.seed, gain_std=args.gain_std,
+        calibration_std=args.calibration_std)
     write_json(out, report.to_json())
     for note in report.document.get("notes", []):
         print(f"note: {note}", file=sys.stderr)
