@@ -1865,10 +1865,19 @@ def reprocess_session(source: Path | str, target: Path | str, tracking_options: 
                     out["log"][-1] = log_entry(f"kept the gate the {who} set at acquisition "
                                                f"on {kept[who]} channel record(s)")
             if not done:  # an empty copy is no reprocessing (it exited 0: review, session 36)
-                raise ValueError(f"{source} holds no complete step to reprocess"
-                                 + (f" ({len(reader.damaged + reader.incomplete)} damaged or "
-                                    "incomplete)" if reader.damaged or reader.incomplete
-                                    else "") + "; nothing written")
+                statuses: dict[str, int] = {}
+                for problem in reader.incomplete:
+                    status = problem.split(": status ", 1)[-1]
+                    statuses[status] = statuses.get(status, 0) + 1
+                said = ", ".join(f"{n} with status {status}" for status, n in sorted(
+                    statuses.items(), key=lambda item: -item[1])[:3])
+                if reader.damaged:
+                    said = ", ".join(filter(None, (said, f"{len(reader.damaged)} damaged "
+                                                         f"({reader.damaged[0]})")))
+                raise ValueError(
+                    f"{source} holds no complete step to reprocess"
+                    + (f" ({said}; a complete step has status 'complete', "
+                       "docs/session-format.md)" if said else "") + "; nothing written")
             layout = reader.frf_layout()
             if layout is not None:
                 frf = frf_from_steps(done, *layout)

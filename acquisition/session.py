@@ -57,6 +57,10 @@ SESSION_SCHEMA = "pelvislab-session"
 SESSION_SCHEMA_VERSION = 1
 STATUS_COMPLETE = "complete"
 STATUS_FAILED = "failed"
+STATUS_COMPLETE_ALIASES = frozenset({"complete", "completed", "done", "ok", "finished"})
+"""Step ``status`` values read as complete: design 4.2 names the attribute, not its values
+(this writer's is "complete"; a file written from the design alone with "completed" had
+every step skipped: contract audit, session 40)."""
 ECHO_COMPRESSION = {"compression": "gzip", "compression_opts": 1}
 """Raw echoes: gzip level 1 (measured on simulated 8-bit echoes: 74 % of the raw size at
 ~60 ns/sample; level 4 + shuffle was slower and larger for 1-byte codes)."""
@@ -189,6 +193,14 @@ def plan_channels(protocol: Protocol) -> tuple[list[float], Channels, Channels]:
 
 
 def _channels(points: Sequence[Point]) -> Channels:
+    unplaced = [p.name for p in points
+                if not (np.all(np.isfinite(p.position_m)) and np.all(np.isfinite(p.direction)))]
+    if unplaced:
+        # a session written from the design alone names its points only (design 4.2)
+        raise ValueError(
+            f"point(s) {unplaced} have no position or direction: neither in the steps' "
+            "attributes (output_/input_ bone, position_m, direction) nor in the landmark "
+            "catalogue (protocols/landmarks.toml)")
     return Channels([p.name for p in points], [p.bone for p in points],
                     np.array([p.position_m for p in points], dtype=float).reshape(-1, 3),
                     np.array([p.direction for p in points], dtype=float).reshape(-1, 3))
@@ -975,6 +987,8 @@ class SessionReader:
         g = self._h5["steps"][name]
         a = g.attrs
         status = _text(a.get("status", "incomplete"))
+        if status.strip().lower() in STATUS_COMPLETE_ALIASES:
+            status = STATUS_COMPLETE
         echoes = g["echoes"] if "echoes" in g else {}
         channels: list[ChannelData] = []
         for ch in sorted(k for k in echoes if not k.endswith("_trigger_offset_s")):
@@ -1044,13 +1058,44 @@ class SessionReader:
 
 
 def _read_point(attrs: h5py.AttributeManager, prefix: str) -> Point:
+    """The point ``prefix`` (``output`` of an echoes dataset, ``input`` of a step) from its
+    attributes. Design 4.2 names only the point (``output``, ``input``); its bone, position
+    and direction (``<prefix>_bone``, ``_position_m``, ``_direction``) are this writer's.
+    Where they are missing, a point of the landmark catalogue takes its geometry from there
+    (an input's direction into the surface, the protocols' default), so that a session
+    written from the design alone re-processes (its /steps are self-describing); else NaN."""
+    name = _text(attrs.get(prefix, ""))
+    bone = attrs.get(f"{prefix}_bone")
     pos = attrs.get(f"{prefix}_position_m")
     direction = attrs.get(f"{prefix}_direction")
+    missing = any(v is None for v in (bone, pos, direction))
+    known = _catalogue().get(name) if missing else None
+    if known is not None:
+        bone = known.bone if bone is None else bone
+        pos = known.position_m if pos is None else pos
+        if direction is None:
+            sign = -1.0 if prefix == "input" else 1.0
+            direction = tuple(sign * v for v in known.direction)
     return Point(
-        _text(attrs.get(prefix, "")), _text(attrs.get(f"{prefix}_bone", "")),
+        name, _text(bone if bone is not None else ""),
         tuple(float(v) for v in (pos if pos is not None else (np.nan,) * 3)),  # type: ignore
         tuple(float(v) for v in (direction if direction is not None else (np.nan,) * 3)),
     )
+
+
+_CATALOGUE: dict[str, Point] = {}
+
+
+def _catalogue() -> dict[str, Point]:
+    """The shipped landmark catalogue, read once (empty when it cannot be read)."""
+    if not _CATALOGUE:
+        from pelvislab.acquisition.protocol import load_landmarks
+
+        try:
+            _CATALOGUE.update(load_landmarks())
+        except Exception:  # a fallback only: the file's own attributes rule
+            log.warning("landmark catalogue unreadable: foreign sessions' points keep NaN")
+    return _CATALOGUE
 
 
 def fsync_path(path: Path | str) -> None:

@@ -1,0 +1,91 @@
+"""A session written from design 4.2 alone re-processes: its /steps are self-describing.
+
+A contract audit (session 40) wrote sessions with only the attributes design 4.2 lists
+(point names, no bone/position/direction; int16 echoes; no /frf) and a step status of
+"completed" (the design names the attribute, not its values). `reprocess` refused both:
+"channel directions must be unit vectors (norms [nan nan ...])" and "holds no complete
+step to reprocess (3 damaged or incomplete)".
+"""
+
+from __future__ import annotations
+
+import h5py
+import numpy as np
+import pytest
+
+from pelvislab.acquisition.session import SessionReader
+from pelvislab.tests.test_resume_finished import _finished
+
+DESIGN_STEP_ATTRS = ("setup", "frequency_hz", "input", "started_at_s", "status")
+DESIGN_ECHO_ATTRS = ("sample_rate_hz", "prf_hz", "delay_s", "volts_per_count", "volts_offset",
+                     "speed_of_sound_m_s", "output")
+
+
+def _design_only_copy(source, target, status="completed", rename=None):
+    """``source``'s steps with design 4.2's attributes only, echoes as int16 (x256), no
+    /frf; ``rename`` maps point names (to one the catalogue does not know)."""
+    rename = rename or {}
+    with h5py.File(source, "r") as src, h5py.File(target, "w") as out:
+        out.attrs.update({"schema": "pelvislab-session", "schema_version": 1,
+                          "created_utc": "2026-11-27T00:00:00Z", "software_version": "x"})
+        out.create_group("protocol").attrs["toml"] = "a record, not an input"
+        out.create_group("bench").attrs["simulated"] = True
+        steps = out.create_group("steps")
+        for name, g in src["steps"].items():
+            step = steps.create_group(name)
+            for key in DESIGN_STEP_ATTRS:
+                step.attrs[key] = g.attrs[key]
+            step.attrs["input"] = rename.get(str(g.attrs["input"]), str(g.attrs["input"]))
+            step.attrs["status"] = status
+            echoes = step.create_group("echoes")
+            for ch, ds in g["echoes"].items():
+                if ch.endswith("_trigger_offset_s"):
+                    echoes.create_dataset(ch, data=ds[()])
+                    continue
+                codes = echoes.create_dataset(ch, data=ds[()].astype(np.int16) * 256)
+                for key in DESIGN_ECHO_ATTRS:
+                    codes.attrs[key] = ds.attrs[key]
+                codes.attrs["volts_per_count"] = ds.attrs["volts_per_count"] / 256
+                codes.attrs["output"] = rename.get(str(ds.attrs["output"]),
+                                                   str(ds.attrs["output"]))
+            step.create_dataset("force_phasor_n", data=g["force_phasor_n"][()])
+
+
+def test_a_design_only_session_reprocesses_to_the_same_frf(tmp_path):
+    from pelvislab.app.cli import main
+
+    _, original = _finished(tmp_path)  # the simulated bench, 3 steps, SIAS_R_x and sacrum_x
+    foreign = tmp_path / "foreign.h5"
+    _design_only_copy(original, foreign)
+    out = tmp_path / "re.h5"
+    assert main(["reprocess", str(foreign), "--out", str(out)]) == 0
+    with SessionReader(original) as a, SessionReader(out) as b:
+        fa, fb = a.frf(), b.frf()
+        step = next(b.steps(with_echoes=False))
+    assert fb.outputs.name == fa.outputs.name and fb.inputs.name == fa.inputs.name
+    # geometry from the landmark catalogue, the input's force into the surface as a run's
+    np.testing.assert_allclose(fb.outputs.position_m, fa.outputs.position_m)
+    np.testing.assert_allclose(fb.outputs.direction, fa.outputs.direction)
+    np.testing.assert_allclose(fb.inputs.direction, fa.inputs.direction)
+    assert list(fb.outputs.bone) == list(fa.outputs.bone)
+    assert step.status == "complete"
+    measured = np.isfinite(fa.H)
+    assert measured.sum() >= 4 and np.array_equal(np.isfinite(fb.H), measured)
+    np.testing.assert_allclose(fb.H[measured], fa.H[measured], rtol=1e-6)
+
+
+def test_points_the_catalogue_does_not_know_and_unknown_statuses_are_named(tmp_path):
+    from pelvislab.acquisition.runner import reprocess_session
+
+    _, original = _finished(tmp_path)
+    unknown = tmp_path / "unknown.h5"
+    _design_only_copy(original, unknown, rename={"sacrum_x": "bed_frame_z"})
+    with pytest.raises(ValueError, match=r"point\(s\) \['bed_frame_z'\] have no position or "
+                                         "direction"):
+        reprocess_session(unknown, tmp_path / "u.h5")
+    queued = tmp_path / "queued.h5"
+    _design_only_copy(original, queued, status="queued")
+    with pytest.raises(ValueError, match="holds no complete step to reprocess \\(3 with status "
+                                         "'queued'; a complete step has status 'complete'"):
+        reprocess_session(queued, tmp_path / "q.h5")
+    assert not (tmp_path / "u.h5").exists() and not (tmp_path / "q.h5").exists()
