@@ -454,11 +454,19 @@ def _with_gain_uncertainty(final: _Evaluator, x: np.ndarray, jac_log: np.ndarray
     for k, scaled in enumerate(columns):
         dH[:, k][scaled] = H_model[scaled]
     G = final.target.jacobian(H_model, dH)
-    n, k = jac_log.shape[1], len(columns)
-    augmented = np.block([[jac_log, G], [np.zeros((k, n)), np.diag(1.0 / np.asarray(priors))]])
+    (m, n), k = jac_log.shape, len(columns)
+    # the data rows in units of their noise first (s from the data residual alone, as the
+    # fit's own covariance: 1 when absolute), the priors in theirs: scaling the augmented
+    # problem as a whole by s^2 multiplied a stated 3 % by the residual's rms (6 % at
+    # chi2/dof 4, 0.2 % with the log residual: review of session 40)
+    noise = 1.0 if absolute else float(np.sqrt(residual @ residual / max(m - n, 1)))
+    if not noise > 0:
+        noise = 1.0  # an exact fit (rounding only): its std are nil but for the priors'
+    augmented = np.block([[jac_log / noise, G / noise],
+                          [np.zeros((k, n)), np.diag(1.0 / np.asarray(priors))]])
     std, corr, _, _ = covariance_report(
-        augmented, np.concatenate([residual, np.zeros(k)]), list(names) + labels,
-        np.concatenate([values, np.ones(k)]), absolute_sigma=absolute)
+        augmented, np.zeros(m + k), list(names) + labels,
+        np.concatenate([values, np.ones(k)]), absolute_sigma=True)
     return std[:n], corr[:n, :n]
 
 

@@ -169,3 +169,24 @@ def test_a_real_benchs_unstated_uncertainty_is_said():
                          drive_calibration_u_rel=(0.02,))
     assert drive_calibration_text(stated) == "9+0j N/V at every frequency, u = 2 % (k = 1)"
     assert drive_calibration_text(BenchConfig()) == "1+0j N/V at every frequency"  # simulated
+
+
+@pytest.mark.parametrize("residual, std_factor", [("log", None), ("std", 0.5)])
+def test_the_stated_uncertainty_adds_as_stated_whatever_the_misfit(residual, std_factor):
+    # the priors were scaled with the data's rms when the covariance was not absolute: a
+    # stated 3 % added 0.23 % with the log residual (files without H_std) and 6 % at
+    # chi2/dof 4 (review of session 40)
+    from pelvislab.acquisition.frfset import read_frf
+    from pelvislab.model.identification import default_strategy, identify_frf
+    from pelvislab.model.identification_pelvis import pelvis_problem
+    from pelvislab.model.pelvis import default_model
+
+    frf = read_frf(DATA)
+    problem, _ = pelvis_problem(default_model(), frf.outputs, frf.inputs)
+    H_std = None if std_factor is None else std_factor * frf.H_std
+    fits = [identify_frf(problem, frf.frequency_hz, frf.H, H_std,
+                         strategy=default_strategy(residual, starts=1), chain_gain_std=u)
+            for u in (0.0, 0.03)]
+    k = problem.names.index("k_io_R")
+    before, after = (f.std[k] / f.values[k] for f in fits)
+    assert np.sqrt(after ** 2 - before ** 2) == pytest.approx(0.03, rel=0.05)
