@@ -907,10 +907,14 @@ def _cut_echo_note(envelope: np.ndarray, gate: tuple[int, int]) -> str:
     stop) samples. The echo is the envelope's highest within the gate, followed uphill out
     of the gate when the gate holds only its flank; the gate cuts it when the envelope at an
     edge on that echo's flank (no dip of :data:`RIVAL_MIN_DIP` between) is at least
-    :data:`GATE_CUT_LEVEL` of the echo's peak, or the echo peaks outside the gate. An echo
-    20 dB or more below the record's strongest is not judged."""
+    :data:`GATE_CUT_LEVEL` of the echo's peak, or the echo peaks outside the gate. A gate
+    whose envelope stays 20 dB or more below the record's strongest echo is not judged."""
     start, stop = gate
     m = envelope.size
+    if float(envelope[start:stop].max()) < 0.1 * float(envelope.max()):
+        # nothing within 20 dB of the record's strongest echo in the gate: the walk uphill
+        # below would reach the main echo from a gate on noise (review of session 40)
+        return ""
     peak = start + int(np.argmax(envelope[start:stop]))
     # the gate's highest sample at its edge: the flank of an echo that peaks outside it
     if peak == stop - 1:
@@ -920,8 +924,8 @@ def _cut_echo_note(envelope: np.ndarray, gate: tuple[int, int]) -> str:
         while peak - 1 >= 0 and envelope[peak - 1] > envelope[peak]:
             peak -= 1
     top = float(envelope[peak])
-    if top <= 0.0 or top < 0.1 * float(envelope.max()):
-        return ""  # no echo within 20 dB of the record's strongest: not this note's case
+    if top <= 0.0:
+        return ""
 
     def same_echo(sample: int) -> bool:
         # the edge is on the flank of that echo, not on another one beside it (no dip)
@@ -983,11 +987,16 @@ def _choose_gate(codes: np.ndarray, fs: float, opts: TrackingOptions,
                              f"{m} samples")
     if stop - start < 16:
         raise ValueError(f"gate ({start}, {stop}) is too short to track an echo")
-    if opts.gate is not None and np.any(first_echoes):
-        # a gate set by hand through the echo gave `ok` and 5x the noise, unsaid
-        note = _cut_echo_note(
-            _first_echoes_envelope(first_echoes, fs, _GATE_ECHOES, opts.band_hz),
-            (start, stop))
+    if opts.gate is not None and head.size:
+        # a gate set by hand through the echo gave `ok` and 5x the noise, unsaid; a note
+        # only: records it cannot judge are tracked as before (first segments constant at
+        # a non-zero code had failed the channel: review of session 40)
+        try:
+            note = _cut_echo_note(
+                _first_echoes_envelope(first_echoes, fs, _GATE_ECHOES, opts.band_hz),
+                (start, stop))
+        except ValueError:
+            note = ""
         if note:
             warnings.append(note)
     return start, stop, None if rival is None else rival[0]
