@@ -517,8 +517,9 @@ DRIVE_CALIBRATION_COLUMNS = {
 end with a fourth column ``u_rel``: the relative standard uncertainty (k = 1) of that row's
 N/V."""
 
-MAX_CALIBRATION_U_REL = 0.5
-"""Largest relative standard uncertainty of the drive calibration accepted (50 %)."""
+MAX_CALIBRATION_U_REL = 0.2
+"""Largest relative standard uncertainty of the drive calibration accepted (20 %): above
+it a certificate's "0.3 %" typed as 0.3 would pass as 30 % (review, session 40)."""
 
 
 def _u_rel(value: Any, err: Callable[[str], BenchConfigError]) -> float:

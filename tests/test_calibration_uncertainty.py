@@ -40,9 +40,11 @@ def test_a_u_rel_column_and_a_constants_uncertainty_are_read(tmp_path):
 
 
 @pytest.mark.parametrize("csv_row, problem", [
-    ("100,6.0,-3.0,-0.01", r"cal.csv:3: u_rel must be a fraction in \[0, 0.5\]"),
-    ("100,6.0,-3.0,2", r"cal.csv:3: u_rel must be a fraction in \[0, 0.5\] \(e.g. 0.02 for "
+    ("100,6.0,-3.0,-0.01", r"cal.csv:3: u_rel must be a fraction in \[0, 0.2\]"),
+    ("100,6.0,-3.0,2", r"cal.csv:3: u_rel must be a fraction in \[0, 0.2\] \(e.g. 0.02 for "
                        r"2 %\), got 2"),
+    # a certificate's 0.3 % typed as 0.3: 30 % (review)
+    ("100,6.0,-3.0,0.3", r"cal.csv:3: u_rel must be a fraction in \[0, 0.2\]"),
     ("100,6.0,-3.0", r"cal.csv:3: 4 values expected, got 3"),
 ])
 def test_a_bad_u_rel_names_its_line(tmp_path, csv_row, problem):
@@ -134,24 +136,36 @@ def test_identify_takes_the_sessions_recorded_uncertainty(tmp_path, capsys):
     assert recorded_calibration_std(ramp, [100.0, 300.0])[0] == pytest.approx(
         np.sqrt((0.01 ** 2 + 0.03 ** 2) / 2))
     assert recorded_calibration_std(one, [10.0])[:2] == (0.015, "bench")
+    # resumed after the bench file stated it: the latest run's bench counts (/bench is the
+    # first run's)
+    with h5py.File(unstated, "a") as handle:
+        for n, u in (("000", None), ("001", 0.01)):
+            run_bench = handle.create_group(f"runs/{n}/bench")
+            run_bench.attrs["simulated"] = False
+            if u is not None:
+                run_bench.attrs["drive_calibration_u_rel"] = np.array([u])
+    assert recorded_calibration_std(unstated, [10.0])[:2] == (0.01, "bench")
+    unstated = _session_with_bench(tmp_path, "unstated2.h5", simulated=False)
     assert recorded_calibration_std(DATA, [10.0]) == (0.0, "none", None)  # FRF-only
     assert recorded_calibration_std(simulated, [10.0]) == (0.0, "none", None)
     value, source, note = recorded_calibration_std(unstated, [10.0])
     assert (value, source) == (0.0, "none") and "stated no uncertainty" in note
 
     out = tmp_path / "id.json"
-    assert main(["identify", str(one), "--json", str(out)]) == 0
+    fast = ["--starts", "1"]  # the std's terms are the point, not the search
+    assert main(["identify", str(one), *fast, "--json", str(out)]) == 0
     doc = json.loads(out.read_text())
     assert (doc["calibration_std"], doc["calibration_std_source"]) == (0.015, "bench")
     out2 = tmp_path / "id2.json"
-    assert main(["identify", str(one), "--calibration-std", "0", "--json", str(out2)]) == 0
+    assert main(["identify", str(one), *fast, "--calibration-std", "0", "--json",
+                 str(out2)]) == 0
     doc2 = json.loads(out2.read_text())
     assert (doc2["calibration_std"], doc2["calibration_std_source"]) == (0.0, "option")
     # the std grow with it (k_io_R: a scale of the whole model), the values stay
     k_io = [d["parameters"]["k_io_R"] for d in (doc, doc2)]
     assert k_io[0]["value"] == k_io[1]["value"] and k_io[0]["std"] > 1.5 * k_io[1]["std"]
     capsys.readouterr()
-    assert main(["identify", str(unstated), "--json", str(tmp_path / "u.json")]) == 0
+    assert main(["identify", str(unstated), *fast, "--json", str(tmp_path / "u.json")]) == 0
     assert "note: the bench file stated no uncertainty of the drive calibration" in \
         capsys.readouterr().err
     assert main(["identify", str(one), "--calibration-std", "0.6", "--json",

@@ -214,8 +214,9 @@ def identify_file(path: str | Path, method: str = "frf", params: list[str] | Non
 
 def recorded_calibration_std(path: str | Path, frequency_hz: Any
                              ) -> tuple[float, str, str | None]:
-    """The drive calibration's relative standard uncertainty a session recorded (/bench
-    ``drive_calibration_u_rel``, docs/bench-file.md): (value, source, note). One value as
+    """The drive calibration's relative standard uncertainty a session recorded (its latest
+    run's bench, else /bench: ``drive_calibration_u_rel``, docs/bench-file.md): (value,
+    source, note). One value as
     it is; a table's rms over ``frequency_hz`` (interpolated linearly as the calibration
     is), read as one gain common to the band. Source ``bench``; ``none`` (0.0) for an
     FRF-only file, a simulated bench (its chain is exact) or a bench file that did not
@@ -227,6 +228,14 @@ def recorded_calibration_std(path: str | Path, frequency_hz: Any
         bench = handle.get("bench")
         if not isinstance(bench, h5py.Group):
             return 0.0, "none", None
+        # the latest run's bench: a resumed session keeps its first /bench, and a bench
+        # file that stated the uncertainty only later was not read (review, session 40)
+        runs = handle.get("runs")
+        if isinstance(runs, h5py.Group):
+            latest = [runs[n]["bench"] for n in sorted(runs)
+                      if isinstance(runs[n], h5py.Group)
+                      and isinstance(runs[n].get("bench"), h5py.Group)]
+            bench = latest[-1] if latest else bench
         attrs = dict(bench.attrs)
     u_rel = np.atleast_1d(np.asarray(attrs.get("drive_calibration_u_rel", []), dtype=float))
     if u_rel.size == 0:
