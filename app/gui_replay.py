@@ -155,7 +155,10 @@ def identification_summary(document: dict[str, Any]) -> str:
     std = ("" if document.get("method") != "frf" else
            f"; std include {' and '.join(terms)}" if terms
            else "; std: the noise's share only")
-    return head + (f" — {misfit}" if misfit else "") + std
+    # the command's notes (an infinite value read as not measured, no calibration
+    # uncertainty stated, ...) were printed by the CLI only
+    notes = "".join(f"<br>note: {html.escape(str(n))}" for n in document.get("notes", []))
+    return head + (f" — {misfit}" if misfit else "") + std + notes
 
 
 def _summary_page(text: str) -> tuple[QtWidgets.QWidget, QtWidgets.QVBoxLayout,

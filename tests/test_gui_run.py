@@ -275,6 +275,10 @@ def test_replay_identification_shows_parameters_and_model_frfs(operator_window, 
     failed = identification_summary({"converged": False, "message": "; a <b>ound",
                                      "rms_residual": 0.2, "residual": "log"})
     assert "NOT converged</b>: a &lt;b&gt;ound — rms residual 0.2 (relative)" in failed
+    noted = identification_summary({"converged": True, "method": "frf", "notes": [
+        "the bench file stated no uncertainty of the drive calibration <x>"]})
+    assert noted.endswith("<br>note: the bench file stated no uncertainty of the drive "
+                          "calibration &lt;x&gt;")
 
 
 def test_replay_gap_diagnosis_shows_verdict_map_and_candidates(operator_window, qtbot,
