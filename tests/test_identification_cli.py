@@ -96,3 +96,26 @@ def test_eq610_weights_default_to_the_thesis_ratio(tmp_path: Path) -> None:
     assert main(["identify", str(tmp_path / "std.h5"), "--params", "k_pubh", "--json",
                  str(out)]) == 0
     assert "a_over_b" not in json.loads(out.read_text())  # std: weighted by H_std alone
+
+
+def test_layout_channels_have_a_sessions_signs() -> None:
+    # the layouts' inputs pushed along the landmark direction (outward), a session's force
+    # goes into the surface (protocol default): synthetic FRFs of a layout had the opposite
+    # sign of the simulated face-down demo's /frf for the same names (audit)
+    from pelvislab.acquisition.frfset import read_frf
+    from pelvislab.model.identification_pelvis import FACE_DOWN
+
+    session = read_frf(Path(__file__).parent / "data" / "demo_sim_seed1.h5")
+    outs, ins, mask = layout_channels(FACE_DOWN)
+    assert list(ins.name) == list(session.inputs.name)
+    np.testing.assert_allclose(ins.direction, session.inputs.direction, atol=1e-12)
+    problem, space = pelvis_problem(default_model(), outs, ins)
+    f = session.frequency_hz
+    H, _ = frf_with_jacobian(problem.assemble(space.values()), problem.outputs,
+                             problem.inputs, f, jacobian=False)
+    rows = [list(session.outputs.name).index(n) for n in outs.name]
+    measured = session.H[:, rows, :]
+    ok = mask[None] & np.isfinite(measured)
+    ratio = measured[ok] / H[ok]
+    assert ok.sum() > 100
+    assert np.median(ratio.real) == pytest.approx(1.0, abs=0.1)
