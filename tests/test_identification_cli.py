@@ -119,3 +119,18 @@ def test_layout_channels_have_a_sessions_signs() -> None:
     ratio = measured[ok] / H[ok]
     assert ok.sum() > 100
     assert np.median(ratio.real) == pytest.approx(1.0, abs=0.1)
+
+
+def test_identify_json_dash_prints_the_json_alone_on_stdout(tmp_path: Path, capsys) -> None:
+    # design 4.5: "pelvislab identify --json prints ..."; '-' was refused ("'-' (standard
+    # output) is not supported here") although ema takes it (audit)
+    frf = _frf_file(tmp_path / "frf.h5", {"k_pubh": 1.3})
+    frf.H_std = np.zeros(frf.H.shape)  # read as absent, with a note: on stderr only
+    write_frf(tmp_path / "zero_std.h5", frf)
+    assert main(["identify", str(tmp_path / "zero_std.h5"), "--params", "k_pubh",
+                 "--json", "-"]) == 0
+    captured = capsys.readouterr()
+    doc = json.loads(captured.out)  # the whole of stdout is the JSON
+    assert doc["parameters"]["k_pubh"]["value"] == pytest.approx(1.3e5, rel=1e-6)
+    assert doc["notes"] and "note: H_std holds no positive finite value" in captured.err
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["frf.h5", "zero_std.h5"]
