@@ -24,6 +24,11 @@ def set_headless(on: bool) -> None:
     _headless = bool(on)
 
 
+def headless() -> bool:
+    """Whether dialogs raise :class:`GuiError` instead of showing (see :func:`set_headless`)."""
+    return _headless
+
+
 def close_modal_dialogs() -> int:
     """Reject every open modal dialog (message box, question, file dialog), innermost first,
     as if the operator had pressed Esc; returns how many.

@@ -26,6 +26,7 @@ from pelvislab.app.gui_dialogs import (
     alert,
     ask,
     close_modal_dialogs,
+    headless,
     set_headless,
 )
 from pelvislab.app.gui_plots import (
@@ -162,7 +163,7 @@ class OperatorWindow(QtWidgets.QMainWindow):
         self._refresh_bench_status()
         self._validate_protocol()
         if session_file is not None:
-            self.open_replay(session_file)
+            self.open_replay(session_file, say_on_stderr=True)
 
     # ------------------------------------------------------------------ layout
     def _build(self) -> None:
@@ -925,11 +926,19 @@ class OperatorWindow(QtWidgets.QMainWindow):
             self.statusBar().showMessage(f"check channel {warning}")
 
     # ------------------------------------------------------------------ replay
-    def open_replay(self, path: Path) -> bool:
-        """Open a recorded session in the Replay tab; a bad file gives a dialog."""
+    def open_replay(self, path: Path, say_on_stderr: bool = False) -> bool:
+        """Open a recorded session in the Replay tab; a bad file gives a dialog.
+
+        ``say_on_stderr``: also print the reason as one line on stderr (the file given on
+        the command line: the terminal that started ``pelvislab gui S.h5`` learns why)."""
         try:
             self.replay.open_session(path)
         except Exception as exc:
+            if say_on_stderr and not headless():  # headless: the command prints it
+                reason = " ".join(str(exc).split())
+                where = "" if str(path) in reason else f" {path}"
+                print(f"pelvislab gui: cannot open session{where}: {reason}",
+                      file=sys.stderr, flush=True)
             alert(self, "Cannot open session", str(exc))
             return False
         self.tabs.setCurrentWidget(self.replay)

@@ -39,7 +39,7 @@ def _guard(seen: dict, after_ms: int = 20_000) -> QtCore.QTimer:
 
 
 @pytest.mark.parametrize("signum", ["SIGTERM", "SIGHUP", "SIGINT"])
-def test_a_signal_over_the_bad_files_dialog_closes_the_gui(qapp, tmp_path, signum):
+def test_a_signal_over_the_bad_files_dialog_closes_the_gui(qapp, tmp_path, capsys, signum):
     # audit: `pelvislab gui bad.h5`'s "Cannot open session" box opens while the window is
     # being built, before the application's loop: SIGTERM did nothing there (no timer woke
     # Python's handler, no window to close yet, the box waiting for a click): SIGKILL only
@@ -61,6 +61,9 @@ def test_a_signal_over_the_bad_files_dialog_closes_the_gui(qapp, tmp_path, signu
         guard.stop()
     assert seen["box"] == "Cannot open session"
     assert "gave_up" not in seen, f"{signum} left the dialog open"
+    err = capsys.readouterr().err
+    # the terminal learns why too (the box stays for the operator: one line, no traceback)
+    assert "pelvislab gui: cannot open session" in err and "not a readable HDF5" in err
     assert not [w for w in QtWidgets.QApplication.topLevelWidgets()
                 if isinstance(w, gui_main.OperatorWindow) and w.isVisible()]
 
