@@ -21,7 +21,14 @@ from typing import Any
 import numpy as np
 from PySide6 import QtCore, QtGui, QtWidgets
 
-from pelvislab.app.gui_dialogs import GuiError, alert, ask, set_headless
+from pelvislab.app.gui_dialogs import (
+    GuiError,
+    alert,
+    ask,
+    close_modal_dialogs,
+    headless,
+    set_headless,
+)
 from pelvislab.app.gui_plots import (
     AScanPanel,
     DisplacementPanel,
@@ -156,7 +163,7 @@ class OperatorWindow(QtWidgets.QMainWindow):
         self._refresh_bench_status()
         self._validate_protocol()
         if session_file is not None:
-            self.open_replay(session_file)
+            self.open_replay(session_file, say_on_stderr=True)
 
     # ------------------------------------------------------------------ layout
     def _build(self) -> None:
@@ -919,11 +926,19 @@ class OperatorWindow(QtWidgets.QMainWindow):
             self.statusBar().showMessage(f"check channel {warning}")
 
     # ------------------------------------------------------------------ replay
-    def open_replay(self, path: Path) -> bool:
-        """Open a recorded session in the Replay tab; a bad file gives a dialog."""
+    def open_replay(self, path: Path, say_on_stderr: bool = False) -> bool:
+        """Open a recorded session in the Replay tab; a bad file gives a dialog.
+
+        ``say_on_stderr``: also print the reason as one line on stderr (the file given on
+        the command line: the terminal that started ``pelvislab gui S.h5`` learns why)."""
         try:
             self.replay.open_session(path)
         except Exception as exc:
+            if say_on_stderr and not headless():  # headless: the command prints it
+                reason = " ".join(str(exc).split())
+                where = "" if str(path) in reason else f" {path}"
+                print(f"pelvislab gui: cannot open session{where}: {reason}",
+                      file=sys.stderr, flush=True)
             alert(self, "Cannot open session", str(exc))
             return False
         self.tabs.setCurrentWidget(self.replay)
@@ -939,7 +954,9 @@ class OperatorWindow(QtWidgets.QMainWindow):
                     self, "A run is going",
                     "Stop the run (outputs off; the steps measured so far are kept) and "
                     "close the window?")
-                if answer != QtWidgets.QMessageBox.StandardButton.Yes:
+                # a signal during the question rejected it and asks to close without it
+                if (answer != QtWidgets.QMessageBox.StandardButton.Yes
+                        and self.ask_before_closing_a_run):
                     event.ignore()
                     return
             if self._running():  # Esc during the question may have stopped it already
@@ -1001,8 +1018,25 @@ def run_gui(session_file: Path | None = None, screenshot: Path | None = None,
         closing["asked"] = True
         if closing["window"] is not None:
             closing["window"].ask_before_closing_a_run = False  # a signal means: stop now
-            closing["window"].close()  # its closeEvent stops a running session first
-            closing["app"].quit()
+        # a modal dialog (a bad file's "Cannot open session", the close question, a file
+        # dialog) runs its own event loop, in which closing the window waited for a click:
+        # nobody is asked any more (the window may still be in construction)
+        close_modal_dialogs()
+        if closing["window"] is not None:
+            # after the dialogs' loops have returned: close the window (its closeEvent
+            # stops a running session first), then leave the application's loop
+            QtCore.QTimer.singleShot(0, close_now)
+
+    def on_wake() -> None:
+        if closing["asked"]:  # a dialog opened after the signal (nobody will answer it)
+            close_modal_dialogs()
+
+    def close_now() -> None:
+        if closing["window"] is None:  # the loop has ended meanwhile
+            return
+        close_modal_dialogs()  # one opened meanwhile (e.g. by the call a dialog ended)
+        closing["window"].close()
+        closing["app"].quit()
 
     # SIGTERM (shutdown, kill) and SIGHUP (terminal closed) too: their default action
     # ended the process with a run's outputs on; an ignored SIGHUP stays so (nohup)
@@ -1014,6 +1048,14 @@ def run_gui(session_file: Path | None = None, screenshot: Path | None = None,
                 continue
             previous_handlers[sig] = signal.signal(sig, on_sigint)
     app = QtWidgets.QApplication.instance() or QtWidgets.QApplication(["pelvislab"])
+    wake = None
+    if screenshot is None:
+        # Python runs signal handlers only between bytecodes: a timer wakes the interpreter
+        # while Qt's loop waits, also a dialog's loop while the window is being built (a
+        # bad session file's box: SIGTERM there needed SIGKILL)
+        wake = QtCore.QTimer()
+        wake.timeout.connect(on_wake)
+        wake.start(200)
     window = OperatorWindow(session_file, bench_path=bench_path)
     window.ask_before_closing_a_run = screenshot is None  # nobody answers offscreen
     closing["window"], closing["app"] = window, app
@@ -1034,18 +1076,14 @@ def run_gui(session_file: Path | None = None, screenshot: Path | None = None,
             raise ValueError("--analyse needs a session file to replay")
         {"identify": window.replay.run_identification,
          "gap": window.replay.run_gap, "ema": window.replay.run_ema}[analyse]()
-    if screenshot is None:
-        # Python runs signal handlers only between bytecodes: a timer wakes the interpreter
-        # while Qt's loop waits
-        wake = QtCore.QTimer()
-        wake.timeout.connect(lambda: None)
-        wake.start(200)
+    if wake is not None:
         if closing["asked"]:  # Ctrl-C while the window opened
             QtCore.QTimer.singleShot(0, lambda: on_sigint())
         try:
             code = app.exec()
         finally:
             wake.stop()
+            closing["window"] = None
             for sig, handler in previous_handlers.items():
                 signal.signal(sig, handler)
         _dispose(app, window)

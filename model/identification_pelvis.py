@@ -19,7 +19,7 @@ import numpy as np
 from pelvislab.acquisition.frfset import Channels
 from pelvislab.model.frf import rows_for
 from pelvislab.model.identification import FrfProblem, SystemMatrices
-from pelvislab.model.landmarks import landmark_points
+from pelvislab.model.landmarks import excitation_points, landmark_points
 from pelvislab.model.parameters import ParameterSpace, parameter_space
 from pelvislab.model.pelvis import PelvisModel
 
@@ -45,7 +45,10 @@ LAYOUTS = {"face_up": FACE_UP, "face_down": FACE_DOWN, "full": FULL, "ch7": CH7}
 
 
 def layout_channels(layout: dict[str, tuple[str, ...]]) -> tuple[Channels, Channels, np.ndarray]:
-    """Output and input channels of a layout and the (n_out, n_in) mask of measured pairs."""
+    """Output and input channels of a layout and the (n_out, n_in) mask of measured pairs.
+
+    Outputs look along the landmark direction; inputs push into the surface (minus it), as
+    a protocol's default excitation, so FRFs of these channels have a session's signs."""
     inputs = list(layout)
     outputs: list[str] = []
     for picks in layout.values():
@@ -55,11 +58,11 @@ def layout_channels(layout: dict[str, tuple[str, ...]]) -> tuple[Channels, Chann
         for p in layout[e]:
             mask[outputs.index(p), j] = True
 
-    def channels(names: list[str]) -> Channels:
-        pts = landmark_points(names)
+    def channels(names: list[str], points=landmark_points) -> Channels:  # noqa: ANN001
+        pts = points(names)
         return Channels(names, list(pts.bone), pts.position_m, pts.direction)
 
-    return channels(outputs), channels(inputs), mask
+    return channels(outputs), channels(inputs, excitation_points), mask
 
 
 def pelvis_problem(

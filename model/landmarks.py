@@ -1,8 +1,10 @@
 """The landmark catalogue (``protocols/landmarks.toml``) as model points.
 
 Each landmark: bone, position (m, design 4.1 frame), default unit direction (bone surface
-toward the sensor). See the file header for which coordinates the thesis fixes (none beyond
-the frame definition) and which are derived estimates.
+toward the sensor). An excitation at a landmark pushes into the surface, along minus that
+direction (:func:`excitation_points`), as a protocol's default ``excitation_direction``
+(``pelvislab.acquisition.protocol``). See the file header for which coordinates the
+thesis fixes (none beyond the frame definition) and which are derived estimates.
 """
 
 from __future__ import annotations
@@ -87,3 +89,13 @@ def landmark_points(names: list[str] | tuple[str, ...],
     lm = [cat[n] for n in names]
     return Points(tuple(x.bone for x in lm), np.array([x.position_m for x in lm]).reshape(-1, 3),
                   np.array([x.direction for x in lm]).reshape(-1, 3), tuple(names))
+
+
+def excitation_points(names: list[str] | tuple[str, ...],
+                      catalogue: dict[str, Landmark] | None = None) -> Points:
+    """:class:`~pelvislab.model.frf.Points` of unit forces at catalogue ``names``: into the
+    surface, along minus each landmark's direction, the default force direction of a
+    protocol's setup (design 4.1), so that model FRFs and a session's /frf agree in sign
+    for the same (output, input) names."""
+    pts = landmark_points(names, catalogue)
+    return Points(pts.bone, pts.position_m, 0.0 - pts.direction, pts.name)  # no -0.0

@@ -55,6 +55,41 @@ def test_ctrl_c_or_sigterm_closes_the_window(tmp_path, signum):
     assert proc.returncode == 0, proc.stderr.read()[-500:]
 
 
+@pytest.mark.skipif(sys.platform == "win32", reason="POSIX signal")
+@pytest.mark.parametrize("signum", ["SIGTERM", "SIGHUP"])
+def test_a_signal_closes_the_window_over_a_bad_files_dialog(tmp_path, signum):
+    # audit: `pelvislab gui bad.h5` showed its "Cannot open session" box while the window
+    # was being built; SIGTERM then did nothing (no timer woke Python's handler, and the
+    # box's own loop waited for a click): it needed SIGKILL. The terminal got no reason.
+    import threading
+
+    bad = tmp_path / "bad.h5"
+    bad.write_text("not a session")
+    proc = subprocess.Popen([sys.executable, "-m", "pelvislab.app", "gui", str(bad)],
+                            env=ENV, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                            text=True)
+    lines: list[str] = []
+    reader = threading.Thread(target=lambda: lines.extend(proc.stderr), daemon=True)
+    reader.start()
+    try:
+        deadline = time.monotonic() + 20  # the reason is printed as the box opens
+        while (not any("cannot open session" in line for line in lines)
+               and proc.poll() is None and time.monotonic() < deadline):
+            time.sleep(0.1)
+        time.sleep(1.0)  # the box is up (a signal before it is handled as well)
+        proc.send_signal(getattr(signal, signum))
+        proc.wait(timeout=20)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            pytest.fail(f"pelvislab gui bad.h5 still open 20 s after {signum}")
+    reader.join(5)
+    assert proc.returncode == 0, lines
+    reason = [line for line in lines if "cannot open session" in line]
+    assert len(reason) == 1 and "not a readable HDF5" in reason[0], lines
+    assert reason[0].startswith("pelvislab gui: ") and "Traceback" not in "".join(lines)
+
+
 def test_a_failed_analysis_in_a_screenshot_fails_the_command(tmp_path):
     # replay review, session 36: the failure was logged, the picture saved, exit 0
     import h5py

@@ -96,3 +96,41 @@ def test_eq610_weights_default_to_the_thesis_ratio(tmp_path: Path) -> None:
     assert main(["identify", str(tmp_path / "std.h5"), "--params", "k_pubh", "--json",
                  str(out)]) == 0
     assert "a_over_b" not in json.loads(out.read_text())  # std: weighted by H_std alone
+
+
+def test_layout_channels_have_a_sessions_signs() -> None:
+    # the layouts' inputs pushed along the landmark direction (outward), a session's force
+    # goes into the surface (protocol default): synthetic FRFs of a layout had the opposite
+    # sign of the simulated face-down demo's /frf for the same names (audit)
+    from pelvislab.acquisition.frfset import read_frf
+    from pelvislab.model.identification_pelvis import FACE_DOWN
+
+    session = read_frf(Path(__file__).parent / "data" / "demo_sim_seed1.h5")
+    outs, ins, mask = layout_channels(FACE_DOWN)
+    assert list(ins.name) == list(session.inputs.name)
+    np.testing.assert_allclose(ins.direction, session.inputs.direction, atol=1e-12)
+    problem, space = pelvis_problem(default_model(), outs, ins)
+    f = session.frequency_hz
+    H, _ = frf_with_jacobian(problem.assemble(space.values()), problem.outputs,
+                             problem.inputs, f, jacobian=False)
+    rows = [list(session.outputs.name).index(n) for n in outs.name]
+    measured = session.H[:, rows, :]
+    ok = mask[None] & np.isfinite(measured)
+    ratio = measured[ok] / H[ok]
+    assert ok.sum() > 100
+    assert np.median(ratio.real) == pytest.approx(1.0, abs=0.1)
+
+
+def test_identify_json_dash_prints_the_json_alone_on_stdout(tmp_path: Path, capsys) -> None:
+    # design 4.5: "pelvislab identify --json prints ..."; '-' was refused ("'-' (standard
+    # output) is not supported here") although ema takes it (audit)
+    frf = _frf_file(tmp_path / "frf.h5", {"k_pubh": 1.3})
+    frf.H_std = np.zeros(frf.H.shape)  # read as absent, with a note: on stderr only
+    write_frf(tmp_path / "zero_std.h5", frf)
+    assert main(["identify", str(tmp_path / "zero_std.h5"), "--params", "k_pubh",
+                 "--json", "-"]) == 0
+    captured = capsys.readouterr()
+    doc = json.loads(captured.out)  # the whole of stdout is the JSON
+    assert doc["parameters"]["k_pubh"]["value"] == pytest.approx(1.3e5, rel=1e-6)
+    assert doc["notes"] and "note: H_std holds no positive finite value" in captured.err
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["frf.h5", "zero_std.h5"]

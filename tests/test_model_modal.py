@@ -214,3 +214,59 @@ def test_docs_examples_run():
         exec(compile(block, str(doc), "exec"), namespace)
     assert namespace["dH"].shape[-1] == len(namespace["space"])
     assert namespace["m5"].n_dof == 24
+
+
+SIGN_PROTOCOL = """
+schema = "pelvislab-protocol"
+schema_version = 1
+name = "model frf sign"
+
+[subject]
+id = "sign-1"
+
+[sweep]
+frequencies_hz = [50.0, 150.0]
+drive_vpp = 0.2
+settle_s = 0.05
+periods_per_step = 10
+
+[ultrasound]
+prf_hz = 5000.0
+sample_rate_hz = 500e6
+samples = 500
+delay_s = 10e-6
+speed_of_sound_m_s = 1540.0
+
+[[setups]]
+name = "a"
+excitation = "SIAS_R_x"
+transducers = { ch1 = "SIAS_R_x", ch2 = "sacrum_x" }
+"""
+
+
+def test_cli_frf_agrees_in_sign_with_a_simulated_session(tmp_path, capsys):
+    # `model frf` pushed along the landmark direction (outward) while a session's force
+    # goes into the surface (protocol default): same names, opposite signs (audit). Now the
+    # model file, its --json and a measured /frf agree for the same (output, input) names.
+    from pelvislab.acquisition.frfset import read_frf
+
+    (tmp_path / "p.toml").write_text(SIGN_PROTOCOL)
+    assert main(["run", str(tmp_path / "p.toml"), "--out", str(tmp_path / "s.h5"),
+                 "--quiet"]) == 0
+    args = ["model", "frf", "--points", "sacrum_x,SIAS_R_x", "--inputs", "SIAS_R_x",
+            "--start-hz", "50", "--stop-hz", "150", "--step-hz", "100"]
+    assert main([*args, "--out", str(tmp_path / "m.h5")]) == 0
+    assert main([*args, "--json"]) == 0
+    js = json.loads(capsys.readouterr().out)
+    session, model = read_frf(tmp_path / "s.h5"), read_frf(tmp_path / "m.h5")
+    assert list(model.inputs.name) == list(session.inputs.name) == ["SIAS_R_x"]
+    np.testing.assert_allclose(model.inputs.direction, session.inputs.direction, atol=1e-12)
+    np.testing.assert_allclose(js["input_directions"], session.inputs.direction, atol=1e-12)
+    assert list(session.frequency_hz) == list(model.frequency_hz) == [50.0, 150.0]
+    H_json = np.array(js["H_real"]) + 1j * np.array(js["H_imag"])
+    np.testing.assert_allclose(H_json, model.H)
+    for o, name in enumerate(model.outputs.name):
+        measured = session.H[:, list(session.outputs.name).index(name), 0]
+        ratio = measured / model.H[:, o, 0]
+        # the simulated chain (tissue, echoes, tracking) is the model to a few per cent
+        assert np.all(np.abs(ratio - 1) < 0.2), (name, ratio)

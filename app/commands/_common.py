@@ -183,6 +183,16 @@ def check_new_output(path: str | Path) -> Path:
     return target
 
 
+def print_json(document: object) -> None:
+    """Print a result document on stdout as the same strict JSON :func:`write_json` writes
+    (``--json -``), flushed, so that nothing else may come between it and its reader."""
+    import json
+    import sys
+
+    sys.stdout.write(json.dumps(json_safe(document), indent=2, allow_nan=False) + "\n")
+    sys.stdout.flush()
+
+
 def write_json(path: str | Path, document: object) -> Path:
     """Write a result document as strict JSON, atomically (a crash never leaves a
     half-written file) and only if no file of that name exists. The file gets the

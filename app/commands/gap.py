@@ -49,7 +49,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     d = sub.add_parser("diagnose", help="where the model misses the data, and which effect")
     d.add_argument("session", metavar="S.h5", help="session or FRF-only file")
     d.add_argument("--model", metavar="M.toml", help="base model; default: thesis appendix E")
-    d.add_argument("--json", required=True, metavar="OUT", help="write the diagnosis JSON here")
+    d.add_argument("--json", required=True, metavar="OUT",
+                   help="write the diagnosis JSON to this file (not '-': the plots go "
+                   "next to it, the report to stdout)")
     d.add_argument("--effects", metavar="LIST",
                    help="comma-separated candidate effects to try (default: all, and "
                         "per_dashpot_damping, an extension of parameter updating)")
@@ -208,6 +210,10 @@ def plot_paths(out: Path) -> list[Path]:
 
 
 def _diagnose(args: argparse.Namespace) -> int:
+    if args.json == "-":  # check_new_output's generic refusal did not say why
+        raise ValueError("--json -: gap diagnose needs a file name, not '-' (standard "
+                         "output): its plots are saved next to the JSON and its report "
+                         "goes to stdout")
     out = check_new_output(args.json)
     if not args.no_plots:
         for path in plot_paths(out):  # results are never overwritten, plots neither

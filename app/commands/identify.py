@@ -15,6 +15,7 @@ from pelvislab.app.commands._common import (
     comma_list,
     incomplete_session_warning,
     infinite_as_unmeasured,
+    print_json,
     require_response,
     write_json,
 )
@@ -29,7 +30,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p = subparsers.add_parser(
         "identify", help="identify stiffness, damping and mass from a session's FRFs",
         description="Update the pelvis model to the measured FRFs (/frf of a session or an "
-        "FRF-only file). Prints nothing on stdout; writes the result JSON (design 4.5) to OUT.",
+        "FRF-only file). Writes the result JSON (design 4.5) to OUT, or prints it on stdout "
+        "with --json - (nothing else goes to stdout); notes and progress go to stderr.",
     )
     p.add_argument("session", metavar="S.h5", help="session or FRF-only file")
     p.add_argument("--method", choices=("frf", "modal"), default="frf",
@@ -61,7 +63,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                    help="standard uncertainty of the drive chain's calibration (N/V), one "
                    "gain common to every FRF (e.g. 0.02), added to the std; default: the "
                    "one the session's bench file stated, else 0")
-    p.add_argument("--json", required=True, metavar="OUT", help="write the result JSON here")
+    p.add_argument("--json", required=True, metavar="OUT",
+                   help="write the result JSON here ('-' for stdout)")
     p.set_defaults(handler=_identify)
 
 
@@ -264,7 +267,8 @@ def _identify(args: argparse.Namespace) -> int:
             math.isfinite(args.calibration_std) and 0 <= args.calibration_std <= 0.5):
         raise ValueError(f"--calibration-std {args.calibration_std}: must be a fraction in "
                          "[0, 0.5], e.g. 0.02 for 2 %")
-    out = check_new_output(args.json)
+    # '-': the JSON on stdout (design 4.5 "identify --json prints"); checked before the fit
+    out = None if args.json == "-" else check_new_output(args.json)
     free = comma_list(args.params) if args.params else None
     warning = incomplete_session_warning(args.session)
     if warning:
@@ -276,10 +280,14 @@ def _identify(args: argparse.Namespace) -> int:
         a_b=None if args.a_b is None else float(args.a_b),
         starts=args.starts, seed=args.seed, gain_std=args.gain_std,
         calibration_std=args.calibration_std)
-    write_json(out, report.to_json())
+    if out is None:
+        print_json(report.to_json())
+    else:
+        write_json(out, report.to_json())
     for note in report.document.get("notes", []):
         print(f"note: {note}", file=sys.stderr)
     if not report.converged:
+        where = "standard output" if out is None else out
         print(f"identify: not converged ({report.message.strip('; ')}); result written to "
-              f"{out}", file=sys.stderr)
+              f"{where}", file=sys.stderr)
     return 0

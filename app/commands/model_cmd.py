@@ -30,13 +30,17 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     m.set_defaults(handler=_modes)
     f = sub.add_parser("frf", help="FRFs of the model at catalogue points",
                        description="Receptance FRFs (m/N) of the pelvis model between landmarks "
-                       "of protocols/landmarks.toml, printed or written as an FRF-only file.")
+                       "of protocols/landmarks.toml, printed or written as an FRF-only file. "
+                       "Outputs: displacement along the landmark direction (bone toward sensor); "
+                       "inputs: force into the surface (minus the landmark direction), the "
+                       "convention of a session's /frf, so both agree in sign.")
     f.add_argument("--model", metavar="M.toml", help="model file; default: thesis appendix E")
     f.add_argument("--points", metavar="NAMES",
                    help="comma-separated landmark names (outputs; also inputs unless --inputs), "
                    "e.g. sacrum_x,SIAS_R_x,SIAS_L_x (see protocols/landmarks.toml)")
     f.add_argument("--inputs", metavar="NAMES", help="comma-separated landmark names of the "
-                   "excitation points (force along the landmark direction); default: --points")
+                   "excitation points (unit force into the surface, along minus the landmark "
+                   "direction, as a protocol's default excitation); default: --points")
     f.add_argument("--landmarks", metavar="L.toml",
                    help="landmark catalogue; default: protocols/landmarks.toml")
     f.add_argument("--start-hz", type=float, default=5.0, help="first line, Hz (default 5)")
@@ -111,7 +115,7 @@ def _frf(args: argparse.Namespace) -> int:
     import numpy as np
 
     from pelvislab.model.frf import frf
-    from pelvislab.model.landmarks import landmark_points, load_landmarks
+    from pelvislab.model.landmarks import excitation_points, landmark_points, load_landmarks
 
     if not args.points:
         raise ValueError("give --points NAMES (comma-separated landmark names from "
@@ -129,7 +133,9 @@ def _frf(args: argparse.Namespace) -> int:
     out_names = _names(args.points)
     in_names = _names(args.inputs) if args.inputs else out_names
     outputs = landmark_points(out_names, catalogue)
-    inputs = landmark_points(in_names, catalogue)
+    # force into the surface, as a protocol's default excitation_direction: the same sign
+    # as a session's /frf for the same (output, input) names
+    inputs = excitation_points(in_names, catalogue)
     n = int(np.floor((args.stop_hz - args.start_hz) / args.step_hz + 1e-9)) + 1
     f = args.start_hz + args.step_hz * np.arange(n)
     H = frf(model, f, outputs, inputs)
@@ -150,11 +156,14 @@ def _frf(args: argparse.Namespace) -> int:
             "frequency_hz": f.tolist(),
             "outputs": out_names,
             "inputs": in_names,
+            "input_directions": inputs.direction.tolist(),
             "H_real": H.real.tolist(),
             "H_imag": H.imag.tolist(),
         }, sys.stdout)
         sys.stdout.write("\n")
     elif not args.out:
+        print("inputs: unit force into the surface (minus the landmark direction), "
+              "as in a session's /frf")
         for i, o in enumerate(out_names):
             for j, e in enumerate(in_names):
                 k = int(np.argmax(np.abs(H[:, i, j])))
