@@ -135,7 +135,8 @@ def candidate_rows(report: dict[str, Any]) -> list[tuple[str, str, str, str, str
 
 
 def identification_summary(document: dict[str, Any]) -> str:
-    """One line (HTML) on an identification's JSON: converged or not and why, the misfit."""
+    """One line (HTML) on an identification's JSON: converged or not and why, the misfit;
+    its notes (if any) below."""
     rms = document.get("rms_residual")
     misfit = "" if rms is None else (
         f"rms residual {rms:.3g}" + (" (in noise σ)" if document.get("residual") == "std"
@@ -155,7 +156,10 @@ def identification_summary(document: dict[str, Any]) -> str:
     std = ("" if document.get("method") != "frf" else
            f"; std include {' and '.join(terms)}" if terms
            else "; std: the noise's share only")
-    return head + (f" — {misfit}" if misfit else "") + std
+    # e.g. a channel left out of the fit (on no modelled bone): said, not dropped silently
+    notes = "; ".join(html.escape(str(n)) for n in document.get("notes") or [])
+    return (head + (f" — {misfit}" if misfit else "") + std
+            + (f"<br><small>note: {notes}</small>" if notes else ""))
 
 
 def _summary_page(text: str) -> tuple[QtWidgets.QWidget, QtWidgets.QVBoxLayout,
