@@ -703,12 +703,15 @@ class ReplayView(QtWidgets.QWidget):
             f"{html.escape(str(r['effect']))} {html.escape(str(r['parameter']))} "
             f"{r['low']:.3g} … {r['high']:.3g}" + (" (0 inside)" if r["null_inside"] else "")
             for r in report.get("not_excluded") or [])
+        # e.g. a pick-up on the bed frame (bone ""): left out of the shares, said here
+        notes = "; ".join(html.escape(str(n)) for n in report.get("notes") or [])
         self.gap_summary.setText(
             f"<b>verdict: {verdict}</b> — gap before {report.get('gap_before', float('nan')):.3g}."
             f" Largest residual in {bands or '—'}; outputs {outputs or '—'};"
             f" bones {bones or '—'}."
             + (f"<br><small>{reason}</small>" if reason else "")
-            + (f"<br><small>not excluded by the data: {ranges}</small>" if ranges else ""))
+            + (f"<br><small>not excluded by the data: {ranges}</small>" if ranges else "")
+            + (f"<br><small>note: {notes}</small>" if notes else ""))
         residual = getattr(result, "residual_map", None)
         if residual is not None:
             # NaN (not measured) stays NaN: drawn blank, not as a residual of 0

@@ -1238,7 +1238,9 @@ def normalised_residual(data: GapData, H_model: np.ndarray, fill: float = np.nan
 
 def where_analysis(data: GapData, H_base: np.ndarray, n_bands: int = 6) -> dict[str, object]:
     """Shares of the excess normalised residual by band, output, bone and input, with FRAC
-    per FRF and COMAC per output (:mod:`pelvislab.model.correlation`) to back them."""
+    per FRF and COMAC per output (:mod:`pelvislab.model.correlation`) to back them.
+    Outputs and inputs with no usable line (on no modelled bone) have no share: they are
+    listed in ``left_out`` (side, name, bone, reason)."""
     r = normalised_residual(data, H_base, fill=0.0)
     e2 = np.abs(r) ** 2
     excess = np.where(data.mask, np.clip(e2 - 1.0, 0, None), 0)
@@ -1253,12 +1255,24 @@ def where_analysis(data: GapData, H_base: np.ndarray, n_bands: int = 6) -> dict[
         share = float(excess[sel].sum()) / tot if tot > 0 else 1.0 / n_bands
         bands.append({"lo_hz": _round(lo, 5), "hi_hz": _round(hi, 5), "share": _round(share, 4)})
     bands.sort(key=lambda b: -b["share"])
-    by_out = {n: float(excess[:, o, :].sum()) for o, n in enumerate(data.out_names)}
+    # a channel without a usable line (on no modelled bone, design 4.1's bone "", or
+    # measured only with such a point) carries no residual because the model predicts
+    # nothing there: a share of 0 would read "fits perfectly", so it is listed apart
+    used_out, used_in = data.mask.any(axis=(0, 2)), data.mask.any(axis=(0, 1))
+    by_out = {n: float(excess[:, o, :].sum()) for o, n in enumerate(data.out_names)
+              if used_out[o]}
     by_bone: dict[str, float] = {}
     for o, b in enumerate(data.out_bones):
-        # design 4.1 spells "on no modelled bone" as an empty string (reports show it)
-        by_bone[b] = by_bone.get(b, 0.0) + by_out[data.out_names[o]]
-    by_in = {n: float(excess[:, :, i].sum()) for i, n in enumerate(data.in_names)}
+        if used_out[o]:
+            by_bone[b] = by_bone.get(b, 0.0) + by_out[data.out_names[o]]
+    by_in = {n: float(excess[:, :, i].sum()) for i, n in enumerate(data.in_names)
+             if used_in[i]}
+    left_out = [{"side": side, "name": n, "bone": b,
+                 "reason": "on no modelled bone" if b == "" else "no usable line"}
+                for side, names, bones, used in (
+                    ("output", data.out_names, data.out_bones, used_out),
+                    ("input", data.in_names, data.in_bones, used_in))
+                for n, b, u in zip(names, bones, used, strict=True) if not u]
     Hm = np.where(data.mask, data.H, np.nan)
     Hb = np.where(data.mask, H_base, np.nan)
     fr = frac(Hm, Hb)
@@ -1277,6 +1291,7 @@ def where_analysis(data: GapData, H_base: np.ndarray, n_bands: int = 6) -> dict[
         "outputs": _shares(by_out, "name"),
         "bones": _shares(by_bone, "bone"),
         "inputs": _shares(by_in, "name"),
+        "left_out": left_out,
         "peak_hz": _round(data.frequency_hz[peak], 5),
         "frac": fracs,
         "comac": comacs,

@@ -362,23 +362,35 @@ def test_gap_commands_keep_freed_memory_on_glibc():
     assert keep_freed_memory_for_reuse() is (platform.libc_ver()[0] == "glibc")
 
 
-def test_where_names_an_output_on_no_bone_with_the_empty_string():
-    """Design 4.1 spells "on no modelled bone" as an empty string; where.bones keeps it (the
-    model predicts nothing there, so such an output carries no share)."""
+def test_where_leaves_a_channel_on_no_bone_out_of_the_shares_and_lists_it():
+    """Design 4.1 spells "on no modelled bone" as an empty string. The model predicts
+    nothing there, so such a channel has no share: it was listed with share 0.0 (and bone
+    "" with 0.0), which reads "fits perfectly"; it is listed apart in where.left_out, as
+    is a channel on a bone with no usable line."""
     from pelvislab.model.gap import where_analysis
 
-    outs = Channels(OUT.name + ["table_z"], OUT.bone + [""],
-                    np.vstack([OUT.position_m, [0.0, 0.0, -0.2]]),
-                    np.vstack([OUT.direction, [0.0, 0.0, 1.0]]))
-    H = np.ones((F_HZ.size, 4, 2), complex)
-    data = prepare_data(F_HZ, H, np.ones(H.shape), outs, IN)
+    outs = Channels(OUT.name + ["table_z", "sacrum_z"], OUT.bone + ["", "sacrum"],
+                    np.vstack([OUT.position_m, [0.0, 0.0, -0.2], [-0.1, 0.0, 0.0]]),
+                    np.vstack([OUT.direction, [0.0, 0.0, 1.0], [0.0, 0.0, 1.0]]))
+    ins = Channels(IN.name + ["frame_x"], IN.bone + [""],
+                   np.vstack([IN.position_m, [0.0, 0.0, -0.3]]),
+                   np.vstack([IN.direction, [1.0, 0.0, 0.0]]))
+    H = np.ones((F_HZ.size, 5, 3), complex)
+    H[:, 4, :] = np.nan  # sacrum_z: never measured
+    data = prepare_data(F_HZ, H, np.ones(H.shape), outs, ins)
     H_model = H.copy()
     H_model[:, 0, :] += 3.0
     H_model[:, 3, :] += 3.0
-    bones = where_analysis(data, H_model)["bones"]
-    assert bones[0] == {"bone": "sacrum", "share": 1.0}
-    assert {"bone": "", "share": 0.0} in bones
-    assert {b["bone"] for b in bones} == {"", "sacrum", "innominate_right", "innominate_left"}
+    where = where_analysis(data, H_model)
+    assert where["bones"][0] == {"bone": "sacrum", "share": 1.0}
+    assert {b["bone"] for b in where["bones"]} == {"sacrum", "innominate_right",
+                                                   "innominate_left"}
+    assert [o["name"] for o in where["outputs"]] == [OUT.name[0], OUT.name[1], OUT.name[2]]
+    assert [i["name"] for i in where["inputs"]] == IN.name
+    assert where["left_out"] == [
+        {"side": "output", "name": "table_z", "bone": "", "reason": "on no modelled bone"},
+        {"side": "output", "name": "sacrum_z", "bone": "sacrum", "reason": "no usable line"},
+        {"side": "input", "name": "frame_x", "bone": "", "reason": "on no modelled bone"}]
 
 
 def test_a_file_on_no_modelled_bone_is_refused_with_that_reason():

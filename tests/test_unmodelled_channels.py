@@ -1,6 +1,8 @@
 """A /frf file with a channel on no modelled bone (design 4.1: bone ``""``, e.g. an extra
-pick-up on the bed frame): ``identify`` leaves it out of the fit and says so (contract
-audit: identify refused the whole file).
+pick-up on the bed frame): ``identify`` leaves it out of the fit and says so, ``gap
+diagnose`` leaves it out of the ``where`` shares and says so (contract audit: identify
+refused the whole file, gap listed the channel with share 0.0, which reads "fits
+perfectly").
 
 The files are ``tests/data/demo_sim_seed1.h5`` (a simulated-chain session's /frf) with one
 channel added by a minimal h5py writer here (not ``write_frf``), from the text of design
@@ -116,3 +118,43 @@ def test_gui_identification_pane_shows_the_note(tmp_path, qtbot):
     view.show_identification(report)
     text = view.ident_summary.text()
     assert "note: left out of the fit" in text and f"output {EXTRA}" in text
+
+
+@pytest.fixture(scope="module")
+def gap_run(tmp_path_factory) -> tuple[int, str, str, dict]:
+    """``gap diagnose`` of the file with the bed-frame output (one effect keeps it short:
+    the shares come from the base fit)."""
+    folder = tmp_path_factory.mktemp("gap")
+    src = with_channel_on_no_bone(folder / "f.h5")
+    out = folder / "g.json"
+    code, stdout, stderr = run(["gap", "diagnose", str(src), "--json", str(out), "--no-plots",
+                                "--effects", "added_mass", "--jobs", "2"])
+    return code, stdout, stderr, json.loads(out.read_text()) if out.exists() else {}
+
+
+def test_gap_leaves_a_channel_on_no_bone_out_of_the_shares_and_names_it(gap_run):
+    code, stdout, stderr, doc = gap_run
+    assert code == 0, stderr
+    where = doc["where"]
+    assert EXTRA not in [o["name"] for o in where["outputs"]]
+    assert "" not in [b["bone"] for b in where["bones"]]
+    assert all(o["share"] > 0 for o in where["outputs"])
+    assert where["left_out"] == [{"side": "output", "name": EXTRA, "bone": "",
+                                  "reason": "on no modelled bone"}]
+    notes = [n for n in doc.get("notes", []) if EXTRA in n]
+    assert len(notes) == 1 and "no modelled bone" in notes[0]
+    assert f"note: {notes[0]}" in stderr
+    assert f"left out (no share): output {EXTRA} (on no modelled bone)" in stdout
+
+
+def test_gui_gap_pane_shows_the_note_and_no_share_for_it(gap_run, qtbot):
+    from pelvislab.app.commands.gap import GapReport
+    from pelvislab.app.gui_replay import ReplayView
+
+    doc = gap_run[3]
+    view = ReplayView()
+    qtbot.addWidget(view)
+    view.show_gap(GapReport(doc, None, [], np.array([]), None))
+    text = view.gap_summary.text()
+    assert f"note: left out of the diagnosis and of the where shares: output {EXTRA}" in text
+    assert "(no bone)" not in text and f"{EXTRA} (0 %)" not in text

@@ -157,6 +157,9 @@ def diagnose_file(path: str | Path, model_path: str | Path | None = None,
     document = dict(result.report)
     if warnings:
         document["warnings"] = warnings
+    note = left_out_note(document.get("where") or {})
+    if note:
+        document["notes"] = [note]
     document["source"] = {"file": str(Path(path).resolve()),
                           "model": str(model_path) if model_path else "appendix_e (default)"}
     residual = np.abs(np.asarray(result.residual_map))
@@ -168,6 +171,20 @@ def diagnose_file(path: str | Path, model_path: str | Path | None = None,
                 labels.append(f"{out} / {inp}")
     residual_rows = np.array(rows) if rows else np.zeros((0, frf.frequency_hz.size))
     return GapReport(document, residual_rows, labels, np.asarray(frf.frequency_hz), result)
+
+
+def left_out_note(where: dict[str, Any]) -> str | None:
+    """A note naming the outputs and inputs ``where`` leaves out of its shares (a point on
+    no modelled bone, design 4.1, or a channel with no usable line), or ``None``."""
+    items = where.get("left_out") or []
+    if not items:
+        return None
+    reasons: dict[str, list[str]] = {}
+    for item in items:
+        reasons.setdefault(str(item["reason"]), []).append(f"{item['side']} {item['name']}")
+    why = {"on no modelled bone": "on no modelled bone: the model predicts nothing there"}
+    return "left out of the diagnosis and of the where shares: " + "; ".join(
+        f"{', '.join(names)} ({why.get(reason, reason)})" for reason, names in reasons.items())
 
 
 MIN_FREQUENCY_LINES = 12
@@ -231,6 +248,8 @@ def _diagnose(args: argparse.Namespace) -> int:
     document["plots"] = plots
     for w in document.get("warnings", []):
         print(f"pelvislab gap diagnose: warning: {w}", file=sys.stderr)
+    for n in document.get("notes", []):
+        print(f"pelvislab gap diagnose: note: {n}", file=sys.stderr)
     write_json(out, document)
     print(format_report(document))
     print(f"\nJSON: {out}")
@@ -272,6 +291,10 @@ def format_report(report: dict) -> str:
         f"{o['name']} {o['share']:.0%}" for o in where["outputs"][:4]))
     lines.append("  bones:   " + ", ".join(
         f"{b['bone'] or '(no bone)'} {b['share']:.0%}" for b in where["bones"]))
+    left_out = where.get("left_out") or []
+    if left_out:
+        lines.append("  left out (no share): " + ", ".join(
+            f"{x['side']} {x['name']} ({x['reason']})" for x in left_out))
     worst = sorted(where.get("frac", []), key=lambda x: x["frac"])[:3]
     if worst:
         lines.append("  lowest FRAC: " + ", ".join(
