@@ -860,7 +860,9 @@ class CandidateResult:
         return {
             "effect": c.effect,
             "gap_after": _round(self.gap_after),
-            "shrink": _round(1.0 - self.gap_after / gap_before) if gap_before > 0 else 0.0,
+            # undefined at gap_before 0 (design 4.4's 1 - gap_after/gap_before): null, not a
+            # 0.0 that reads "no shrink"
+            "shrink": _round(1.0 - self.gap_after / gap_before) if gap_before > 0 else None,
             "params": params,
             "evidence": evidence,
             "variant": c.variant,

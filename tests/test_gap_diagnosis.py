@@ -343,13 +343,36 @@ def test_shrink_distribution_leaves_out_sets_named_at_base_gap_0():
                 "place_correct": None, "shrink": shrink, "gap_before": gap, "none_gap": 0.5,
                 "wall_time_s": 1.0, "cpu_time_s": 1.0}
 
-    cases = [entry(2.0, 0.9), entry(0.0, 0.0), entry(1.0, 0.8)]
+    # the report's shrink at gap_before 0 is null (undefined); 0.0 in entries of older runs
+    cases = [entry(2.0, 0.9), entry(0.0, None), entry(1.0, 0.8), entry(0.0, 0.0)]
     res = _score(cases, ["added_mass"], ["none", "added_mass", "unexplained"])
     assert res["shrink_correct"]["values"] == [0.9, 0.8]
     assert res["shrink_correct"]["min"] == 0.8
-    assert res["shrink_correct"]["undefined_gap_before_0"] == 1
+    assert res["shrink_correct"]["undefined_gap_before_0"] == 2
     res.update(wall_time_s={"median": 1, "max": 1}, cpu_time_s={"median": 1, "max": 1})
-    assert "1 more named at base gap 0" in format_summary(res)
+    assert "2 more named at base gap 0" in format_summary(res)
+
+
+def test_benchmark_takes_a_null_shrink_of_a_set_named_at_base_gap_0(monkeypatch):
+    """The report writes shrink null at gap_before 0; the benchmark read float(shrink)."""
+    from types import SimpleNamespace
+
+    from pelvislab.model import gap_benchmark
+
+    report = {"verdict": "added_mass", "gap_before": 0.0, "thresholds": {"none_gap": 0.5},
+              "where": {}, "candidates": [{"effect": "added_mass", "gap_after": 0.0,
+                                           "shrink": None}]}
+    monkeypatch.setattr(gap_benchmark, "diagnose",
+                        lambda data, model, options: SimpleNamespace(report=report))
+    H = np.ones((F_HZ.size, 3, 2), complex)
+
+    def generator(kind, index):
+        return BenchCase(F_HZ, H, np.ones(H.shape), OUT, IN, kind)
+
+    res = gap_benchmark.run_benchmark(generator, kinds=["added_mass"], cases_per_kind=1)
+    assert res["cases"][0]["shrink"] is None
+    assert res["shrink_correct"]["undefined_gap_before_0"] == 1
+    assert res["shrink_correct"]["values"] == []
 
 
 def test_gap_commands_keep_freed_memory_on_glibc():

@@ -301,8 +301,13 @@ def format_report(report: dict) -> str:
             f"{w['output']}/{w['input']} {w['frac']:.3f}" for w in worst))
     lines.append("which (held-out gap after adding the effect):")
     for c in report["candidates"]:
+        # shrink is null where gap_before is 0: 1 - gap_after/gap_before is undefined there
+        shrink = "n/a" if c["shrink"] is None else f"{c['shrink']:.0%}"
         lines.append(f"  {c['effect']:<30} gap {c['gap_after']:<8.3g} shrink "
-                     f"{c['shrink']:>6.0%}  [{c.get('variant', '')} @ {c.get('place', '')}]")
+                     f"{shrink:>6}  [{c.get('variant', '')} @ {c.get('place', '')}]")
+    if any(c["shrink"] is None for c in report["candidates"]):
+        lines.append("  (shrink n/a: the base model's gap is 0, at the noise level, so no "
+                     "shrink can be measured; the chi2 test decides)")
     ranges = report.get("not_excluded") or []
     if ranges:
         lines.append("not excluded by the data (global effects; chi2 of all lines within the "
