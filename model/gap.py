@@ -1215,13 +1215,18 @@ def _spring_from_support(res: CandidateResult, k0_n_per_m: float) -> np.ndarray:
     return np.concatenate([u[:3] * scale, u[3:6]])
 
 
+SHARE_DIGITS = 12
+"""Significant digits of the ``where`` shares: design 4.4's "shares sum to 1" holds to
+~1e-11 (4 digits, as written before the contract audit, summed to 0.99993-1.00002)."""
+
+
 def _shares(weights: dict[str, float], key: str) -> list[dict[str, object]]:
     total = sum(weights.values())
     items = sorted(weights.items(), key=lambda kv: -kv[1])
     if total <= 0:
         n = len(items)
-        return [{key: k, "share": _round(1.0 / n, 4)} for k, _ in items]
-    return [{key: k, "share": _round(v / total, 4)} for k, v in items]
+        return [{key: k, "share": _round(1.0 / n, SHARE_DIGITS)} for k, _ in items]
+    return [{key: k, "share": _round(v / total, SHARE_DIGITS)} for k, v in items]
 
 
 def band_edges(frequency_hz: np.ndarray, n_bands: int = 6) -> np.ndarray:
@@ -1255,7 +1260,8 @@ def where_analysis(data: GapData, H_base: np.ndarray, n_bands: int = 6) -> dict[
         lo, hi = edges[k], edges[k + 1]
         sel = (data.frequency_hz >= lo) & ((data.frequency_hz < hi) | (k == n_bands - 1))
         share = float(excess[sel].sum()) / tot if tot > 0 else 1.0 / n_bands
-        bands.append({"lo_hz": _round(lo, 5), "hi_hz": _round(hi, 5), "share": _round(share, 4)})
+        bands.append({"lo_hz": _round(lo, 5), "hi_hz": _round(hi, 5),
+                      "share": _round(share, SHARE_DIGITS)})
     bands.sort(key=lambda b: -b["share"])
     # a channel without a usable line (on no modelled bone, design 4.1's bone "", or
     # measured only with such a point) carries no residual because the model predicts
@@ -1971,7 +1977,9 @@ def _joint_fit_stage(s: _Stages,
     for kind, key, names_ in (("output", "outputs", data.out_names),
                               ("input", "inputs", data.in_names)):
         items = where.get(key, [])
-        if len(names_) < 2 or not items or items[0]["share"] < opt.clean_share:
+        # the share at the 4 digits it was written with until the shares kept 12: the
+        # decision stays what it was
+        if len(names_) < 2 or not items or _round(items[0]["share"], 4) < opt.clean_share:
             continue
         j = names_.index(items[0]["name"])
         lines = (_Lines.build(s.ctx, data, ~s.held_lines, exclude_output=j) if kind == "output"

@@ -228,7 +228,7 @@ def test_misoriented_sensor_is_found_with_its_place_and_shrink():
     # design 4.4 contract: shares sum to 1, largest first
     for key in ("bands", "outputs", "bones"):
         shares = [x["share"] for x in rep["where"][key]]
-        assert sum(shares) == pytest.approx(1.0, abs=1e-3)
+        assert sum(shares) == pytest.approx(1.0, abs=1e-9)
         assert shares == sorted(shares, reverse=True)
     assert rep["where"]["outputs"][0]["name"] == "sias_R_x"
     for c in rep["candidates"]:

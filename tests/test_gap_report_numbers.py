@@ -3,6 +3,9 @@
 ``shrink = 1 - gap_after/gap_before`` is undefined when ``gap_before`` is 0: it is written
 null (JSON null, not NaN), not 0.0, which reads "no shrink". ``tests/data/demo_sim_seed1.h5``
 (a simulated-chain session's /frf, no effect) has gap_before 0, like ``make demo``'s.
+
+The ``where`` shares sum to 1 (design 4.4) to 1e-9 in each list: rounded to 4 digits they
+summed to 0.99993-1.00002.
 """
 
 from __future__ import annotations
@@ -15,6 +18,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from pelvislab.acquisition.frfset import Channels
 from pelvislab.app.cli import main
 
 DATA = Path(__file__).parent / "data" / "demo_sim_seed1.h5"
@@ -59,3 +63,36 @@ def test_shrink_is_null_at_gap_before_0_and_every_reader_says_so(demo_gap, qtbot
                for r in range(view.candidate_table.rowCount())]
     assert shrinks and set(shrinks) <= {"—", "(—)"}
     assert "no shrink can be measured" in view.gap_summary.text()
+
+
+SHARE_LISTS = ("bands", "outputs", "bones", "inputs")
+
+
+def test_where_shares_of_the_cli_json_sum_to_1(demo_gap):
+    where = demo_gap[3]["where"]
+    for key in SHARE_LISTS:
+        shares = [item["share"] for item in where[key]]
+        assert shares and abs(sum(shares) - 1.0) <= 1e-9, (key, sum(shares))
+        assert shares == sorted(shares, reverse=True), key
+
+
+@pytest.mark.parametrize("key", SHARE_LISTS)
+def test_where_shares_sum_to_1_where_4_digits_did_not(key):
+    """Equal thirds and sixths: 0.3333 x 3 and 0.1667 x 6 missed 1 by 1e-4 and 2e-4."""
+    from pelvislab.model.gap import prepare_data, where_analysis
+
+    f = np.arange(5.0, 300.1, 5.0)  # 60 lines, 10 in each of the 6 bands
+    outs = Channels(["sacrum_x", "sias_R_x", "sias_L_x"],
+                    ["sacrum", "innominate_right", "innominate_left"],
+                    np.array([[-0.16, 0.0, -0.06], [0.0, -0.11, 0.0], [0.0, 0.11, 0.0]]),
+                    np.array([[-1.0, 0, 0], [1, 0, 0], [1, 0, 0]]))
+    ins = Channels(["sips_R_x", "sips_L_x", "sacrum_x"],
+                   ["innominate_right", "innominate_left", "sacrum"],
+                   np.array([[-0.14, -0.045, 0.02], [-0.14, 0.045, 0.02], [-0.16, 0, -0.06]]),
+                   np.array([[1.0, 0, 0], [1, 0, 0], [1, 0, 0]]))
+    H = np.ones((f.size, 3, 3), complex)
+    data = prepare_data(f, H, np.ones(H.shape), outs, ins)
+    where = where_analysis(data, H + 3.0)  # the same excess residual on every line
+    shares = [item["share"] for item in where[key]]
+    assert len(shares) == (6 if key == "bands" else 3)
+    assert abs(sum(shares) - 1.0) <= 1e-9, shares
