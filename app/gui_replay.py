@@ -95,7 +95,7 @@ def candidate_rows(report: dict[str, Any]) -> list[tuple[str, str, str, str, str
     damping per dashpot: its verdict is ``none``), not needed beside ``none`` (the
     reason says why), not near the noise beside ``unexplained``. An aborted demo file
     showed "100 %" for an effect whose drop was not significant, beside the verdict
-    ``none``."""
+    ``none``. A null shrink (``gap_before`` 0, where it is undefined) shows as "—"."""
     from pelvislab.model.gap_effects import NULL_EXTENSIONS
 
     verdict = str(report.get("verdict", ""))
@@ -127,7 +127,9 @@ def candidate_rows(report: dict[str, Any]) -> list[tuple[str, str, str, str, str
     rows = []
     for cand in sorted(report.get("candidates") or [], key=rank):
         said = status(cand)
-        shrink = f"{100 * number(cand, 'shrink'):.0f} %"
+        # null where gap_before is 0: the shrink is undefined there (design 4.4's ratio)
+        shrink = ("—" if cand.get("shrink") is None
+                  else f"{100 * number(cand, 'shrink'):.0f} %")
         rows.append((str(cand.get("effect", "")), said, f"{number(cand, 'gap_after'):.3g}",
                      shrink if said == "named" else f"({shrink})",
                      str(cand.get("evidence") or "")))
@@ -135,7 +137,8 @@ def candidate_rows(report: dict[str, Any]) -> list[tuple[str, str, str, str, str
 
 
 def identification_summary(document: dict[str, Any]) -> str:
-    """One line (HTML) on an identification's JSON: converged or not and why, the misfit."""
+    """One line (HTML) on an identification's JSON: converged or not and why, the misfit;
+    its notes (if any) below."""
     rms = document.get("rms_residual")
     misfit = "" if rms is None else (
         f"rms residual {rms:.3g}" + (" (in noise σ)" if document.get("residual") == "std"
@@ -702,12 +705,19 @@ class ReplayView(QtWidgets.QWidget):
             f"{html.escape(str(r['effect']))} {html.escape(str(r['parameter']))} "
             f"{r['low']:.3g} … {r['high']:.3g}" + (" (0 inside)" if r["null_inside"] else "")
             for r in report.get("not_excluded") or [])
+        # e.g. a pick-up on the bed frame (bone ""): left out of the shares, said here
+        notes = "; ".join(html.escape(str(n)) for n in report.get("notes") or [])
+        gap_before = report.get("gap_before")
+        gap_text = "?" if gap_before is None else f"{gap_before:.3g}"
+        if gap_before == 0:
+            gap_text += " (at the noise level: no shrink can be measured)"
         self.gap_summary.setText(
-            f"<b>verdict: {verdict}</b> — gap before {report.get('gap_before', float('nan')):.3g}."
+            f"<b>verdict: {verdict}</b> — gap before {gap_text}."
             f" Largest residual in {bands or '—'}; outputs {outputs or '—'};"
             f" bones {bones or '—'}."
             + (f"<br><small>{reason}</small>" if reason else "")
-            + (f"<br><small>not excluded by the data: {ranges}</small>" if ranges else ""))
+            + (f"<br><small>not excluded by the data: {ranges}</small>" if ranges else "")
+            + (f"<br><small>note: {notes}</small>" if notes else ""))
         residual = getattr(result, "residual_map", None)
         if residual is not None:
             # NaN (not measured) stays NaN: drawn blank, not as a residual of 0

@@ -860,7 +860,9 @@ class CandidateResult:
         return {
             "effect": c.effect,
             "gap_after": _round(self.gap_after),
-            "shrink": _round(1.0 - self.gap_after / gap_before) if gap_before > 0 else 0.0,
+            # undefined at gap_before 0 (design 4.4's 1 - gap_after/gap_before): null, not a
+            # 0.0 that reads "no shrink"
+            "shrink": _round(1.0 - self.gap_after / gap_before) if gap_before > 0 else None,
             "params": params,
             "evidence": evidence,
             "variant": c.variant,
@@ -1213,13 +1215,18 @@ def _spring_from_support(res: CandidateResult, k0_n_per_m: float) -> np.ndarray:
     return np.concatenate([u[:3] * scale, u[3:6]])
 
 
+SHARE_DIGITS = 12
+"""Significant digits of the ``where`` shares: design 4.4's "shares sum to 1" holds to
+~1e-11 (4 digits, as written before the contract audit, summed to 0.99993-1.00002)."""
+
+
 def _shares(weights: dict[str, float], key: str) -> list[dict[str, object]]:
     total = sum(weights.values())
     items = sorted(weights.items(), key=lambda kv: -kv[1])
     if total <= 0:
         n = len(items)
-        return [{key: k, "share": _round(1.0 / n, 4)} for k, _ in items]
-    return [{key: k, "share": _round(v / total, 4)} for k, v in items]
+        return [{key: k, "share": _round(1.0 / n, SHARE_DIGITS)} for k, _ in items]
+    return [{key: k, "share": _round(v / total, SHARE_DIGITS)} for k, v in items]
 
 
 def band_edges(frequency_hz: np.ndarray, n_bands: int = 6) -> np.ndarray:
@@ -1238,7 +1245,9 @@ def normalised_residual(data: GapData, H_model: np.ndarray, fill: float = np.nan
 
 def where_analysis(data: GapData, H_base: np.ndarray, n_bands: int = 6) -> dict[str, object]:
     """Shares of the excess normalised residual by band, output, bone and input, with FRAC
-    per FRF and COMAC per output (:mod:`pelvislab.model.correlation`) to back them."""
+    per FRF and COMAC per output (:mod:`pelvislab.model.correlation`) to back them.
+    Outputs and inputs with no usable line (on no modelled bone) have no share: they are
+    listed in ``left_out`` (side, name, bone, reason)."""
     r = normalised_residual(data, H_base, fill=0.0)
     e2 = np.abs(r) ** 2
     excess = np.where(data.mask, np.clip(e2 - 1.0, 0, None), 0)
@@ -1251,14 +1260,27 @@ def where_analysis(data: GapData, H_base: np.ndarray, n_bands: int = 6) -> dict[
         lo, hi = edges[k], edges[k + 1]
         sel = (data.frequency_hz >= lo) & ((data.frequency_hz < hi) | (k == n_bands - 1))
         share = float(excess[sel].sum()) / tot if tot > 0 else 1.0 / n_bands
-        bands.append({"lo_hz": _round(lo, 5), "hi_hz": _round(hi, 5), "share": _round(share, 4)})
+        bands.append({"lo_hz": _round(lo, 5), "hi_hz": _round(hi, 5),
+                      "share": _round(share, SHARE_DIGITS)})
     bands.sort(key=lambda b: -b["share"])
-    by_out = {n: float(excess[:, o, :].sum()) for o, n in enumerate(data.out_names)}
+    # a channel without a usable line (on no modelled bone, design 4.1's bone "", or
+    # measured only with such a point) carries no residual because the model predicts
+    # nothing there: a share of 0 would read "fits perfectly", so it is listed apart
+    used_out, used_in = data.mask.any(axis=(0, 2)), data.mask.any(axis=(0, 1))
+    by_out = {n: float(excess[:, o, :].sum()) for o, n in enumerate(data.out_names)
+              if used_out[o]}
     by_bone: dict[str, float] = {}
     for o, b in enumerate(data.out_bones):
-        # design 4.1 spells "on no modelled bone" as an empty string (reports show it)
-        by_bone[b] = by_bone.get(b, 0.0) + by_out[data.out_names[o]]
-    by_in = {n: float(excess[:, :, i].sum()) for i, n in enumerate(data.in_names)}
+        if used_out[o]:
+            by_bone[b] = by_bone.get(b, 0.0) + by_out[data.out_names[o]]
+    by_in = {n: float(excess[:, :, i].sum()) for i, n in enumerate(data.in_names)
+             if used_in[i]}
+    left_out = [{"side": side, "name": n, "bone": b,
+                 "reason": "on no modelled bone" if b == "" else "no usable line"}
+                for side, names, bones, used in (
+                    ("output", data.out_names, data.out_bones, used_out),
+                    ("input", data.in_names, data.in_bones, used_in))
+                for n, b, u in zip(names, bones, used, strict=True) if not u]
     Hm = np.where(data.mask, data.H, np.nan)
     Hb = np.where(data.mask, H_base, np.nan)
     fr = frac(Hm, Hb)
@@ -1277,6 +1299,7 @@ def where_analysis(data: GapData, H_base: np.ndarray, n_bands: int = 6) -> dict[
         "outputs": _shares(by_out, "name"),
         "bones": _shares(by_bone, "bone"),
         "inputs": _shares(by_in, "name"),
+        "left_out": left_out,
         "peak_hz": _round(data.frequency_hz[peak], 5),
         "frac": fracs,
         "comac": comacs,
@@ -1954,7 +1977,9 @@ def _joint_fit_stage(s: _Stages,
     for kind, key, names_ in (("output", "outputs", data.out_names),
                               ("input", "inputs", data.in_names)):
         items = where.get(key, [])
-        if len(names_) < 2 or not items or items[0]["share"] < opt.clean_share:
+        # the share at the 4 digits it was written with until the shares kept 12: the
+        # decision stays what it was
+        if len(names_) < 2 or not items or _round(items[0]["share"], 4) < opt.clean_share:
             continue
         j = names_.index(items[0]["name"])
         lines = (_Lines.build(s.ctx, data, ~s.held_lines, exclude_output=j) if kind == "output"

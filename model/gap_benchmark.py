@@ -124,9 +124,9 @@ def run_benchmark(generator: Generator | None, kinds: Sequence[str] | None = Non
             cpu = _cpu_s() - c0
             rep = result.report
             verdict = str(rep["verdict"])
-            shrink = None
+            shrink = None  # also where the report's is null (gap_before 0: undefined)
             for c in rep["candidates"]:
-                if c["effect"] == verdict:
+                if c["effect"] == verdict and c["shrink"] is not None:
                     shrink = float(c["shrink"])
             local = case.place_kind in LOCAL_KINDS and kind != "none"
             entry = {
@@ -175,10 +175,11 @@ def _score(cases: list[dict], kinds: Sequence[str], labels: Sequence[str]
     correct = [c for c in cases if c["correct"]]
     local = [c for c in cases if c["place_correct"] is not None]
     # shrink = 1 - gap_after/gap_before is undefined at gap_before 0 (held-out chi2 at or
-    # below its noise expectation: an effect named on the chi2 test alone); the report's
-    # 0.0 there is no measured shrink, so those sets are counted apart
-    named = [c for c in correct if c["shrink"] is not None and c["kind"] != "none"]
-    shrinks = [c["shrink"] for c in named if c["gap_before"] > 0]
+    # below its noise expectation: an effect named on the chi2 test alone); the report
+    # writes null there (0.0 before, which entries of older runs may still hold), so those
+    # sets are counted apart
+    named = [c for c in correct if c["kind"] != "none"]
+    shrinks = [c["shrink"] for c in named if c["gap_before"] > 0 and c["shrink"] is not None]
     false_none = [c for c in cases if c["kind"] != "none" and c["verdict"] == "none"]
     walls = [c["wall_time_s"] for c in cases]
     cpus = [c["cpu_time_s"] for c in cases]
@@ -193,7 +194,7 @@ def _score(cases: list[dict], kinds: Sequence[str], labels: Sequence[str]
             "p10": round(float(np.percentile(shrinks, 10)), 4) if shrinks else None,
             "min": round(float(np.min(shrinks)), 4) if shrinks else None,
             "values": [round(s, 4) for s in shrinks],
-            "undefined_gap_before_0": len(named) - len(shrinks),
+            "undefined_gap_before_0": sum(1 for c in named if not c["gap_before"] > 0),
         },
         "false_none": len(false_none),
         # of those, sets whose base gap is already below the none threshold: parameter

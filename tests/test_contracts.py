@@ -222,11 +222,12 @@ def test_gap_diagnose_json(files: dict[str, Path], capsys: pytest.CaptureFixture
     assert code == 0
     doc = strict_json(out.read_text())
     assert isinstance(doc["gap_before"], float) and doc["gap_before"] >= 0
-    for key, name in (("bands", "lo_hz"), ("outputs", "name"), ("bones", "bone")):
+    for key, name in (("bands", "lo_hz"), ("outputs", "name"), ("bones", "bone"),
+                      ("inputs", "name")):
         rows = doc["where"][key]
         shares = [r["share"] for r in rows]
         assert rows and all(name in r for r in rows)
-        assert sum(shares) == pytest.approx(1.0, abs=1e-3), key
+        assert sum(shares) == pytest.approx(1.0, abs=1e-9), key  # design 4.4: sum to 1
         assert shares == sorted(shares, reverse=True), f"{key}: largest first"
     for b in doc["where"]["bands"]:
         assert b["lo_hz"] < b["hi_hz"]
@@ -234,7 +235,10 @@ def test_gap_diagnose_json(files: dict[str, Path], capsys: pytest.CaptureFixture
         assert set(c) >= {"effect", "gap_after", "shrink", "params", "evidence"}
         if doc["gap_before"] > 0:
             # the JSON rounds gaps to a few digits: compare at that resolution
+            assert isinstance(c["shrink"], float)
             assert c["shrink"] == pytest.approx(1 - c["gap_after"] / doc["gap_before"], abs=2e-3)
+        else:  # 1 - gap_after/gap_before is undefined: null, not 0.0 ("no shrink")
+            assert c["shrink"] is None
     assert doc["verdict"] in EFFECTS | {"unexplained"} | {c["effect"] for c in doc["candidates"]}
 
 

@@ -228,7 +228,7 @@ def test_misoriented_sensor_is_found_with_its_place_and_shrink():
     # design 4.4 contract: shares sum to 1, largest first
     for key in ("bands", "outputs", "bones"):
         shares = [x["share"] for x in rep["where"][key]]
-        assert sum(shares) == pytest.approx(1.0, abs=1e-3)
+        assert sum(shares) == pytest.approx(1.0, abs=1e-9)
         assert shares == sorted(shares, reverse=True)
     assert rep["where"]["outputs"][0]["name"] == "sias_R_x"
     for c in rep["candidates"]:
@@ -343,13 +343,36 @@ def test_shrink_distribution_leaves_out_sets_named_at_base_gap_0():
                 "place_correct": None, "shrink": shrink, "gap_before": gap, "none_gap": 0.5,
                 "wall_time_s": 1.0, "cpu_time_s": 1.0}
 
-    cases = [entry(2.0, 0.9), entry(0.0, 0.0), entry(1.0, 0.8)]
+    # the report's shrink at gap_before 0 is null (undefined); 0.0 in entries of older runs
+    cases = [entry(2.0, 0.9), entry(0.0, None), entry(1.0, 0.8), entry(0.0, 0.0)]
     res = _score(cases, ["added_mass"], ["none", "added_mass", "unexplained"])
     assert res["shrink_correct"]["values"] == [0.9, 0.8]
     assert res["shrink_correct"]["min"] == 0.8
-    assert res["shrink_correct"]["undefined_gap_before_0"] == 1
+    assert res["shrink_correct"]["undefined_gap_before_0"] == 2
     res.update(wall_time_s={"median": 1, "max": 1}, cpu_time_s={"median": 1, "max": 1})
-    assert "1 more named at base gap 0" in format_summary(res)
+    assert "2 more named at base gap 0" in format_summary(res)
+
+
+def test_benchmark_takes_a_null_shrink_of_a_set_named_at_base_gap_0(monkeypatch):
+    """The report writes shrink null at gap_before 0; the benchmark read float(shrink)."""
+    from types import SimpleNamespace
+
+    from pelvislab.model import gap_benchmark
+
+    report = {"verdict": "added_mass", "gap_before": 0.0, "thresholds": {"none_gap": 0.5},
+              "where": {}, "candidates": [{"effect": "added_mass", "gap_after": 0.0,
+                                           "shrink": None}]}
+    monkeypatch.setattr(gap_benchmark, "diagnose",
+                        lambda data, model, options: SimpleNamespace(report=report))
+    H = np.ones((F_HZ.size, 3, 2), complex)
+
+    def generator(kind, index):
+        return BenchCase(F_HZ, H, np.ones(H.shape), OUT, IN, kind)
+
+    res = gap_benchmark.run_benchmark(generator, kinds=["added_mass"], cases_per_kind=1)
+    assert res["cases"][0]["shrink"] is None
+    assert res["shrink_correct"]["undefined_gap_before_0"] == 1
+    assert res["shrink_correct"]["values"] == []
 
 
 def test_gap_commands_keep_freed_memory_on_glibc():
@@ -362,23 +385,35 @@ def test_gap_commands_keep_freed_memory_on_glibc():
     assert keep_freed_memory_for_reuse() is (platform.libc_ver()[0] == "glibc")
 
 
-def test_where_names_an_output_on_no_bone_with_the_empty_string():
-    """Design 4.1 spells "on no modelled bone" as an empty string; where.bones keeps it (the
-    model predicts nothing there, so such an output carries no share)."""
+def test_where_leaves_a_channel_on_no_bone_out_of_the_shares_and_lists_it():
+    """Design 4.1 spells "on no modelled bone" as an empty string. The model predicts
+    nothing there, so such a channel has no share: it was listed with share 0.0 (and bone
+    "" with 0.0), which reads "fits perfectly"; it is listed apart in where.left_out, as
+    is a channel on a bone with no usable line."""
     from pelvislab.model.gap import where_analysis
 
-    outs = Channels(OUT.name + ["table_z"], OUT.bone + [""],
-                    np.vstack([OUT.position_m, [0.0, 0.0, -0.2]]),
-                    np.vstack([OUT.direction, [0.0, 0.0, 1.0]]))
-    H = np.ones((F_HZ.size, 4, 2), complex)
-    data = prepare_data(F_HZ, H, np.ones(H.shape), outs, IN)
+    outs = Channels(OUT.name + ["table_z", "sacrum_z"], OUT.bone + ["", "sacrum"],
+                    np.vstack([OUT.position_m, [0.0, 0.0, -0.2], [-0.1, 0.0, 0.0]]),
+                    np.vstack([OUT.direction, [0.0, 0.0, 1.0], [0.0, 0.0, 1.0]]))
+    ins = Channels(IN.name + ["frame_x"], IN.bone + [""],
+                   np.vstack([IN.position_m, [0.0, 0.0, -0.3]]),
+                   np.vstack([IN.direction, [1.0, 0.0, 0.0]]))
+    H = np.ones((F_HZ.size, 5, 3), complex)
+    H[:, 4, :] = np.nan  # sacrum_z: never measured
+    data = prepare_data(F_HZ, H, np.ones(H.shape), outs, ins)
     H_model = H.copy()
     H_model[:, 0, :] += 3.0
     H_model[:, 3, :] += 3.0
-    bones = where_analysis(data, H_model)["bones"]
-    assert bones[0] == {"bone": "sacrum", "share": 1.0}
-    assert {"bone": "", "share": 0.0} in bones
-    assert {b["bone"] for b in bones} == {"", "sacrum", "innominate_right", "innominate_left"}
+    where = where_analysis(data, H_model)
+    assert where["bones"][0] == {"bone": "sacrum", "share": 1.0}
+    assert {b["bone"] for b in where["bones"]} == {"sacrum", "innominate_right",
+                                                   "innominate_left"}
+    assert [o["name"] for o in where["outputs"]] == [OUT.name[0], OUT.name[1], OUT.name[2]]
+    assert [i["name"] for i in where["inputs"]] == IN.name
+    assert where["left_out"] == [
+        {"side": "output", "name": "table_z", "bone": "", "reason": "on no modelled bone"},
+        {"side": "output", "name": "sacrum_z", "bone": "sacrum", "reason": "no usable line"},
+        {"side": "input", "name": "frame_x", "bone": "", "reason": "on no modelled bone"}]
 
 
 def test_a_file_on_no_modelled_bone_is_refused_with_that_reason():

@@ -425,12 +425,13 @@ def test_gap_candidates_say_which_the_verdict_named():
         "explains it: updating, so none", "within the chain's tolerance"]
     report["verdict_reason"] = "base gap 0 <= 0.5 ..."
     assert candidate_rows(report)[0][1] == "updating, not an effect"
-    # a report read back from its JSON (null for NaN): no crash, unknown shrink last
+    # a report read back from its JSON (null for NaN): no crash, unknown shrink last; a
+    # null shrink (undefined at gap_before 0) is a dash, not "nan %"
     report = {"verdict": "none", "candidates": [
         cand("added_mass", None, gap_after=None, evidence=None), cand("soft_tissue", 0.7)]}
     assert candidate_rows(report) == [
         ("soft_tissue", "not needed (see the reason)", "0.3", "(70 %)", "soft_tissue ..."),
-        ("added_mass", "not needed (see the reason)", "nan", "(nan %)", "")]
+        ("added_mass", "not needed (see the reason)", "nan", "(—)", "")]
 
 
 def test_live_echoes_at_the_prompt_and_a_gate_set_by_dragging(operator_window, qtbot, tmp_path):

@@ -159,6 +159,9 @@ def diagnose_file(path: str | Path, model_path: str | Path | None = None,
     document = dict(result.report)
     if warnings:
         document["warnings"] = warnings
+    note = left_out_note(document.get("where") or {})
+    if note:
+        document["notes"] = [note]
     document["source"] = {"file": str(Path(path).resolve()),
                           "model": str(model_path) if model_path else "appendix_e (default)"}
     residual = np.abs(np.asarray(result.residual_map))
@@ -170,6 +173,20 @@ def diagnose_file(path: str | Path, model_path: str | Path | None = None,
                 labels.append(f"{out} / {inp}")
     residual_rows = np.array(rows) if rows else np.zeros((0, frf.frequency_hz.size))
     return GapReport(document, residual_rows, labels, np.asarray(frf.frequency_hz), result)
+
+
+def left_out_note(where: dict[str, Any]) -> str | None:
+    """A note naming the outputs and inputs ``where`` leaves out of its shares (a point on
+    no modelled bone, design 4.1, or a channel with no usable line), or ``None``."""
+    items = where.get("left_out") or []
+    if not items:
+        return None
+    reasons: dict[str, list[str]] = {}
+    for item in items:
+        reasons.setdefault(str(item["reason"]), []).append(f"{item['side']} {item['name']}")
+    why = {"on no modelled bone": "on no modelled bone: the model predicts nothing there"}
+    return "left out of the diagnosis and of the where shares: " + "; ".join(
+        f"{', '.join(names)} ({why.get(reason, reason)})" for reason, names in reasons.items())
 
 
 MIN_FREQUENCY_LINES = 12
@@ -237,6 +254,8 @@ def _diagnose(args: argparse.Namespace) -> int:
     document["plots"] = plots
     for w in document.get("warnings", []):
         print(f"pelvislab gap diagnose: warning: {w}", file=sys.stderr)
+    for n in document.get("notes", []):
+        print(f"pelvislab gap diagnose: note: {n}", file=sys.stderr)
     write_json(out, document)
     print(format_report(document))
     print(f"\nJSON: {out}")
@@ -278,14 +297,23 @@ def format_report(report: dict) -> str:
         f"{o['name']} {o['share']:.0%}" for o in where["outputs"][:4]))
     lines.append("  bones:   " + ", ".join(
         f"{b['bone'] or '(no bone)'} {b['share']:.0%}" for b in where["bones"]))
+    left_out = where.get("left_out") or []
+    if left_out:
+        lines.append("  left out (no share): " + ", ".join(
+            f"{x['side']} {x['name']} ({x['reason']})" for x in left_out))
     worst = sorted(where.get("frac", []), key=lambda x: x["frac"])[:3]
     if worst:
         lines.append("  lowest FRAC: " + ", ".join(
             f"{w['output']}/{w['input']} {w['frac']:.3f}" for w in worst))
     lines.append("which (held-out gap after adding the effect):")
     for c in report["candidates"]:
+        # shrink is null where gap_before is 0: 1 - gap_after/gap_before is undefined there
+        shrink = "n/a" if c["shrink"] is None else f"{c['shrink']:.0%}"
         lines.append(f"  {c['effect']:<30} gap {c['gap_after']:<8.3g} shrink "
-                     f"{c['shrink']:>6.0%}  [{c.get('variant', '')} @ {c.get('place', '')}]")
+                     f"{shrink:>6}  [{c.get('variant', '')} @ {c.get('place', '')}]")
+    if any(c["shrink"] is None for c in report["candidates"]):
+        lines.append("  (shrink n/a: the base model's gap is 0, at the noise level, so no "
+                     "shrink can be measured; the chi2 test decides)")
     ranges = report.get("not_excluded") or []
     if ranges:
         lines.append("not excluded by the data (global effects; chi2 of all lines within the "

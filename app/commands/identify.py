@@ -124,6 +124,7 @@ def identify_file(path: str | Path, method: str = "frf", params: list[str] | Non
 
     frf = read_frf(path)
     infinite_note = infinite_as_unmeasured(frf)
+    frf, left_out_note = modelled_channels(frf, path)
     model = load_model(model_path)
     problem, _ = pelvis_problem(model, frf.outputs, frf.inputs, symmetric=symmetric)
     free = list(params) if params else None
@@ -200,7 +201,7 @@ def identify_file(path: str | Path, method: str = "frf", params: list[str] | Non
     doc.update(extra)
     doc["units"] = {"m_": "kg", "k_": "N/m", "c_": "N s/m", "f_": "1"}
     doc["source"] = str(path)
-    notes = [n for n in (infinite_note, std_note, calibration_note) if n]
+    notes = [n for n in (left_out_note, infinite_note, std_note, calibration_note) if n]
     if notes:
         doc["notes"] = notes
     doc["model"] = model.name
@@ -213,6 +214,40 @@ def identify_file(path: str | Path, method: str = "frf", params: list[str] | Non
         f_k=identified.get("f_k", f_k), f_c=identified.get("f_c", f_c),
         omega_max_rad_s=problem.omega_max_rad_s, jacobian=False)
     return IdentificationReport(doc, frf, model_H, bool(result.converged), str(result.message))
+
+
+def modelled_channels(frf: Any, path: str | Path) -> tuple[Any, str | None]:
+    """``frf`` without its outputs and inputs on no modelled bone (design 4.1: bone ``""``,
+    e.g. a pick-up on the bed frame), and a note naming them (``None`` when there are none).
+
+    The model predicts nothing at such a point, so its FRFs cannot enter the fit; the rest
+    of the file can. Refuses a file with nothing usable left: every output or every input
+    on no modelled bone, or no measured value between the remaining ones."""
+    import numpy as np
+
+    from pelvislab.acquisition.frfset import FrfSet
+
+    keep_out = [k for k, b in enumerate(frf.outputs.bone) if b != ""]
+    keep_in = [k for k, b in enumerate(frf.inputs.bone) if b != ""]
+    off = ([f"output {frf.outputs.name[k]}" for k, b in enumerate(frf.outputs.bone) if b == ""]
+           + [f"input {frf.inputs.name[k]}" for k, b in enumerate(frf.inputs.bone) if b == ""])
+    if not off:
+        return frf, None
+    named = ", ".join(off)
+    if not keep_out or not keep_in or not np.isfinite(
+            frf.H[:, keep_out][:, :, keep_in]).any():
+        side = ("output" if not keep_out else "input" if not keep_in else "")
+        why = (f"every {side} is on no modelled bone" if side else
+               "no measured value is left between the channels on modelled bones")
+        raise ValueError(f"{path}: nothing left to identify from: {why} (design 4.1: bone "
+                         f"\"\"; {named})")
+    subset = FrfSet(
+        frf.frequency_hz, frf.H[:, keep_out][:, :, keep_in], frf.outputs.subset(keep_out),
+        frf.inputs.subset(keep_in),
+        H_std=None if frf.H_std is None else frf.H_std[:, keep_out][:, :, keep_in],
+        acquired_at_s=frf.acquired_at_s, attrs=frf.attrs)
+    return subset, (f"left out of the fit, on no modelled bone (design 4.1: bone \"\"; the "
+                    f"model predicts nothing there): {named}")
 
 
 def recorded_calibration_std(path: str | Path, frequency_hz: Any
