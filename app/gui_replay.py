@@ -249,7 +249,7 @@ class ReplayView(QtWidgets.QWidget):
         self.ema_button = QtWidgets.QPushButton("Modal analysis (EMA)")
         self.ema_button.clicked.connect(self.run_ema)
         analysis_layout.addWidget(self.identify_button)
-        # identify --gain-std: without it the std are the noise's share only (~1.9x too
+        # identify --gain-std: without it the std are the noise's share only (1.9-13x too
         # small on the simulated chain's sessions, docs/identification.md)
         gain_row = QtWidgets.QHBoxLayout()
         gain_label = QtWidgets.QLabel("FRF gain std")
@@ -258,10 +258,13 @@ class ReplayView(QtWidgets.QWidget):
         self.gain_std_box.setDecimals(2)
         self.gain_std_box.setSingleStep(0.1)
         self.gain_std_box.setSuffix(" %")
-        self.gain_std_box.setValue(0.0)
-        tip = ("Standard uncertainty of each FRF's gain (a calibration error common to its "
-               "lines), added to the identified parameters' std; 0: the std are the noise's "
-               "share only (identify --gain-std)")
+        from pelvislab.app.commands.identify import DEFAULT_GAIN_STD
+
+        self.gain_std_box.setValue(100.0 * DEFAULT_GAIN_STD)
+        tip = ("Standard uncertainty of each FRF's gain (a chain error common to its lines: "
+               "speed of sound, transducer angle), in the fit's weights and the identified "
+               "parameters' std; 0: the std are the noise's share only (identify --gain-std; "
+               "default the chain's ±0.5 % tolerance)")
         gain_label.setToolTip(tip)
         self.gain_std_box.setToolTip(tip)
         gain_row.addWidget(gain_label)

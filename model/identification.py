@@ -693,9 +693,11 @@ def identify_frf(
     ``gain_std`` (relative, e.g. 0.003): standard uncertainty of each FRF's gain, an error
     of the measurement chain common to all lines of that FRF that ``H_std`` does not hold.
     When > 0 the std include it: one gain per FRF is a nuisance parameter with that prior,
-    marginalised in the covariance (the fit itself is unchanged). Measured on six
-    simulated-chain sessions: per-FRF gains of -0.47 to +0.37 % made the std ~1.9x too
-    small without it (docs/identification.md).
+    marginalised in the covariance; with the ``std`` residual it also enters the weights as
+    a relative floor, sqrt(H_std^2 + (gain_std |H|)^2), so that lines measured far more
+    precisely than the chain's gain is known do not rule the fit. Measured on simulated
+    sessions (docs/identification.md): six demo sessions' std ~1.9x too small without it;
+    face_up sessions not converged (chi2/dof 2.3-3.4) and their std 10-13x too small.
     ``chain_gain_std`` (relative): standard uncertainty of one gain common to every FRF, the
     drive chain's calibration (N/V: one shaker, amplifier and calibration drive every
     input); when > 0 marginalised in the std the same way. It is a common scale of the
@@ -709,6 +711,12 @@ def identify_frf(
                          f"{chain_gain_std}")
     t0 = time.perf_counter()
     residual = residual or (ResidualSpec("std") if H_std is not None else ResidualSpec("log"))
+    if gain_std > 0 and H_std is not None and residual.kind == "std":
+        # the gain error in the weights too, as a relative floor: with H_std alone the
+        # simulated face_up sessions' 5-12.5 Hz lines (0.1-0.2 % gain errors, H_std
+        # 0.002-0.02 %: 5-60 sigma) ruled the fit (chi2/dof 2.3-3.4, not converged,
+        # sum z^2 1500-3100 for 18); with 0.003 chi2/dof 0.83-0.85, converged, z^2 10-13
+        H_std = np.sqrt(np.square(H_std) + np.square(gain_std * np.abs(H)))
     strategy = strategy or Strategy()
     names = list(problem.names)
     free_names = list(free) if free is not None else names
