@@ -64,6 +64,8 @@ class BaseStructure:
     params: np.ndarray  # (n_a,)
     constant_M: np.ndarray  # (n_dof, n_dof) unparametrised mass (point masses of the file)
     outers: np.ndarray = field(init=False)  # (n_a, n_dof, n_dof) w v vᵀ
+    # per kind (M, K, C): the atoms' parameter indices and their outers, for ``matrices``
+    by_kind: tuple[tuple[np.ndarray, np.ndarray], ...] = field(init=False)
     # the atoms sorted by parameter, and where each parameter's atoms start
     grouped_vectors: np.ndarray = field(init=False)
     grouped_weights: np.ndarray = field(init=False)
@@ -74,6 +76,10 @@ class BaseStructure:
     def __post_init__(self) -> None:
         outers = self.weights[:, None, None] * self.vectors[:, :, None] * self.vectors[:, None, :]
         object.__setattr__(self, "outers", outers)
+        # the selections ``matrices`` makes on every call (the same arrays, made once)
+        object.__setattr__(self, "by_kind", tuple(
+            (self.params[self.kinds == kind], outers[self.kinds == kind])
+            for kind in (KIND_M, KIND_K, KIND_C)))
         # the atoms grouped by parameter (stable order), for the Jacobian's sum per parameter
         order = np.argsort(self.params, kind="stable")
         object.__setattr__(self, "grouped_vectors", np.ascontiguousarray(self.vectors[order]))
@@ -97,11 +103,8 @@ class BaseStructure:
 
     def matrices(self, theta: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(M, K, C) at parameter values ``theta`` (SI)."""
-        coef = np.asarray(theta, float)[self.params]
-        out = []
-        for kind in (KIND_M, KIND_K, KIND_C):
-            sel = self.kinds == kind
-            out.append(np.tensordot(coef[sel], self.outers[sel], axes=1))
+        theta = np.asarray(theta, float)
+        out = [np.tensordot(theta[params], outers, axes=1) for params, outers in self.by_kind]
         out[0] = out[0] + self.constant_M
         return out[0], out[1], out[2]
 
