@@ -261,15 +261,25 @@ def _dynamic_stiffness(factors: Sequence[tuple[np.ndarray | None, np.ndarray | N
     (a zero part adds nothing; H is bit-identical), without complex temporaries."""
     n = matrices[0].shape[0]
     Z = np.empty((n_f, n, n), complex)
+    term = None
     for part, out in ((0, Z.real), (1, Z.imag)):
-        acc = None
+        first = True
         for pair, X in zip(factors, matrices, strict=True):
             a = pair[part]
             if a is None:
                 continue
-            term = a[:, None, None] * X
-            acc = term if acc is None else acc + term
-        out[...] = 0.0 if acc is None else acc
+            # the first term straight into Z, the others added to it: the same products
+            # and sums, in the same order, as ``a₀X₀ + a₁X₁ + ...``, without temporaries
+            if first:
+                np.multiply(a[:, None, None], X, out=out)
+                first = False
+            else:
+                if term is None:
+                    term = np.empty((n_f, n, n))
+                np.multiply(a[:, None, None], X, out=term)
+                np.add(out, term, out=out)
+        if first:
+            out[...] = 0.0
     return Z
 
 
@@ -304,7 +314,7 @@ def solve(ctx: Context, theta: np.ndarray, terms: EffectTerms | None = None) -> 
     factors = _plain_factors(terms, w)
     Z = _dynamic_stiffness(factors, (M, K, C), n_f)
     if terms.dZ is not None:
-        Z = Z + terms.dZ
+        Z += terms.dZ  # Z is this call's own array
     o = ctx.out_rows if terms.out_rows is None else terms.out_rows
     i = ctx.in_rows
     n_out, n_in = o.shape[0], i.shape[0]
