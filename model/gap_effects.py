@@ -1160,12 +1160,26 @@ def with_extension(cand: Candidate, extension: Candidate) -> Candidate:
     """``cand`` together with a ΔZ-only null extension (one damping per dashpot): the
     effect's parameters, then the extension's; the extension's ΔZ adds to the effect's."""
     n1 = cand.n_params
+    # the last build of each part: the Jacobian's forward differences change one
+    # parameter at a time, so one part is built again from the same values (a pure
+    # function of them; the context is kept with its result, so that a new context at a
+    # reused address is never taken for it)
+    last: dict[str, tuple[Context, bytes, object]] = {}
+
+    def part(key: str, fn: Callable[[np.ndarray, Context], object], u: np.ndarray,
+             c: Context) -> object:
+        ub = np.asarray(u, float).tobytes()
+        hit = last.get(key)
+        if hit is not None and hit[0] is c and hit[1] == ub:
+            return hit[2]
+        value = fn(u, c)
+        last[key] = (c, ub, value)
+        return value
 
     def build(u: np.ndarray, c: Context) -> EffectTerms:
-        terms = cand.build(u[:n1], c)
-        extra = extension.build(u[n1:], c).dZ
-        terms.dZ = extra if terms.dZ is None else terms.dZ + extra
-        return terms
+        terms = part("effect", cand.build, u[:n1], c)
+        extra = part("extension", lambda v, c_: extension.build(v, c_).dZ, u[n1:], c)
+        return replace(terms, dZ=extra if terms.dZ is None else terms.dZ + extra)
 
     def describe(u: np.ndarray) -> dict[str, float]:
         return {**cand.describe(u[:n1]), **extension.describe(u[n1:])}
