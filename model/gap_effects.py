@@ -66,6 +66,9 @@ class BaseStructure:
     outers: np.ndarray = field(init=False)  # (n_a, n_dof, n_dof) w v vᵀ
     # per kind (M, K, C): the atoms' parameter indices and their outers, for ``matrices``
     by_kind: tuple[tuple[np.ndarray, np.ndarray], ...] = field(init=False)
+    # ``fixed_gram`` of the places asked for so far
+    _grams: dict[tuple[str, bytes, bytes], np.ndarray] = field(
+        init=False, default_factory=dict, repr=False)
     # the atoms sorted by parameter, and where each parameter's atoms start
     grouped_vectors: np.ndarray = field(init=False)
     grouped_weights: np.ndarray = field(init=False)
@@ -112,6 +115,23 @@ class BaseStructure:
              direction: np.ndarray) -> np.ndarray:
         """(n, n_dof) rows: displacement of points along directions (eq. 4.9)."""
         return point_rows(self.model, list(bones), position_m, direction)
+
+    def fixed_gram(self, bone: str, point_m: np.ndarray, directions: np.ndarray
+                   ) -> np.ndarray:
+        """``GᵀG`` (n_dof, n_dof) of the rows ``G`` of a point of ``bone`` along each of
+        ``directions`` (k, 3): an effect at a fixed place builds it at every evaluation.
+        Kept per place (the same rows and product, computed once; read-only)."""
+        point_m = np.asarray(point_m, float)
+        directions = np.asarray(directions, float)
+        key = (bone, point_m.tobytes(), directions.tobytes() + bytes(directions.shape))
+        gram = self._grams.get(key)
+        if gram is None:
+            G = self.rows([bone] * len(directions), np.tile(point_m, (len(directions), 1)),
+                          directions)
+            gram = G.T @ G
+            gram.flags.writeable = False
+            self._grams[key] = gram
+        return gram
 
     def reference_point(self, bone: str) -> np.ndarray:
         """Centre of mass of ``bone`` (m), the default attachment point of effects."""
@@ -652,8 +672,8 @@ def _tissue_candidates(ctx: Context) -> list[Candidate]:
                ) -> tuple[np.ndarray, np.ndarray]:
         """(T (n_f,), ΔZ (n_f, n, n)) of the tissue at a point of ``bone``."""
         T = _sdof_transmissibility(c.omega, np.exp(u[0]), np.exp(u[1]))
-        G = _point_block(c, bone, pos)
-        dZ = (-(c.omega**2) * np.exp(u[2]) * T)[:, None, None] * (G.T @ G)[None]
+        gram = c.base.fixed_gram(bone, pos, np.eye(3))  # GᵀG of _point_block(c, bone, pos)
+        dZ = (-(c.omega**2) * np.exp(u[2]) * T)[:, None, None] * gram[None]
         return T, dZ
 
     for side, names in (("output", ctx.out_names), ("input", ctx.in_names)):
@@ -1012,13 +1032,13 @@ def _support_candidates(ctx: Context) -> list[Candidate]:
         for axname, dirs in axes.items():
             def build(u: np.ndarray, c: Context, bone: str = bone, ref: np.ndarray = ref,
                       dirs: np.ndarray = dirs) -> EffectTerms:
-                G = c.base.rows([bone] * len(dirs), np.tile(ref, (len(dirs), 1)), dirs)
+                gram = c.base.fixed_gram(bone, ref, dirs)
                 ws = 2 * np.pi * np.exp(u[0])
                 m = np.exp(u[2])
                 ks = m * ws**2 + 2j * np.exp(u[1]) * m * ws * c.omega - c.omega**2 * m
                 kc = np.exp(u[3])
                 keff = kc * ks / (kc + ks)
-                return EffectTerms(dZ=keff[:, None, None] * (G.T @ G)[None])
+                return EffectTerms(dZ=keff[:, None, None] * gram[None])
 
             cands.append(Candidate(
                 "support_resonance", "bed contact", f"{bone}{point} {axname}", "bone",
