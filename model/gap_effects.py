@@ -64,6 +64,11 @@ class BaseStructure:
     params: np.ndarray  # (n_a,)
     constant_M: np.ndarray  # (n_dof, n_dof) unparametrised mass (point masses of the file)
     outers: np.ndarray = field(init=False)  # (n_a, n_dof, n_dof) w v vᵀ
+    # per kind (M, K, C): the atoms' parameter indices and their outers, for ``matrices``
+    by_kind: tuple[tuple[np.ndarray, np.ndarray], ...] = field(init=False)
+    # ``fixed_gram`` of the places asked for so far
+    _grams: dict[tuple[str, bytes, bytes], np.ndarray] = field(
+        init=False, default_factory=dict, repr=False)
     # the atoms sorted by parameter, and where each parameter's atoms start
     grouped_vectors: np.ndarray = field(init=False)
     grouped_weights: np.ndarray = field(init=False)
@@ -74,6 +79,10 @@ class BaseStructure:
     def __post_init__(self) -> None:
         outers = self.weights[:, None, None] * self.vectors[:, :, None] * self.vectors[:, None, :]
         object.__setattr__(self, "outers", outers)
+        # the selections ``matrices`` makes on every call (the same arrays, made once)
+        object.__setattr__(self, "by_kind", tuple(
+            (self.params[self.kinds == kind], outers[self.kinds == kind])
+            for kind in (KIND_M, KIND_K, KIND_C)))
         # the atoms grouped by parameter (stable order), for the Jacobian's sum per parameter
         order = np.argsort(self.params, kind="stable")
         object.__setattr__(self, "grouped_vectors", np.ascontiguousarray(self.vectors[order]))
@@ -97,11 +106,8 @@ class BaseStructure:
 
     def matrices(self, theta: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(M, K, C) at parameter values ``theta`` (SI)."""
-        coef = np.asarray(theta, float)[self.params]
-        out = []
-        for kind in (KIND_M, KIND_K, KIND_C):
-            sel = self.kinds == kind
-            out.append(np.tensordot(coef[sel], self.outers[sel], axes=1))
+        theta = np.asarray(theta, float)
+        out = [np.tensordot(theta[params], outers, axes=1) for params, outers in self.by_kind]
         out[0] = out[0] + self.constant_M
         return out[0], out[1], out[2]
 
@@ -109,6 +115,23 @@ class BaseStructure:
              direction: np.ndarray) -> np.ndarray:
         """(n, n_dof) rows: displacement of points along directions (eq. 4.9)."""
         return point_rows(self.model, list(bones), position_m, direction)
+
+    def fixed_gram(self, bone: str, point_m: np.ndarray, directions: np.ndarray
+                   ) -> np.ndarray:
+        """``GᵀG`` (n_dof, n_dof) of the rows ``G`` of a point of ``bone`` along each of
+        ``directions`` (k, 3): an effect at a fixed place builds it at every evaluation.
+        Kept per place (the same rows and product, computed once; read-only)."""
+        point_m = np.asarray(point_m, float)
+        directions = np.asarray(directions, float)
+        key = (bone, point_m.tobytes(), directions.tobytes() + bytes(directions.shape))
+        gram = self._grams.get(key)
+        if gram is None:
+            G = self.rows([bone] * len(directions), np.tile(point_m, (len(directions), 1)),
+                          directions)
+            gram = G.T @ G
+            gram.flags.writeable = False
+            self._grams[key] = gram
+        return gram
 
     def reference_point(self, bone: str) -> np.ndarray:
         """Centre of mass of ``bone`` (m), the default attachment point of effects."""
@@ -258,15 +281,25 @@ def _dynamic_stiffness(factors: Sequence[tuple[np.ndarray | None, np.ndarray | N
     (a zero part adds nothing; H is bit-identical), without complex temporaries."""
     n = matrices[0].shape[0]
     Z = np.empty((n_f, n, n), complex)
+    term = None
     for part, out in ((0, Z.real), (1, Z.imag)):
-        acc = None
+        first = True
         for pair, X in zip(factors, matrices, strict=True):
             a = pair[part]
             if a is None:
                 continue
-            term = a[:, None, None] * X
-            acc = term if acc is None else acc + term
-        out[...] = 0.0 if acc is None else acc
+            # the first term straight into Z, the others added to it: the same products
+            # and sums, in the same order, as ``a₀X₀ + a₁X₁ + ...``, without temporaries
+            if first:
+                np.multiply(a[:, None, None], X, out=out)
+                first = False
+            else:
+                if term is None:
+                    term = np.empty((n_f, n, n))
+                np.multiply(a[:, None, None], X, out=term)
+                np.add(out, term, out=out)
+        if first:
+            out[...] = 0.0
     return Z
 
 
@@ -301,7 +334,7 @@ def solve(ctx: Context, theta: np.ndarray, terms: EffectTerms | None = None) -> 
     factors = _plain_factors(terms, w)
     Z = _dynamic_stiffness(factors, (M, K, C), n_f)
     if terms.dZ is not None:
-        Z = Z + terms.dZ
+        Z += terms.dZ  # Z is this call's own array
     o = ctx.out_rows if terms.out_rows is None else terms.out_rows
     i = ctx.in_rows
     n_out, n_in = o.shape[0], i.shape[0]
@@ -639,8 +672,8 @@ def _tissue_candidates(ctx: Context) -> list[Candidate]:
                ) -> tuple[np.ndarray, np.ndarray]:
         """(T (n_f,), ΔZ (n_f, n, n)) of the tissue at a point of ``bone``."""
         T = _sdof_transmissibility(c.omega, np.exp(u[0]), np.exp(u[1]))
-        G = _point_block(c, bone, pos)
-        dZ = (-(c.omega**2) * np.exp(u[2]) * T)[:, None, None] * (G.T @ G)[None]
+        gram = c.base.fixed_gram(bone, pos, np.eye(3))  # GᵀG of _point_block(c, bone, pos)
+        dZ = (-(c.omega**2) * np.exp(u[2]) * T)[:, None, None] * gram[None]
         return T, dZ
 
     for side, names in (("output", ctx.out_names), ("input", ctx.in_names)):
@@ -999,13 +1032,13 @@ def _support_candidates(ctx: Context) -> list[Candidate]:
         for axname, dirs in axes.items():
             def build(u: np.ndarray, c: Context, bone: str = bone, ref: np.ndarray = ref,
                       dirs: np.ndarray = dirs) -> EffectTerms:
-                G = c.base.rows([bone] * len(dirs), np.tile(ref, (len(dirs), 1)), dirs)
+                gram = c.base.fixed_gram(bone, ref, dirs)
                 ws = 2 * np.pi * np.exp(u[0])
                 m = np.exp(u[2])
                 ks = m * ws**2 + 2j * np.exp(u[1]) * m * ws * c.omega - c.omega**2 * m
                 kc = np.exp(u[3])
                 keff = kc * ks / (kc + ks)
-                return EffectTerms(dZ=keff[:, None, None] * (G.T @ G)[None])
+                return EffectTerms(dZ=keff[:, None, None] * gram[None])
 
             cands.append(Candidate(
                 "support_resonance", "bed contact", f"{bone}{point} {axname}", "bone",
@@ -1147,12 +1180,26 @@ def with_extension(cand: Candidate, extension: Candidate) -> Candidate:
     """``cand`` together with a ΔZ-only null extension (one damping per dashpot): the
     effect's parameters, then the extension's; the extension's ΔZ adds to the effect's."""
     n1 = cand.n_params
+    # the last build of each part: the Jacobian's forward differences change one
+    # parameter at a time, so one part is built again from the same values (a pure
+    # function of them; the context is kept with its result, so that a new context at a
+    # reused address is never taken for it)
+    last: dict[str, tuple[Context, bytes, object]] = {}
+
+    def part(key: str, fn: Callable[[np.ndarray, Context], object], u: np.ndarray,
+             c: Context) -> object:
+        ub = np.asarray(u, float).tobytes()
+        hit = last.get(key)
+        if hit is not None and hit[0] is c and hit[1] == ub:
+            return hit[2]
+        value = fn(u, c)
+        last[key] = (c, ub, value)
+        return value
 
     def build(u: np.ndarray, c: Context) -> EffectTerms:
-        terms = cand.build(u[:n1], c)
-        extra = extension.build(u[n1:], c).dZ
-        terms.dZ = extra if terms.dZ is None else terms.dZ + extra
-        return terms
+        terms = part("effect", cand.build, u[:n1], c)
+        extra = part("extension", lambda v, c_: extension.build(v, c_).dZ, u[n1:], c)
+        return replace(terms, dZ=extra if terms.dZ is None else terms.dZ + extra)
 
     def describe(u: np.ndarray) -> dict[str, float]:
         return {**cand.describe(u[:n1]), **extension.describe(u[n1:])}
