@@ -14,6 +14,11 @@ import pytest
 ENV = dict(os.environ, QT_QPA_PLATFORM="offscreen")
 
 
+def _default_sighup() -> None:
+    """In a child before exec: SIGHUP back to its default action."""
+    signal.signal(signal.SIGHUP, signal.SIG_DFL)
+
+
 def _gui(*args: str, timeout: float = 60.0) -> subprocess.CompletedProcess:
     return subprocess.run([sys.executable, "-m", "pelvislab.app", "gui", *args], env=ENV,
                           capture_output=True, text=True, timeout=timeout)
@@ -65,9 +70,11 @@ def test_a_signal_closes_the_window_over_a_bad_files_dialog(tmp_path, signum):
 
     bad = tmp_path / "bad.h5"
     bad.write_text("not a session")
+    # the GUI keeps an ignored SIGHUP ignored (nohup): the child gets the default
+    # disposition whatever this test run inherited (a suite started under nohup failed)
     proc = subprocess.Popen([sys.executable, "-m", "pelvislab.app", "gui", str(bad)],
                             env=ENV, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-                            text=True)
+                            text=True, preexec_fn=_default_sighup)
     lines: list[str] = []
     reader = threading.Thread(target=lambda: lines.extend(proc.stderr), daemon=True)
     reader.start()

@@ -31,11 +31,31 @@ def _guard(seen: dict, after_ms: int = 20_000) -> QtCore.QTimer:
                 widget.close()
         QtWidgets.QApplication.quit()
 
+    def keep_quitting() -> None:
+        # QApplication.quit() before run_gui's loop has started does nothing (the guard
+        # may fire while the window is still being built): ask until the loop ends
+        give_up()
+        timer.setSingleShot(False)
+        timer.timeout.disconnect()
+        timer.timeout.connect(QtWidgets.QApplication.quit)
+        timer.start(100)
+
     timer = QtCore.QTimer()
     timer.setSingleShot(True)
-    timer.timeout.connect(give_up)
+    timer.timeout.connect(keep_quitting)
     timer.start(after_ms)
     return timer
+
+
+@pytest.fixture(autouse=True)
+def _sighup_default():
+    """SIGHUP at its default action for the test: run_gui keeps an ignored SIGHUP ignored
+    (nohup), and a suite started under nohup sent it to nobody (the test hung)."""
+    previous = signal.signal(signal.SIGHUP, signal.SIG_DFL)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGHUP, previous)
 
 
 @pytest.mark.parametrize("signum", ["SIGTERM", "SIGHUP", "SIGINT"])
