@@ -1161,7 +1161,7 @@ class Runner:
                     said = (c.name, q.get("gate_start"), q.get("gate_stop"))
                     if cut and said not in cut_said:
                         # an `ok` step's note is only stored: a gate through the echo (5x
-                        # the noise) is said once per gate, in the CLI and the GUI's log
+                        # the noise) is said once per setup, channel and gate (CLI, GUI log)
                         cut_said.add(said)
                         self._log(f"{c.name} (setup {setup.name!r}, from "
                                   f"{step.frequency_hz:g} Hz): {cut}", "WARNING")

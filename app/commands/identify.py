@@ -282,11 +282,10 @@ def recorded_calibration_std(path: str | Path, frequency_hz: Any
                              ) -> tuple[float, str, str | None]:
     """The drive calibration's relative standard uncertainty a session recorded (its latest
     run's bench, else /bench: ``drive_calibration_u_rel``, docs/bench-file.md): (value,
-    source, note). One value as
-    it is; a table's rms over ``frequency_hz`` (interpolated linearly as the calibration
-    is), read as one gain common to the band. Source ``bench``; ``none`` (0.0) for an
-    FRF-only file, a simulated bench (its chain is exact) or a bench file that did not
-    state it, with a note in the last case."""
+    source, note). One value as it is; a table's rms over ``frequency_hz`` (interpolated
+    linearly as the calibration is), read as one gain common to the band. Source
+    ``bench``; ``none`` (0.0) for an FRF-only file, a simulated bench (its chain is exact)
+    or a bench file that did not state it, with a note in the last case."""
     import h5py
     import numpy as np
 
