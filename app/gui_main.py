@@ -143,6 +143,8 @@ class OperatorWindow(QtWidgets.QMainWindow):
         self.control: SessionControl | None = None
         self.fault_dialog: QtWidgets.QMessageBox | None = None
         self.ask_before_closing_a_run = True  # False where nobody can answer (tests, shots)
+        # why a run ended when the window closed (the session's /runs reason)
+        self.close_reason = "window closed by the operator"
         self._last_stop_key: tuple[int, int] | None = None
         self.outputs_unconfirmed = False  # the last run ended without outputs confirmed off
         self._latest_step: Any = None
@@ -960,7 +962,7 @@ class OperatorWindow(QtWidgets.QMainWindow):
                     event.ignore()
                     return
             if self._running():  # Esc during the question may have stopped it already
-                self.control.stop("window closed by the operator")
+                self.control.stop(self.close_reason)
             self._wait_for_the_run_to_end()
         self.replay.close_session()
         super().closeEvent(event)
@@ -1012,12 +1014,18 @@ def run_gui(session_file: Path | None = None, screenshot: Path | None = None,
     # Ctrl-C in the terminal closes the window like its close button (a running session
     # ends safely first); installed now, so that one pressed while the window opens is
     # not a KeyboardInterrupt in the middle of it
-    closing: dict[str, Any] = {"asked": False, "window": None, "app": None}
+    closing: dict[str, Any] = {"asked": False, "window": None, "app": None, "by": None}
 
-    def on_sigint(*_: object) -> None:
+    def on_sigint(*args: object) -> None:
         closing["asked"] = True
+        if args and isinstance(args[0], int) and closing["by"] is None:
+            closing["by"] = signal.Signals(args[0]).name  # the session says which
         if closing["window"] is not None:
             closing["window"].ask_before_closing_a_run = False  # a signal means: stop now
+            # a run it ends was not stopped by the operator (recorded as such before)
+            closing["window"].close_reason = (
+                f"window closed by {closing['by'] or 'a signal'} (shutdown, terminal "
+                "closed or Ctrl-C)")
         # a modal dialog (a bad file's "Cannot open session", the close question, a file
         # dialog) runs its own event loop, in which closing the window waited for a click:
         # nobody is asked any more (the window may still be in construction)
