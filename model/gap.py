@@ -1302,7 +1302,9 @@ def where_analysis(data: GapData, H_base: np.ndarray, n_bands: int = 6) -> dict[
     b = np.nan_to_num(np.moveaxis(Hb, 1, 0).reshape(len(data.out_names), -1))
     keep = np.any(a != 0, axis=0)
     cm = comac(a[:, keep], b[:, keep]) if keep.any() else np.full(len(data.out_names), np.nan)
-    comacs = [{"name": on, "comac": _round(cm[o], 4)} for o, on in enumerate(data.out_names)]
+    # an output left out (above) has no COMAC either: it was listed with null
+    comacs = [{"name": on, "comac": _round(cm[o], 4)} for o, on in enumerate(data.out_names)
+              if used_out[o]]
     peak = int(np.argmax(excess.sum(axis=(1, 2))))
     return {
         "bands": bands,
@@ -1322,29 +1324,35 @@ def rigidity_of_residual(data: GapData, H_base: np.ndarray) -> dict[str, object]
     :mod:`pelvislab.model.rigid_body`. A figure needs more measured directions than rigid
     motions (rank 6 and > 6 channels); otherwise it is ``null`` with the reason."""
     r = normalised_residual(data, H_base, fill=0.0)
-    shapes = np.moveaxis(r, 1, 0).reshape(len(data.out_names), -1)  # (n_out, n_f * n_in)
+    # only the outputs with usable lines are measured directions: one on no modelled bone
+    # (left out of the shares) counted as one, with a zero residual (helper review,
+    # session 40)
+    used = data.mask.any(axis=(0, 2))
+    shapes = np.moveaxis(r, 1, 0).reshape(len(data.out_names), -1)[used]  # (n_used, ...)
     w = np.sum(np.abs(shapes) ** 2, axis=0)
     keep = w > 0
     out: dict[str, object] = {"global": None, "bones": {}}
-    n_out = len(data.out_names)
+    n_out = int(used.sum())
     if not keep.any():
         return out
     shapes, w = shapes[:, keep], w[keep]
+    bones = [b for b, u in zip(data.out_bones, used, strict=True) if u]
+    position_m, direction = data.out_position_m[used], data.out_direction[used]
 
     def mean(values: np.ndarray) -> float:
         ok = np.isfinite(values)
         return _round(float(np.sum(values[ok] * w[ok]) / np.sum(w[ok])), 4) if ok.any() else None
 
-    g = filter_global(shapes, data.out_position_m, data.out_direction)
+    g = filter_global(shapes, position_m, direction)
     if g.rank == 6 and n_out > 6:
         out["global"] = mean(np.asarray(g.rigid_content))
     else:
         out["global_note"] = f"not determined: {n_out} output directions, rank {g.rank} < 7"
-    bf = filter_bones(g.x_el if out["global"] is not None else shapes, list(data.out_bones),
-                      data.out_position_m, data.out_direction)
+    bf = filter_bones(g.x_el if out["global"] is not None else shapes, bones, position_m,
+                      direction)
     per: dict[str, object] = {}
     for bone in bf.bones:
-        n_b = sum(1 for b in data.out_bones if b == bone)
+        n_b = sum(1 for b in bones if b == bone)
         if bf.rank[bone] == 6 and n_b > 6:
             per[bone] = mean(np.asarray(bf.rigidity[bone]))
         else:

@@ -145,6 +145,11 @@ def test_gap_leaves_a_channel_on_no_bone_out_of_the_shares_and_names_it(gap_run)
     assert len(notes) == 1 and "no modelled bone" in notes[0]
     assert f"note: {notes[0]}" in stderr
     assert f"left out (no share): output {EXTRA} (on no modelled bone)" in stdout
+    # nor a COMAC (it was listed with null), nor a measured direction of the rigidity
+    assert EXTRA not in [c["name"] for c in where["comac"]]
+    n_modelled = len(where["outputs"])
+    assert where["rigidity"]["global_note"].startswith(
+        f"not determined: {n_modelled} output directions"), where["rigidity"]
 
 
 def test_gui_gap_pane_shows_the_note_and_no_share_for_it(gap_run, qtbot):
