@@ -1083,19 +1083,21 @@ def _read_point(attrs: h5py.AttributeManager, prefix: str) -> Point:
     )
 
 
-_CATALOGUE: dict[str, Point] = {}
+_CATALOGUE: dict[str, dict[str, Point]] = {}
 
 
 def _catalogue() -> dict[str, Point]:
-    """The shipped landmark catalogue, read once (empty when it cannot be read)."""
-    if not _CATALOGUE:
+    """The shipped landmark catalogue, read once (empty when it cannot be read: said once,
+    not at every point of every step)."""
+    if "shipped" not in _CATALOGUE:
         from pelvislab.acquisition.protocol import load_landmarks
 
         try:
-            _CATALOGUE.update(load_landmarks())
+            _CATALOGUE["shipped"] = load_landmarks()
         except Exception:  # a fallback only: the file's own attributes rule
+            _CATALOGUE["shipped"] = {}
             log.warning("landmark catalogue unreadable: foreign sessions' points keep NaN")
-    return _CATALOGUE
+    return _CATALOGUE["shipped"]
 
 
 def fsync_path(path: Path | str) -> None:
