@@ -1869,15 +1869,19 @@ def reprocess_session(source: Path | str, target: Path | str, tracking_options: 
                 for problem in reader.incomplete:
                     status = problem.split(": status ", 1)[-1]
                     statuses[status] = statuses.get(status, 0) + 1
-                said = ", ".join(f"{n} with status {status}" for status, n in sorted(
-                    statuses.items(), key=lambda item: -item[1])[:3])
+                # 'incomplete' is the reader's word for a step without the attribute
+                said = ", ".join(
+                    (f"{n} without a status attribute (cut short)" if status == "'incomplete'"
+                     else f"{n} with status {status}")
+                    for status, n in sorted(statuses.items(), key=lambda item: -item[1])[:3])
                 if reader.damaged:
                     said = ", ".join(filter(None, (said, f"{len(reader.damaged)} damaged "
                                                          f"({reader.damaged[0]})")))
                 raise ValueError(
                     f"{source} holds no complete step to reprocess"
-                    + (f" ({said}; a complete step has status 'complete', "
-                       "docs/session-format.md)" if said else "") + "; nothing written")
+                    + (f" ({said}; a complete step has status 'complete', or completed, "
+                       "done, ok, finished: docs/session-format.md)" if said else "")
+                    + "; nothing written")
             layout = reader.frf_layout()
             if layout is not None:
                 frf = frf_from_steps(done, *layout)

@@ -49,3 +49,34 @@ def test_without_h_std_the_noise_is_estimated_and_the_parameters_are_closer(tmp_
     out = tmp_path / "with.json"
     assert main(["identify", str(DATA), "--starts", "1", "--json", str(out)]) == 0
     assert json.loads(out.read_text())["noise"] == "H_std"
+
+
+def test_an_frf_whose_noise_cannot_be_estimated_is_named(tmp_path, capsys):
+    # one FRF on every other line of the grid: no third difference of neighbouring lines,
+    # so 5 % of its peak (32x its noise), unsaid (review of session 40)
+    from pelvislab.app.cli import main
+
+    bare = tmp_path / "alternate.h5"
+    shutil.copy(DATA, bare)
+    with h5py.File(bare, "a") as handle:
+        del handle["frf/H_std"]
+        H = handle["frf/H"][()]
+        H[1::2, 0, 0] = np.nan + 1j * np.nan
+        handle["frf/H"][...] = H
+        outputs = [n.decode() if isinstance(n, bytes) else str(n)
+                   for n in handle["frf/outputs/name"][()]]
+        inputs = [n.decode() if isinstance(n, bytes) else str(n)
+                  for n in handle["frf/inputs/name"][()]]
+    out = tmp_path / "id.json"
+    assert main(["identify", str(bare), "--starts", "1", "--json", str(out)]) == 0
+    notes = [n for n in json.loads(out.read_text()).get("notes", []) if "5 % of" in n]
+    assert len(notes) == 1 and notes[0].endswith(f": {outputs[0]}/{inputs[0]}"), notes
+    assert f"note: {notes[0]}" in capsys.readouterr().err
+    # the whole file on its grid: nothing to say
+    whole = tmp_path / "whole.h5"
+    shutil.copy(DATA, whole)
+    with h5py.File(whole, "a") as handle:
+        del handle["frf/H_std"]
+    out2 = tmp_path / "id2.json"
+    assert main(["identify", str(whole), "--starts", "1", "--json", str(out2)]) == 0
+    assert not [n for n in json.loads(out2.read_text()).get("notes", []) if "5 % of" in n]

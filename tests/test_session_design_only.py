@@ -88,4 +88,14 @@ def test_points_the_catalogue_does_not_know_and_unknown_statuses_are_named(tmp_p
     with pytest.raises(ValueError, match="holds no complete step to reprocess \\(3 with status "
                                          "'queued'; a complete step has status 'complete'"):
         reprocess_session(queued, tmp_path / "q.h5")
+    # no status attribute at all: the reader's 'incomplete' is not the file's word
+    bare = tmp_path / "bare.h5"
+    _design_only_copy(original, bare)
+    with h5py.File(bare, "a") as handle:
+        for step in handle["steps"].values():
+            del step.attrs["status"]
+    with pytest.raises(ValueError, match="\\(3 without a status attribute \\(cut short\\); "
+                                         "a complete step has status 'complete', or "
+                                         "completed, done"):
+        reprocess_session(bare, tmp_path / "b.h5")
     assert not (tmp_path / "u.h5").exists() and not (tmp_path / "q.h5").exists()
