@@ -422,16 +422,11 @@ class _Evaluator:
         return self.target.jacobian(H, dH)
 
 
-def _with_gain_uncertainty(final: _Evaluator, x: np.ndarray, jac_log: np.ndarray,
-                           residual: np.ndarray, names: Sequence[str], values: np.ndarray,
-                           absolute: bool, gain_std: float,
-                           chain_gain_std: float) -> tuple[np.ndarray, np.ndarray]:
-    """std and correlation of the parameters with relative gains marginalised: one per FRF
-    (prior ``gain_std``, when > 0) and one shared by every FRF (prior ``chain_gain_std``,
-    when > 0: the drive chain's calibration). The Jacobian gains a
-    column per gain (d residual / d gain: the model FRF on the lines it scales) and a prior
-    row per gain (1 / its std); the parameters' block of the covariance of that augmented
-    problem (GUM: type-B uncertainties of the calibration)."""
+def _gain_columns(final: _Evaluator, x: np.ndarray, gain_std: float, chain_gain_std: float
+                  ) -> tuple[np.ndarray, list[float], list[str]]:
+    """d residual / d gain (m, k) for one relative gain per FRF (when ``gain_std`` > 0) and
+    one common to every FRF (when ``chain_gain_std`` > 0): the model FRF on the lines a
+    gain scales, in the residual's units; their prior std and names."""
     H_model = final._eval(x)[0]
     mask = final.target.mask
     columns: list[np.ndarray] = []  # (n_f, n_out, n_in) bool: the FRF entries a gain scales
@@ -453,8 +448,47 @@ def _with_gain_uncertainty(final: _Evaluator, x: np.ndarray, jac_log: np.ndarray
     dH = np.zeros((mask.shape[0], len(columns), *mask.shape[1:]), dtype=complex)
     for k, scaled in enumerate(columns):
         dH[:, k][scaled] = H_model[scaled]
-    G = final.target.jacobian(H_model, dH)
-    (m, n), k = jac_log.shape, len(columns)
+    return final.target.jacobian(H_model, dH), priors, labels
+
+
+def _sandwich_with_gains(final: _Evaluator, x: np.ndarray, jac_log: np.ndarray,
+                         residual: np.ndarray, values: np.ndarray, absolute: bool,
+                         gain_std: float, chain_gain_std: float, rho: np.ndarray
+                         ) -> tuple[np.ndarray, np.ndarray]:
+    """std and correlation of a fit weighted with the gain floor, sqrt(H_std^2 + (g|H|)^2),
+    under the noise it has: independent H_std per line (``rho``: H_std over the floored σ,
+    per residual row) plus the relative gains (per FRF, common) as correlated errors. The
+    sandwich (JᵀJ)⁺ Jᵀ Σ J (JᵀJ)⁺ with Σ = diag(rho²) s² + G diag(prior²) Gᵀ in the
+    residual's units; s² = 1 when absolute, else the residual variance. Directions J does
+    not resolve (singular values below 1e-6 of the largest) are left out of (JᵀJ)⁺ as in
+    :func:`covariance_report`, whose NaNs the caller keeps."""
+    G, priors, _ = _gain_columns(final, x, gain_std, chain_gain_std)
+    m, n = jac_log.shape
+    _, s, Vt = np.linalg.svd(jac_log, full_matrices=False)
+    keep = s > 1e-6 * s[0] if s.size and s[0] > 0 else np.zeros(n, bool)
+    a_pinv = (Vt.T * np.where(keep, 1.0 / np.where(keep, s, 1.0) ** 2, 0.0)) @ Vt
+    s2 = 1.0 if absolute else float(residual @ residual) / max(m - n, 1)
+    jg = jac_log.T @ G  # (n, k)
+    middle = s2 * (jac_log.T * rho ** 2) @ jac_log + (jg * np.square(priors)) @ jg.T
+    cov_log = a_pinv @ middle @ a_pinv
+    std_log = np.sqrt(np.clip(np.diag(cov_log), 0, None))
+    with np.errstate(invalid="ignore", divide="ignore"):
+        corr = cov_log / np.outer(std_log, std_log)
+    return np.abs(values) * std_log, corr
+
+
+def _with_gain_uncertainty(final: _Evaluator, x: np.ndarray, jac_log: np.ndarray,
+                           residual: np.ndarray, names: Sequence[str], values: np.ndarray,
+                           absolute: bool, gain_std: float,
+                           chain_gain_std: float) -> tuple[np.ndarray, np.ndarray]:
+    """std and correlation of the parameters with relative gains marginalised: one per FRF
+    (prior ``gain_std``, when > 0) and one shared by every FRF (prior ``chain_gain_std``,
+    when > 0: the drive chain's calibration). The Jacobian gains a
+    column per gain (d residual / d gain: the model FRF on the lines it scales) and a prior
+    row per gain (1 / its std); the parameters' block of the covariance of that augmented
+    problem (GUM: type-B uncertainties of the calibration)."""
+    G, priors, labels = _gain_columns(final, x, gain_std, chain_gain_std)
+    (m, n), k = jac_log.shape, len(priors)
     # the data rows in units of their noise first (s from the data residual alone, as the
     # fit's own covariance: 1 when absolute), the priors in theirs: scaling the augmented
     # problem as a whole by s^2 multiplied a stated 3 % by the residual's rms (6 % at
@@ -698,8 +732,10 @@ def identify_frf(
     precisely than the chain's gain is known do not rule the fit (only where H_std is
     known). Measured on simulated sessions (docs/identification.md): six demo sessions'
     std ~1.9x too small without it; face_up sessions not converged (chi2/dof 2.3-3.4) and
-    their std 10-13x too small. With it the std are conservative (the gain is counted in
-    the weights and in the covariance: up to ~2x for the masses, sum z^2 10-13 for 18).
+    their std 10-13x too small. With the floor the std are the sandwich covariance of
+    that weighted fit under independent H_std plus the correlated gains
+    (:func:`_sandwich_with_gains`): sum z^2 4-9 for 18 on the simulated chain, whose gains
+    are below 0.003.
     ``chain_gain_std`` (relative): standard uncertainty of one gain common to every FRF, the
     drive chain's calibration (N/V: one shaker, amplifier and calibration drive every
     input); when > 0 marginalised in the std the same way. It is a common scale of the
@@ -713,7 +749,9 @@ def identify_frf(
                          f"{chain_gain_std}")
     t0 = time.perf_counter()
     residual = residual or (ResidualSpec("std") if H_std is not None else ResidualSpec("log"))
+    noise_std = None  # H_std before the gain floor: the covariance's independent noise
     if gain_std > 0 and H_std is not None and residual.kind == "std":
+        noise_std = H_std
         # the gain error in the weights too, as a relative floor: with H_std alone the
         # simulated face_up sessions' 5-12.5 Hz lines (0.1-0.2 % gain errors, H_std
         # 0.002-0.02 %: 5-60 sigma) ruled the fit (chi2/dof 2.3-3.4, not converged,
@@ -845,11 +883,21 @@ def identify_frf(
             scale_vals[inner], absolute_sigma=absolute)
         std[inner] = std_in
         corr[np.ix_(inner, inner)] = corr_in
-        if gain_std > 0 or chain_gain_std > 0:
+        if noise_std is not None:
+            # the gain is in the weights (floor): the covariance of that estimator under
+            # the noise it has, independent H_std per line plus correlated gains (the
+            # augmented problem below counted the gain twice: std up to ~2x)
+            sigma = np.where(final_target.mask, H_std, np.nan)[final_target.mask]
+            rho = np.tile(noise_std[final_target.mask] / sigma, 2)
+            std_g, corr_g = _sandwich_with_gains(
+                final, x, J[:, inner], r, scale_vals[inner], absolute, gain_std,
+                chain_gain_std, rho)
+        elif gain_std > 0 or chain_gain_std > 0:
             std_g, corr_g = _with_gain_uncertainty(
                 final, x, J[:, inner], r, [n for n, b in zip(out_names, inner, strict=True)
                                            if b], scale_vals[inner], absolute, gain_std,
                 chain_gain_std)
+        if gain_std > 0 or chain_gain_std > 0:
             # a direction unresolved without the gains stays so (NaN kept)
             std[inner] = np.where(np.isnan(std_in), np.nan, std_g)
             corr[np.ix_(inner, inner)] = np.where(np.isnan(corr_in), np.nan, corr_g)

@@ -169,8 +169,8 @@ def test_a_gain_uncertainty_per_frf_calibrates_the_std_of_chain_data():
     """The same session: converged at chi2/dof ~1, yet sum z^2 = 47 over 18 parameters
     (expected ~18): its FRFs carry gains of a few tenths of a per cent that H_std does not
     hold (docs/identification.md). gain_std = 0.3 % marginalises one gain per FRF and
-    floors the weights: every std grows, and z^2 comes near its expectation (11.2; before
-    the floor, session 39, 19.0 and over six such sessions the mean went from 63 to 21)."""
+    floors the weights: every std grows, and z^2 is 8.8 (sandwich covariance; session 39,
+    std term only: 19.0, and over six such sessions the mean went from 63 to 21)."""
     from pathlib import Path
 
     from pelvislab.acquisition.frfset import read_frf
@@ -188,7 +188,7 @@ def test_a_gain_uncertainty_per_frf_calibrates_the_std_of_chain_data():
     assert np.all(np.abs(fits[1].values - fits[0].values) < fits[1].std)
     assert np.all(fits[1].std > fits[0].std)
     z2 = [float(np.sum(((f.values - truth) / f.std) ** 2)) for f in fits]
-    assert z2[0] > 35 and z2[1] < 15, z2  # 46.9 and 11.2 (19.0 with the std term only)
+    assert z2[0] > 35 and z2[1] < 15, z2  # 46.9 and 8.8 (19.0 with the std term only)
     with pytest.raises(ValueError, match="gain_std"):
         identify_frf(problem, frf.frequency_hz, frf.H, frf.H_std, gain_std=-0.1)
 
