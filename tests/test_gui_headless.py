@@ -19,6 +19,18 @@ def _default_sighup() -> None:
     signal.signal(signal.SIGHUP, signal.SIG_DFL)
 
 
+def _signal_and_wait(proc: subprocess.Popen, signum: str, what: str) -> None:
+    """Send ``signum`` to ``proc`` and wait up to 20 s for it to end; kill it and fail
+    the test if it does not."""
+    try:
+        proc.send_signal(getattr(signal, signum))
+        proc.wait(timeout=20)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            pytest.fail(f"{what} still open 20 s after {signum}")
+
+
 def _gui(*args: str, timeout: float = 60.0) -> subprocess.CompletedProcess:
     return subprocess.run([sys.executable, "-m", "pelvislab.app", "gui", *args], env=ENV,
                           capture_output=True, text=True, timeout=timeout)
@@ -47,15 +59,9 @@ def test_screenshot_of_a_bad_file_fails_with_one_line_instead_of_a_dialog(tmp_pa
 def test_ctrl_c_or_sigterm_closes_the_window(tmp_path, signum):
     proc = subprocess.Popen([sys.executable, "-m", "pelvislab.app", "gui"], env=ENV,
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-    try:
-        time.sleep(3.0)  # the GUI has started (its handler is installed before the window)
-        proc.send_signal(getattr(signal, signum))
-        # before: Qt's loop never let Python run its handler; the window stayed open
-        proc.wait(timeout=20)
-    finally:
-        if proc.poll() is None:
-            proc.kill()
-            pytest.fail(f"pelvislab gui still open 20 s after {signum}")
+    time.sleep(3.0)  # the GUI has started (its handler is installed before the window)
+    # before: Qt's loop never let Python run its handler; the window stayed open
+    _signal_and_wait(proc, signum, "pelvislab gui")
     # closed by the handler, not by a KeyboardInterrupt ("pelvislab: interrupted", 130)
     assert proc.returncode == 0, proc.stderr.read()[-500:]
 
@@ -78,18 +84,12 @@ def test_a_signal_closes_the_window_over_a_bad_files_dialog(tmp_path, signum):
     lines: list[str] = []
     reader = threading.Thread(target=lambda: lines.extend(proc.stderr), daemon=True)
     reader.start()
-    try:
-        deadline = time.monotonic() + 20  # the reason is printed as the box opens
-        while (not any("cannot open session" in line for line in lines)
-               and proc.poll() is None and time.monotonic() < deadline):
-            time.sleep(0.1)
-        time.sleep(1.0)  # the box is up (a signal before it is handled as well)
-        proc.send_signal(getattr(signal, signum))
-        proc.wait(timeout=20)
-    finally:
-        if proc.poll() is None:
-            proc.kill()
-            pytest.fail(f"pelvislab gui bad.h5 still open 20 s after {signum}")
+    deadline = time.monotonic() + 20  # the reason is printed as the box opens
+    while (not any("cannot open session" in line for line in lines)
+           and proc.poll() is None and time.monotonic() < deadline):
+        time.sleep(0.1)
+    time.sleep(1.0)  # the box is up (a signal before it is handled as well)
+    _signal_and_wait(proc, signum, "pelvislab gui bad.h5")
     reader.join(5)
     assert proc.returncode == 0, lines
     reason = [line for line in lines if "cannot open session" in line]

@@ -216,32 +216,13 @@ def test_docs_examples_run():
     assert namespace["m5"].n_dof == 24
 
 
-SIGN_PROTOCOL = """
-schema = "pelvislab-protocol"
-schema_version = 1
-name = "model frf sign"
+def _sign_protocol() -> str:
+    """The contract tests' two-channel protocol at 50 and 150 Hz."""
+    from pelvislab.tests.test_contracts import TINY_PROTOCOL
 
-[subject]
-id = "sign-1"
-
-[sweep]
-frequencies_hz = [50.0, 150.0]
-drive_vpp = 0.2
-settle_s = 0.05
-periods_per_step = 10
-
-[ultrasound]
-prf_hz = 5000.0
-sample_rate_hz = 500e6
-samples = 500
-delay_s = 10e-6
-speed_of_sound_m_s = 1540.0
-
-[[setups]]
-name = "a"
-excitation = "SIAS_R_x"
-transducers = { ch1 = "SIAS_R_x", ch2 = "sacrum_x" }
-"""
+    sweep = "start_hz = 100.0\nstop_hz = 120.0\nstep_hz = 10.0\n"
+    assert sweep in TINY_PROTOCOL
+    return TINY_PROTOCOL.replace(sweep, "frequencies_hz = [50.0, 150.0]\n")
 
 
 def test_cli_frf_agrees_in_sign_with_a_simulated_session(tmp_path, capsys):
@@ -250,7 +231,7 @@ def test_cli_frf_agrees_in_sign_with_a_simulated_session(tmp_path, capsys):
     # model file, its --json and a measured /frf agree for the same (output, input) names.
     from pelvislab.acquisition.frfset import read_frf
 
-    (tmp_path / "p.toml").write_text(SIGN_PROTOCOL)
+    (tmp_path / "p.toml").write_text(_sign_protocol())
     assert main(["run", str(tmp_path / "p.toml"), "--out", str(tmp_path / "s.h5"),
                  "--quiet"]) == 0
     args = ["model", "frf", "--points", "sacrum_x,SIAS_R_x", "--inputs", "SIAS_R_x",
