@@ -14,6 +14,7 @@ import signal
 import sys
 from collections.abc import Sequence
 from importlib import metadata
+from typing import NoReturn
 
 from pelvislab.app.commands import COMMAND_MODULES
 from pelvislab.app.errors import NotImplementedCommand
@@ -46,9 +47,19 @@ def configure_logging(verbosity: int) -> None:
     root.setLevel(level)
 
 
+class OneLineErrorParser(argparse.ArgumentParser):
+    """An argument parser whose usage errors are one line on stderr (design 4.3: "a one-line
+    reason on stderr for bad input"); argparse's own printed the whole usage block first,
+    five lines for ``gap diagnose``. Subcommand parsers inherit the class."""
+
+    def error(self, message: str) -> NoReturn:
+        reason = " ".join(message.split())
+        self.exit(EXIT_USAGE, f"{self.prog}: error: {reason} (see {self.prog} --help)\n")
+
+
 def build_parser() -> argparse.ArgumentParser:
     """The full argument parser with every subcommand of design 4.3 registered."""
-    parser = argparse.ArgumentParser(
+    parser = OneLineErrorParser(
         prog="pelvislab",
         description="Vibration-based diagnosis of the sacroiliac joints: instrument control, "
         "session files, identification and sim-to-real gap diagnosis.",

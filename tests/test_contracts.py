@@ -120,6 +120,26 @@ def test_every_design_command_has_help(argv: list[str], capsys: pytest.CaptureFi
     assert "usage: pelvislab " + " ".join(argv) in capsys.readouterr().out
 
 
+@pytest.mark.parametrize("argv", [[], ["frobnicate"], ["gap"], ["gap", "diagnose"],
+                                  ["identify", "s.h5", "--json", "o", "--gain-std", "abc"],
+                                  ["run", "p.toml", "--out", "s.h5", "--wait-prompts",
+                                   "--auto-continue"]])
+def test_usage_errors_are_one_line(argv: list[str], capsys: pytest.CaptureFixture) -> None:
+    """4.3: bad input gives a one-line reason on stderr; argparse printed its usage block
+    first (five lines for ``gap diagnose``). The line names the command and its --help."""
+    with pytest.raises(SystemExit) as exc:
+        main(argv)
+    assert exc.value.code == EXIT_USAGE
+    captured = capsys.readouterr()
+    assert captured.out == ""
+    lines = captured.err.splitlines()
+    assert len(lines) == 1, captured.err
+    command = " ".join(["pelvislab", *[a for a in argv[:2] if a in ("gap", "diagnose",
+                                                                  "identify", "run")]])
+    assert lines[0].startswith(f"{command}: error: ")
+    assert lines[0].endswith(f"(see {command} --help)")
+
+
 # ---------------------------------------------------------------- 4.2 session file layout
 def test_session_file_layout(files: dict[str, Path]) -> None:
     with h5py.File(files["session"], "r") as h:
