@@ -18,6 +18,7 @@ from pelvislab.model.gap import (
     estimate_noise,
     excess_gap,
     prepare_data,
+    third_differences,
 )
 from pelvislab.model.gap_benchmark import BenchCase, place_correct, predicted_place
 from pelvislab.model.gap_effects import EffectTerms, candidate_library, evaluate
@@ -180,6 +181,47 @@ def test_noise_estimate_recovers_sigma():
     est = estimate_noise(Hn)
     ratio = est[0] / sigma[0]
     assert np.all((ratio > 0.75) & (ratio < 1.35)), ratio
+
+
+def test_third_differences_vanish_on_a_quadratic_on_any_grid():
+    """Divided differences where the lines are unevenly spaced: a quadratic leaves nothing,
+    and the squared coefficients sum to 20 as (1, −3, 3, −1) do on an even grid (plain Δ³
+    on alternating 1/2 Hz steps leaves even a straight line in)."""
+    rng = np.random.default_rng(7)
+    f = np.cumsum(rng.uniform(0.25, 10.0, 40)) + 5.0
+    quadratic = (3.0 - 2.0j) + (0.5 + 1.0j) * f - 0.01 * f**2
+    d, c2, uneven = third_differences(quadratic, f)
+    assert uneven.all()
+    assert np.max(np.abs(d)) < 1e-9 * np.max(np.abs(quadratic))
+    assert np.allclose(c2.sum(axis=1), 20.0)
+    even = np.arange(5.0, 50.0, 1.5)
+    d_even, c2_even, uneven_even = third_differences(even**3, even)
+    assert not uneven_even.any() and np.array_equal(d_even, np.diff(even**3, 3))
+    assert np.array_equal(c2_even, np.tile([1.0, 9.0, 9.0, 1.0], (d_even.size, 1)))
+    alternating = np.cumsum(np.r_[5.0, np.tile([1.0, 2.0], 20)])
+    assert np.max(np.abs(np.diff(alternating, 3))) > 1.0  # what plain Δ³ leaves of f itself
+
+
+def test_noise_estimate_over_each_frfs_own_lines_and_spacing():
+    """With the frequencies, σ comes from each FRF's own measured lines: an FRF measured on
+    every other line had no difference of neighbouring lines (5 % of its peak: ~10x the
+    noise here), and on alternating 1/2 Hz steps noise ∝ |H| came out ~1.8x. An even grid
+    with every line measured gives the same σ, bit for bit, with or without them."""
+    rng = np.random.default_rng(5)
+    even = np.arange(5.0, 300.1, 1.5)
+    H = frf(true_model(), even, OUT, IN)
+    Hn, sigma = noisy(H, rng, rel=0.005)
+    assert np.array_equal(estimate_noise(Hn, even), estimate_noise(Hn))
+    Hn[1::2] = np.nan
+    on = np.isfinite(Hn)
+    ratio = np.median(estimate_noise(Hn, even)[on] / sigma[on])
+    assert 0.8 < ratio < 1.25, ratio
+    uneven = np.cumsum(np.r_[5.0, np.tile([1.0, 2.0], 100)])
+    H = frf(true_model(), uneven, OUT, IN)
+    sigma = 0.01 * np.abs(H)
+    e = sigma / np.sqrt(2) * (rng.normal(size=H.shape) + 1j * rng.normal(size=H.shape))
+    ratio = np.median(estimate_noise(H + e, uneven) / sigma)
+    assert 0.8 < ratio < 1.25, ratio
 
 
 def test_excess_gap_is_zero_at_noise_level_and_grows():

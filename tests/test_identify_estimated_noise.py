@@ -51,17 +51,36 @@ def test_without_h_std_the_noise_is_estimated_and_the_parameters_are_closer(tmp_
     assert json.loads(out.read_text())["noise"] == "H_std"
 
 
+def test_an_frf_on_alternate_lines_is_estimated_over_its_own_lines():
+    # one FRF on every other line of the grid: from neighbouring lines only it had no third
+    # difference, so 5 % of its peak (32x its declared noise); over its own lines, in their
+    # own spacing (20 Hz steps where the demo grid has 10 Hz, so its curvature enters), 2.4x
+    from pelvislab.acquisition.frfset import read_frf
+    from pelvislab.model.gap import estimate_noise
+
+    frf = read_frf(DATA)
+    H = frf.H.copy()
+    H[1::2, 0, 0] = np.nan + 1j * np.nan
+    on = np.isfinite(H[:, 0, 0])
+    ratio = np.median(estimate_noise(H, frf.frequency_hz)[on, 0, 0] / frf.H_std[on, 0, 0])
+    assert 0.7 < ratio < 4.0, ratio
+    # every line measured: the ratio the other FRFs show
+    full = np.median(estimate_noise(frf.H, frf.frequency_hz)[on, 0, 0] / frf.H_std[on, 0, 0])
+    assert 0.7 < full < 1.5, full
+
+
 def test_an_frf_whose_noise_cannot_be_estimated_is_named(tmp_path, capsys):
-    # one FRF on every other line of the grid: no third difference of neighbouring lines,
-    # so 5 % of its peak (32x its noise), unsaid (review of session 40)
+    # one FRF with 6 measured lines: 5 % of its peak, which must be said (review of
+    # session 40); one on alternate lines is estimated and not named (session 41)
     from pelvislab.app.cli import main
 
-    bare = tmp_path / "alternate.h5"
+    bare = tmp_path / "few.h5"
     shutil.copy(DATA, bare)
     with h5py.File(bare, "a") as handle:
         del handle["frf/H_std"]
         H = handle["frf/H"][()]
-        H[1::2, 0, 0] = np.nan + 1j * np.nan
+        H[6:, 0, 0] = np.nan + 1j * np.nan
+        H[1::2, 1, 0] = np.nan + 1j * np.nan
         handle["frf/H"][...] = H
         outputs = [n.decode() if isinstance(n, bytes) else str(n)
                    for n in handle["frf/outputs/name"][()]]

@@ -181,7 +181,7 @@ def identify_file(path: str | Path, method: str = "frf", params: list[str] | Non
                 # (log: 73-145 %); docs/identification.md
                 from pelvislab.model.gap import estimate_noise
 
-                H_std, noise_source = estimate_noise(frf.H), "estimated"
+                H_std, noise_source = estimate_noise(frf.H, frf.frequency_hz), "estimated"
                 noise_note = _unestimated_noise_note(frf)
         if kind == "std" and H_std is None:
             raise ValueError(f"{path}: --residual std needs H_std in /frf"
@@ -275,10 +275,10 @@ def modelled_channels(frf: Any, path: str | Path) -> tuple[Any, str | None]:
 
 def _unestimated_noise_note(frf: Any) -> str | None:
     """A note naming the FRFs whose noise :func:`pelvislab.model.gap.estimate_noise` could
-    not estimate (under 8 measured lines, or under 5 third differences of neighbouring
-    measured lines, e.g. an FRF measured on every other line of the file's grid): they get
-    5 % of their peak, which weighs them nearly out of the fit (review of session 40: 32x
-    the true noise, unsaid)."""
+    not estimate (under 8 measured lines, or all zero): they get 5 % of their peak, which
+    weighs them nearly out of the fit (review of session 40: 32x the true noise, unsaid).
+    An FRF measured on alternate lines of the file's grid is estimated over its own lines
+    (session 41); before, it fell here."""
     import numpy as np
 
     names = []
@@ -286,16 +286,13 @@ def _unestimated_noise_note(frf: Any) -> str | None:
         for i, inp in enumerate(frf.inputs.name):
             h = frf.H[:, o, i]
             ok = np.isfinite(h)
-            if not ok.any():
-                continue
-            differences = np.isfinite(np.diff(np.where(ok, h, np.nan), 3)).sum()
-            if ok.sum() < 8 or differences < 5 or not np.any(h[ok]):
+            if ok.any() and (ok.sum() < 8 or not np.any(h[ok])):
                 names.append(f"{out}/{inp}")
     if not names:
         return None
-    return (f"no H_std, and the noise of {len(names)} FRF(s) could not be estimated from "
-            "neighbouring lines (too few, or measured on alternate lines of the grid): "
-            "taken as 5 % of their peak, which weighs them nearly out of the fit: "
+    return (f"no H_std, and the noise of {len(names)} FRF(s) could not be estimated "
+            "(under 8 measured lines, or all zero): taken as 5 % of their peak, which "
+            "weighs them nearly out of the fit: "
             + ", ".join(names[:8]) + (" ..." if len(names) > 8 else ""))
 
 
