@@ -35,6 +35,7 @@ from typing import Any
 import numpy as np
 
 from pelvislab.acquisition.frf_lines import calibrated_newton_per_volt
+from pelvislab.acquisition.frfset import FrfSet
 from pelvislab.acquisition.protocol import PlannedStep, Protocol, Setup
 from pelvislab.acquisition.session import (
     STATUS_COMPLETE,
@@ -1697,6 +1698,25 @@ def _cut_gate_note(quality: Mapping[str, Any]) -> str:
     return found.group(0) if found else ""
 
 
+def _bone_unstated_notes(frf: FrfSet, unstated: set[tuple[str, str]]) -> list[str]:
+    """A note per point of ``frf`` written on no modelled bone only because nothing gave
+    its bone (a session written from design 4.2 alone names its points only, and the
+    landmark catalogue does not know this name): identify and gap diagnose then leave it
+    out as deliberately off-bone, so the user hears that it was unknown instead."""
+    lines = []
+    for prefix, channels in (("output", frf.outputs), ("input", frf.inputs)):
+        for name, bone in zip(channels.name, channels.bone, strict=True):
+            if bone == "" and (prefix, name) in unstated:
+                lines.append(
+                    f"{prefix} point {name!r} is not in the landmark catalogue "
+                    f"(protocols/landmarks.toml) and its steps give no {prefix}_bone: written "
+                    f"as on no modelled bone (''), so identify and gap diagnose leave it out. "
+                    f"If it is on a bone, add {prefix}_bone (innominate_right, "
+                    f"innominate_left or sacrum) to the steps or use the catalogue's name "
+                    f"for the point; {prefix}_bone = '' says it is off-bone on purpose")
+    return lines
+
+
 def reprocess_session(source: Path | str, target: Path | str, tracking_options: Any = None,
                       speed_of_sound_m_s: float | None = None,
                       progress: Callable[[int, int], None] | None = None,
@@ -1883,10 +1903,15 @@ def reprocess_session(source: Path | str, target: Path | str, tracking_options: 
                        "done, ok, finished: docs/session-format.md)" if said else "")
                     + "; nothing written")
             layout = reader.frf_layout()
-            if layout is not None:
+            if layout is not None:  # the stored /frf's bones, "" included, are the file's word
                 frf = frf_from_steps(done, *layout)
             else:
                 frf = frf_from_steps(done)
+                for line in _bone_unstated_notes(frf, reader.bone_unstated):
+                    if notes is not None:
+                        notes.append(line)
+                    out["log"].resize((out["log"].shape[0] + 1,))
+                    out["log"][-1] = log_entry(line)
             if done and not np.isfinite(frf.H).any():
                 raise ValueError(
                     f"with tracking options {tracking_options!r}"

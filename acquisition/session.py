@@ -595,6 +595,7 @@ class SessionWriter:
             return 0
         reader = SessionReader.__new__(SessionReader)
         reader.path, reader._h5, reader.damaged, reader.incomplete = self.path, self._h5, [], []
+        reader.bone_unstated = set()
         steps = list(reader.steps(with_echoes=False))
         frf = self._h5["frf"]
         freqs, outs, ins = self._frf_index
@@ -894,6 +895,11 @@ class SessionReader:
             raise
         self.damaged: list[str] = []
         self.incomplete: list[str] = []
+        self.bone_unstated: set[tuple[str, str]] = set()
+        """(``"output"`` or ``"input"``, name) of the points read so far that nothing
+        gives a bone: no ``<prefix>_bone`` attribute and not in the landmark catalogue.
+        They read as bone "" (on no modelled bone) for want of another word, which is not
+        the file saying so (our writer always writes ``<prefix>_bone``, "" included)."""
 
     @property
     def handle(self) -> h5py.File:
@@ -1008,7 +1014,7 @@ class SessionReader:
                 delay_s=float(ea["delay_s"]), volts_per_count=float(ea["volts_per_count"]),
                 volts_offset=float(ea["volts_offset"]),
                 speed_of_sound_m_s=float(ea["speed_of_sound_m_s"]),
-                output=_read_point(ea, "output"),
+                output=self._point(ea, "output"),
                 displacement_m=disp,
                 phasor_m=complex(ph[()]) if ph is not None else None,
                 phasor_std_m=float(ph.attrs.get("std_m", np.nan)) if ph is not None else None,
@@ -1018,12 +1024,20 @@ class SessionReader:
                  "input_bone", "input_position_m", "input_direction"}
         return StepData(
             setup=_text(a["setup"]), frequency_hz=float(a["frequency_hz"]),
-            input=_read_point(a, "input"), started_at_s=float(a["started_at_s"]),
+            input=self._point(a, "input"), started_at_s=float(a["started_at_s"]),
             channels=channels,
             force_phasor_n=complex(g["force_phasor_n"][()]) if "force_phasor_n" in g else 0j,
             drive_vpp=float(a.get("drive_vpp", np.nan)), status=status, index=int(name),
             extra={k: a[k] for k in a if k not in known},
         )
+
+    def _point(self, attrs: h5py.AttributeManager, prefix: str) -> Point:
+        """:func:`_read_point`, noting in :attr:`bone_unstated` a point whose bone nothing
+        gives."""
+        point = _read_point(attrs, prefix)
+        if attrs.get(f"{prefix}_bone") is None and point.name not in _catalogue():
+            self.bone_unstated.add((prefix, point.name))
+        return point
 
     def frf(self) -> FrfSet:
         """The stored /frf set."""

@@ -20,9 +20,6 @@ from pelvislab.app.cli import main
     (["identify", "S.h5", "--json", "i.json", "--starts", "0"], "--starts 0"),
     (["identify", "S.h5", "--json", "i.json", "--params", ","], "got none"),
     (["gap", "diagnose", "S.h5", "--json", "g.json", "--effects", ","], "got none"),
-    # identify takes "-" for stdout now (design 4.5 "prints"); gap diagnose cannot (its
-    # plots go next to the JSON file, its report to stdout) and says so
-    (["gap", "diagnose", "S.h5", "--json", "-"], "plots are saved next to the JSON"),
     (["gap", "benchmark", "--json", "b.json", "--kinds", "none,nope"], "unknown nope"),
 ])
 def test_meaningless_values_are_refused(argv, message, tmp_path, monkeypatch, capsys):

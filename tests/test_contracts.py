@@ -262,6 +262,26 @@ def test_gap_diagnose_json(files: dict[str, Path], capsys: pytest.CaptureFixture
     assert doc["verdict"] in EFFECTS | {"unexplained"} | {c["effect"] for c in doc["candidates"]}
 
 
+def test_gap_diagnose_json_on_stdout(files: dict[str, Path], tmp_path: Path,
+                                    monkeypatch: pytest.MonkeyPatch,
+                                    capsys: pytest.CaptureFixture) -> None:
+    """``--json -``: stdout is the 4.4 document alone, the report goes to stderr, and the
+    plots (saved next to a JSON file) are skipped with a note. One cheap effect, serial:
+    ~1 s (the 4.4 numbers are checked above, on the file)."""
+    monkeypatch.chdir(tmp_path)  # a plot written next to a file called "-" would land here
+    argv = ["gap", "diagnose", str(files["frf"]), "--json", "-", "--effects",
+            "sensor_misorientation", "--jobs", "1"]
+    code, out, err = run_cli(argv, capsys)
+    assert code == 0, err
+    doc = strict_json(out)  # the whole of stdout: one JSON document, nothing else
+    assert set(doc) >= {"gap_before", "where", "candidates", "verdict"}
+    assert set(doc["where"]) >= {"bands", "outputs", "bones"}
+    assert doc["candidates"] and all("effect" in c for c in doc["candidates"])
+    assert doc["plots"] == [] and list(tmp_path.iterdir()) == []
+    assert "sim-to-real gap diagnosis: verdict = " in err and "JSON: standard output" in err
+    assert "no plots with --json -" in err
+
+
 # ---------------------------------------------------------------- 4.3 bad input
 READERS = {
     "reprocess": lambda f, t: ["reprocess", str(f), "--out", str(t / "r.h5")],

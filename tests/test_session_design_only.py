@@ -99,3 +99,38 @@ def test_points_the_catalogue_does_not_know_and_unknown_statuses_are_named(tmp_p
                                          "completed, done"):
         reprocess_session(bare, tmp_path / "b.h5")
     assert not (tmp_path / "u.h5").exists() and not (tmp_path / "q.h5").exists()
+
+
+def test_a_point_nothing_gives_a_bone_is_named_not_taken_as_off_bone(tmp_path):
+    """A point outside the catalogue whose steps give its position and direction but no
+    ``output_bone`` was written on no modelled bone without a word (identify and gap then
+    leave it out as if deliberately off-bone); ``output_bone = ""``, as our writer puts it
+    for an off-bone point, says so on purpose and is not flagged."""
+    from pelvislab.acquisition.runner import reprocess_session
+
+    _, original = _finished(tmp_path)
+    for bone in (None, ""):
+        path = tmp_path / f"bed_{bone is None}.h5"
+        _design_only_copy(original, path, rename={"sacrum_x": "bed_frame_z"})
+        with h5py.File(path, "a") as handle:
+            for step in handle["steps"].values():
+                for ds in step["echoes"].values():
+                    if ds.attrs.get("output") == "bed_frame_z":
+                        ds.attrs["output_position_m"] = [0.0, 0.0, -0.3]
+                        ds.attrs["output_direction"] = [0.0, 0.0, 1.0]
+                        if bone is not None:
+                            ds.attrs["output_bone"] = bone
+        notes: list[str] = []
+        out = tmp_path / f"re_{bone is None}.h5"
+        reprocess_session(path, out, notes=notes)
+        with SessionReader(out) as reader:
+            frf, log = reader.frf(), reader.log_lines()
+        assert frf.outputs.bone[frf.outputs.name.index("bed_frame_z")] == ""
+        if bone is None:  # SIAS_R_x, in the catalogue, takes its bone from there: no note
+            assert len(notes) == 1, notes
+            assert notes[0].startswith("output point 'bed_frame_z' is not in the landmark "
+                                       "catalogue (protocols/landmarks.toml)")
+            assert "add output_bone" in notes[0]
+            assert any(notes[0] in line for line in log), "the file's log says it too"
+        else:
+            assert notes == []

@@ -2,7 +2,9 @@
 
 ``gap diagnose`` reads the /frf set of a session or FRF-only file, runs
 :func:`pelvislab.model.gap.diagnose` and writes the design 4.4 JSON, a readable report on
-stdout and PNG plots next to the JSON.
+stdout and PNG plots next to the JSON. With ``--json -`` the JSON is all that goes to
+stdout: the report goes to stderr and no plots are saved (there is no file to put them
+next to).
 
 ``gap benchmark`` runs the diagnosis blind on data sets with one hidden effect each. The
 data generator lives on the *test* side (``pelvislab.tests.benchmarks.bench_gap``), which
@@ -27,6 +29,7 @@ from pelvislab.app.commands._common import (
     incomplete_session_warning,
     infinite_as_unmeasured,
     keep_freed_memory_for_reuse,
+    print_json,
     require_response,
     write_json,
 )
@@ -50,8 +53,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     d.add_argument("session", metavar="S.h5", help="session or FRF-only file")
     d.add_argument("--model", metavar="M.toml", help="base model; default: thesis appendix E")
     d.add_argument("--json", required=True, metavar="OUT",
-                   help="write the diagnosis JSON to this file (not '-': the plots go "
-                   "next to it, the report to stdout)")
+                   help="write the diagnosis JSON to this file (the plots go next to it, "
+                   "the report to stdout); '-': print the JSON on stdout, the report on "
+                   "stderr, and save no plots")
     d.add_argument("--effects", metavar="LIST",
                    help="comma-separated candidate effects to try (default: all, and "
                         "per_dashpot_damping, an extension of parameter updating)")
@@ -227,14 +231,18 @@ def plot_paths(out: Path) -> list[Path]:
 
 
 def _diagnose(args: argparse.Namespace) -> int:
-    if args.json == "-":  # check_new_output's generic refusal did not say why
-        raise ValueError("--json -: gap diagnose needs a file name, not '-' (standard "
-                         "output): its plots are saved next to the JSON and its report "
-                         "goes to stdout")
-    out = check_new_output(args.json)
-    if not args.no_plots:
+    # '-': the JSON alone on stdout (design 4.3, as identify and ema print it); the report
+    # then goes to stderr, and the plots, which are saved next to a JSON file, are skipped
+    # with a note rather than refused: they are a default, not something asked for
+    out = None if args.json == "-" else check_new_output(args.json)
+    plotting = not args.no_plots and out is not None
+    if plotting:
         for path in plot_paths(out):  # results are never overwritten, plots neither
             check_new_output(path)
+    if out is None and not args.no_plots:
+        print("pelvislab gap diagnose: note: no plots with --json - (they are saved next "
+              "to a JSON file): give --json FILE for them, or add --no-plots to drop this "
+              "note", file=sys.stderr)
     keep_freed_memory_for_reuse()
     effects = None
     if args.effects:
@@ -245,7 +253,7 @@ def _diagnose(args: argparse.Namespace) -> int:
     report = diagnose_file(args.session, args.model, _progress(args.verbose_progress), effects,
                            args.updating_range, args.damping_max, args.jobs)
     plots: list[str] = []
-    if not args.no_plots:
+    if plotting:
         try:
             plots = _plots(report.diagnosis, out)
         except Exception as exc:  # plots are a convenience; the JSON is the result
@@ -256,11 +264,15 @@ def _diagnose(args: argparse.Namespace) -> int:
         print(f"pelvislab gap diagnose: warning: {w}", file=sys.stderr)
     for n in document.get("notes", []):
         print(f"pelvislab gap diagnose: note: {n}", file=sys.stderr)
-    write_json(out, document)
-    print(format_report(document))
-    print(f"\nJSON: {out}")
+    if out is None:
+        print_json(document)
+    else:
+        write_json(out, document)
+    text = sys.stdout if out is not None else sys.stderr  # stdout holds the JSON alone
+    print(format_report(document), file=text)
+    print(f"\nJSON: {out if out is not None else 'standard output'}", file=text)
     for p in plots:
-        print(f"plot: {p}")
+        print(f"plot: {p}", file=text)
     return 0
 
 
