@@ -388,3 +388,27 @@ def test_validation_phantoms_of_chapter_8(bench):
     T = Phantom().transmissibility(200.0)
     assert np.degrees(np.angle(ub / ua)) == pytest.approx(np.degrees(np.angle(T)), abs=2.0)
     assert np.degrees(np.angle(T)) == pytest.approx(-80.9, abs=5.0)  # table 8.1 at 200 Hz
+
+
+def test_no_echo_warning_names_only_points_off_the_pelvis_while_the_shaker_is_on_it(tmp_path):
+    """The run warned that the validation protocols' phantom faces "give no echo" while
+    every step measured the phantom at ~30 dB: the simulated bench drives the ch. 8.3
+    phantom wherever the excitation is on no bone. Only a point on no bone looked at while
+    the shaker is on the pelvis is silent."""
+    from pathlib import Path
+
+    from pelvislab.acquisition.runner import prepare_session
+
+    shipped = Path(__file__).resolve().parents[1] / "protocols"
+    with prepare_session(shipped / "validation_amplitude.toml", tmp_path / "v.h5",
+                         bench=open_simulated_bench(generators="python")) as s:
+        assert s.runner._silent_on_simulated_bench() == []
+    text = (shipped / "demo.toml").read_text()
+    bed = ('[points.bed_frame]\nbone = ""\nposition_m = [0.0, 0.0, -0.2]\n'
+           'direction = [0.0, 0.0, 1.0]\n\n[[setups]]\nname = "bed"\nexcitation = "SIAS_R_x"\n'
+           'transducers = { ch1 = "bed_frame", ch2 = "sacrum_x" }\n\n')
+    protocol = tmp_path / "bed.toml"
+    protocol.write_text(text.replace("[[setups]]", bed + "[[setups]]", 1))
+    with prepare_session(protocol, tmp_path / "b.h5",
+                         bench=open_simulated_bench(generators="python")) as s:
+        assert s.runner._silent_on_simulated_bench() == ["bed_frame"]
