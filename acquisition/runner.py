@@ -366,9 +366,17 @@ def process_channel(channel: ChannelData, frequency_hz: float, options: Any = No
     quality["periods_tracked"] = span_periods
     short = channel.phasor_m is not None and span_periods < QUALITY_MIN_PERIODS
     if short:
+        recorded_periods = float(frequency_hz * np.ptp(time_s)) if time_s.size >= 2 else 0.0
+        # a full record whose echoes were lost is not a truncated one (audit, session 41:
+        # a nine-point step at 10 Hz, 5000 pulses, most echoes out of the window, read
+        # "a truncated acquisition?")
+        why = (f"{disp.size} segments recorded: a truncated acquisition?"
+               if recorded_periods < QUALITY_MIN_PERIODS else
+               f"the record spans {recorded_periods:.2g} periods; {int(good.sum())} of {disp.size} "
+               f"echoes tracked, the rest lost")
         quality["message"] = (f"the tracked echoes span {span_periods:.2g} period(s) of the "
                               f"drive, under the {QUALITY_MIN_PERIODS:g} a phasor needs "
-                              f"({disp.size} segments recorded: a truncated acquisition?)")
+                              f"({why})")
     ok = (channel.phasor_m is not None and not short
           and quality["correlation_median"] >= QUALITY_MIN_CORRELATION
           and quality["lost_fraction"] <= QUALITY_MAX_LOST_FRACTION)

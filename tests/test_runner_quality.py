@@ -49,3 +49,17 @@ def test_a_record_shorter_than_a_drive_period_is_not_ok():
     assert "truncated acquisition" in channel.quality["message"]
     whole = _processed_sine(1e-6, 80.0, n_pulses=80)  # 1.26 periods
     assert whole.quality["ok"] is True, whole.quality
+
+
+def test_a_full_record_whose_echoes_were_lost_is_not_called_truncated():
+    # audit, session 41: a nine-point step at 10 Hz (5000 pulses, most echoes out of the
+    # window) said "5000 segments recorded: a truncated acquisition?"
+    d = 1e-6 * np.sin(2 * np.pi * 80.0 * np.arange(2000) / PRF)
+    channel = _channel(d)
+    channel.codes[50:] = 0  # the echo gone after 50 pulses (0.8 periods at 80 Hz)
+    processed = process_channel(channel, 80.0)
+    message = processed.quality["message"]
+    assert processed.quality["ok"] is False
+    assert "period(s) of the drive" in message and "truncated" not in message, message
+    assert "the record spans 32 periods;" in message, message
+    assert "50 of 2000 echoes tracked" in message, message
