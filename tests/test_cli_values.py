@@ -122,3 +122,25 @@ def test_run_waits_at_prompts_when_wait_for_operator_says_so(tmp_path, monkeypat
     err = capsys.readouterr().err
     assert "operator prompt: no answer (stdin closed)" in err
     assert "--auto-continue" not in err  # a hint for real benches only
+
+
+def test_a_completed_run_that_lost_lines_says_so_in_its_last_line(tmp_path, capsys):
+    # audit, session 41: nine_point at a fixed 0.5 Vpp lost its 10 Hz line in every setup
+    # and ended "session complete: 275 of 275 steps", exit 0, the quality warnings long
+    # scrolled past. The demo's first setup at 10 Hz moves one of its points out of the
+    # record.
+    import re
+    from pathlib import Path
+
+    text = (Path(__file__).resolve().parents[1] / "protocols" / "demo.toml").read_text()
+    text = re.sub(r"frequencies_hz = \[.*?\]", "frequencies_hz = [10, 60]", text,
+                  flags=re.DOTALL)
+    first_two = [m.start() for m in re.finditer(r"^\[\[setups\]\]", text, re.MULTILINE)][:2]
+    protocol = tmp_path / "p.toml"
+    protocol.write_text(text[:first_two[1]])
+    out = tmp_path / "s.h5"
+    assert main(["run", str(protocol), "--out", str(out), "--quiet"]) == 0
+    last = capsys.readouterr().err.strip().splitlines()[-1]
+    assert last.startswith("session complete: 2 of 2 steps"), last
+    assert last.endswith("1 of 4 FRF values missing (steps whose channels failed quality: "
+                         "see the warnings above), at 10 Hz"), last
