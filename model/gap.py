@@ -384,6 +384,16 @@ def estimate_noise(H: np.ndarray, frequency_hz: np.ndarray | None = None, *,
     return sigma
 
 
+def _less_than(smaller: float, larger: float) -> str:
+    """``"a < b"`` with as many significant digits (4 to 10) as it takes for the two to
+    differ in print: a report said "chi2 2288 < 2288" (audit, session 41)."""
+    for digits in range(4, 11):
+        a, b = f"{smaller:.{digits}g}", f"{larger:.{digits}g}"
+        if a != b:
+            break
+    return f"{a} < {b}"
+
+
 def _measured_runs(mask: np.ndarray) -> Iterator[tuple[int, int, np.ndarray]]:
     """(o, i, line indices) of each FRF's measured lines, in frequency order."""
     for o in range(mask.shape[1]):
@@ -2832,11 +2842,11 @@ def _verdict_stage(s: _Stages, ranked: Sequence[CandidateResult], cal: _Calibrat
     if test.null_refitted:
         reason += (f"; tested against the base refitted from {best_name}'s parameters, "
                    f"which fits the fitted lines better than {base_txt} (chi2 "
-                   f"{test.null_chi2_fitted:.4g} < {s.chi2_base_fitted:.4g})")
+                   f"{_less_than(test.null_chi2_fitted, s.chi2_base_fitted)})")
     elif test.null_kind == "own_starts":
         reason += (f"; tested against the base fit from its own starts, which fits the "
                    f"held-out lines better than {base_txt} (chi2 "
-                   f"{s.chi2_own_starts[1]:.4g} < {s.chi2_base:.4g})")
+                   f"{_less_than(s.chi2_own_starts[1], s.chi2_base)})")
     if switched_from is not None and verdict == best_name:
         reason += (f"; chosen over {switched_from.candidate.effect} (first on held-out "
                    f"lines alone) on the pooled chi2 drop less 2 per parameter")

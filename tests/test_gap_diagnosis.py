@@ -466,3 +466,11 @@ def test_a_file_on_no_modelled_bone_is_refused_with_that_reason():
     with pytest.raises(ValueError, match=r"3 of its 3 points are on no modelled bone: "
                                          r"output n1, output n2, input n1"):
         prepare_data(F_HZ, H, None, out, inp)
+
+
+def test_a_reported_comparison_prints_two_different_numbers():
+    from pelvislab.model.gap import _less_than
+
+    assert _less_than(2287.6, 2288.1) == "2287.6 < 2288.1"  # was "2288 < 2288"
+    assert _less_than(391.5, 1009.0) == "391.5 < 1009"
+    assert _less_than(1.0, 1.0 + 1e-12) == "1 < 1"  # equal to 10 digits: said as they are
