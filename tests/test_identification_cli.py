@@ -134,3 +134,16 @@ def test_identify_json_dash_prints_the_json_alone_on_stdout(tmp_path: Path, caps
     assert doc["parameters"]["k_pubh"]["value"] == pytest.approx(1.3e5, rel=1e-6)
     assert doc["notes"] and "note: H_std holds no positive finite value" in captured.err
     assert sorted(p.name for p in tmp_path.iterdir()) == ["frf.h5", "zero_std.h5"]
+
+
+def test_modal_updating_refuses_version_b(tmp_path: Path, capsys) -> None:
+    """--version-b with --method modal was dropped without a word (exit 0, no f_k, f_c in
+    the JSON; audit); refused in one line like --gain-std, before anything is written."""
+    data = Path(__file__).parent / "data" / "demo_sim_seed1.h5"
+    out = tmp_path / "m.json"
+    assert main(["identify", str(data), "--method", "modal", "--version-b",
+                 "--json", str(out)]) == 1
+    err = capsys.readouterr().err
+    assert err.startswith("pelvislab identify: error: --version-b applies to --method frf")
+    assert err.count("\n") == 1, err
+    assert not out.exists()

@@ -45,7 +45,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--symmetric", action="store_true",
                    help="impose left/right symmetry (k_io, c_sij, m_innominate, ...)")
     p.add_argument("--version-b", action="store_true",
-                   help="also identify the eq. 7.2-7.3 factors f_k and f_c (ch. 7 version B)")
+                   help="also identify the eq. 7.2-7.3 factors f_k and f_c (ch. 7 version B; "
+                   "--method frf)")
     p.add_argument("--residual", choices=("auto", "log", "std", "eq610"), default="auto",
                    help="misfit: auto = std, weighted by the file's H_std or, without it, "
                    "by the noise estimated from the data (third differences along "
@@ -157,6 +158,10 @@ def identify_file(path: str | Path, method: str = "frf", params: list[str] | Non
     if method == "modal":
         if gain_std:
             raise ValueError("--gain-std applies to --method frf (the FRF fit)")
+        if version_b:
+            # it was dropped without a word (exit 0, no f_k, f_c in the JSON): audit
+            raise ValueError("--version-b applies to --method frf (the FRF fit; modal "
+                             "updating fits the modes of M and K, without f_k, f_c)")
         gain_std = 0.0
         if calibration_source == "option" and calibration_std:
             raise ValueError("--calibration-std applies to --method frf (the FRF fit)")
