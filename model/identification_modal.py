@@ -316,27 +316,40 @@ def _unmatched_text(p: dict) -> str:
     return f"{f:.{nd}f} Hz (model {fm:.{nd}f} Hz, {', '.join(why)})"
 
 
+def picking_lines(H: np.ndarray) -> np.ndarray:
+    """(n_f,) bool: the lines :func:`modes_from_frf` picks peaks on, those on which every
+    measured FRF (one with a finite, non-zero value somewhere) has a value."""
+    mag = np.abs(np.where(np.isfinite(H), H, 0.0)).reshape(H.shape[0], -1)
+    measured = np.any(mag > 0, axis=0)
+    return np.all(mag[:, measured] > 0, axis=1) & measured.any()
+
+
 def modes_from_frf(
     frequency_hz: np.ndarray, H: np.ndarray, *, max_modes: int = 12, min_prominence: float = 0.1,
 ) -> ModalData:
     """Peak picking (ch. 4.5): peaks of the mean log|H|, shapes = the FRF column there.
 
     A simple single-degree-of-freedom estimator for lightly damped, well separated modes:
-    the column (input) with the largest response at each peak supplies the shape. NaN
-    lines are ignored; ``min_prominence`` is in natural-log units. Good enough to seed modal
+    the column (input) with the largest response at each peak supplies the shape. Unmeasured
+    FRFs (NaN throughout) are ignored, and lines on which a measured FRF has no value are
+    left out (:func:`picking_lines`; one failed line refused the whole file before);
+    ``min_prominence`` is in natural-log units. Good enough to seed modal
     updating; the EMA module does better. Each frequency is known to the grid only: the
     peak line is higher than both its neighbours, so a single resonance lies between them
-    (``frequency_tol_hz``: the spacing to each neighbour).
+    (``frequency_tol_hz``: the spacing to each neighbour, a left-out line widening it).
     """
     from scipy.signal import find_peaks
 
-    Hm = np.where(np.isfinite(H), H, 0.0)
-    lines = np.abs(Hm).reshape(Hm.shape[0], -1)
-    lines = lines[:, np.all(lines > 0, axis=0)]
-    if lines.size == 0:
-        raise ValueError("no complete FRF line to pick peaks from")
-    # mean log-magnitude over the lines: every FRF counts, peaks of small ones too
-    total = np.mean(np.log(lines), axis=1)
+    use = picking_lines(H)
+    if use.sum() < 3:
+        raise ValueError(f"{int(use.sum())} frequency line(s) on which every measured FRF "
+                         "has a value: too few to pick peaks from")
+    f = np.asarray(frequency_hz, float)[use]
+    Hm = np.where(np.isfinite(H), H, 0.0)[use]
+    mag = np.abs(Hm).reshape(Hm.shape[0], -1)
+    mag = mag[:, np.all(mag > 0, axis=0)]
+    # mean log-magnitude over the FRFs: every FRF counts, peaks of small ones too
+    total = np.mean(np.log(mag), axis=1)
     peaks, props = find_peaks(total, prominence=min_prominence)
     if peaks.size == 0:
         raise ValueError("no resonance peaks found in the FRFs")
@@ -350,7 +363,6 @@ def modes_from_frf(
         # grid misses a lightly damped peak (the nearest mode dominates either way)
         u, _, _ = np.linalg.svd(np.stack([h.real, h.imag], axis=1), full_matrices=False)
         shapes.append(u[:, 0])
-    f = np.asarray(frequency_hz, float)
     # find_peaks never returns the first or last line: both neighbours exist
     tol = np.stack([f[peaks] - f[peaks - 1], f[peaks + 1] - f[peaks]], axis=1)
     return ModalData(f[peaks], np.array(shapes).T, frequency_tol_hz=tol)

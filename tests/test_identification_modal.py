@@ -12,6 +12,7 @@ from pelvislab.model.identification_modal import (
     identify_modal,
     mac,
     modes_from_frf,
+    picking_lines,
     undamped_modes,
 )
 from pelvislab.tests.test_identification_frf import chain_problem, synth
@@ -175,3 +176,24 @@ def test_modal_pairs_are_judged_against_the_frequency_uncertainty_and_mac() -> N
     assert not res.converged
     shared = [q for q in res.extra["mode_pairs"] if q["shared"]]
     assert len(shared) == 2 and "shared with another measured mode" in res.message
+
+
+def test_peak_picking_leaves_out_lines_a_measured_frf_lacks() -> None:
+    # one line missing in every FRF used to refuse the whole file ("no complete FRF line");
+    # a line next to a peak widens that peak's frequency uncertainty to the next line
+    p = chain_problem(3, seed=1, damping=1.0)
+    f = np.arange(1.0, 80.0, 0.1)
+    H = synth(p, p.nominal, f)
+    whole = modes_from_frf(f, H)
+    k = int(np.argmin(np.abs(f - whole.frequency_hz[1]))) + 1  # the line above mode 2
+    H[k] = np.nan
+    H[5, 1, 0] = np.nan  # and one line of one FRF
+    assert picking_lines(H).sum() == f.size - 2
+    holed = modes_from_frf(f, H)
+    np.testing.assert_array_equal(holed.frequency_hz, whole.frequency_hz)
+    np.testing.assert_allclose(holed.frequency_tol_hz[1], [0.1, 0.2])
+    np.testing.assert_allclose(holed.frequency_tol_hz[[0, 2]], 0.1)
+    H[:] = np.nan
+    H[:2] = 1.0
+    with pytest.raises(ValueError, match="2 frequency line"):
+        modes_from_frf(f, H)
