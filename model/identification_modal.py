@@ -15,6 +15,13 @@ appendix C:
 
 Frequencies and shapes alone cannot see a common scaling of M and K (eq. 6.7-6.8 and 6.9):
 the identifiability report names that combination when all masses and stiffnesses are free.
+
+``converged`` means the result can be trusted, not only that the optimiser stopped: besides
+the optimiser's convergence and no parameter on its bound, every measured mode must end
+paired with a model mode of its own, at MAC >= :data:`PAIR_MIN_MAC` and with the model's
+frequency within the measured one's uncertainty (``ModalData.frequency_tol_hz``; peak
+picking: between the lines next to the peak), and the modes must determine every parameter
+(no unresolved direction, no std above the value). The message says which fails.
 """
 
 from __future__ import annotations
@@ -34,13 +41,30 @@ from pelvislab.model.identification import (
     one_blas_thread,
 )
 
+#: A measured mode and its model partner count as the same mode at MAC >= 0.9: the usual
+#: threshold of consistent correlation; the thesis calls its EMA's modes "well identified"
+#: at MAC > 0.95 (ch. 7.2) and read 0.91-0.97 as "no change" (ch. 11.3). With shapes at a few
+#: points MAC discriminates little (two random unit vectors at 5 points: 0.2 on average),
+#: so a lower threshold would pass wrong partners.
+PAIR_MIN_MAC = 0.9
+
+#: Frequency uncertainty of modes given without one (``ModalData.frequency_tol_hz`` None):
+#: 1 % either way, above the thesis' EMA frequency errors (at most 0.75 %, ch. 7.2).
+DEFAULT_FREQUENCY_TOL = 0.01
+
 
 @dataclass(frozen=True)
 class ModalData:
-    """Measured modes: frequency_hz (n_m,), shapes (n_points, n_m) real, any scaling."""
+    """Measured modes: frequency_hz (n_m,), shapes (n_points, n_m) real, any scaling.
+
+    ``frequency_tol_hz``: how far each true frequency may lie from ``frequency_hz``, (n_m,)
+    either way or (n_m, 2) below and above (peak picking: up to the neighbouring lines);
+    None: :data:`DEFAULT_FREQUENCY_TOL` of the frequency.
+    """
 
     frequency_hz: np.ndarray
     shapes: np.ndarray
+    frequency_tol_hz: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         f = np.asarray(self.frequency_hz, float).reshape(-1)
@@ -49,6 +73,19 @@ class ModalData:
             raise ValueError(f"shapes must be (n_points, {f.size}); got {s.shape}")
         object.__setattr__(self, "frequency_hz", f)
         object.__setattr__(self, "shapes", s)
+        if self.frequency_tol_hz is not None:
+            tol = np.asarray(self.frequency_tol_hz, float)
+            tol = np.stack([tol, tol], axis=1) if tol.ndim == 1 else tol
+            if tol.shape != (f.size, 2) or not np.all(tol >= 0):
+                raise ValueError(f"frequency_tol_hz must be (n_m,) or (n_m, 2) and >= 0 for "
+                                 f"{f.size} modes; got {tol.shape}")
+            object.__setattr__(self, "frequency_tol_hz", tol)
+
+    def frequency_range_hz(self) -> np.ndarray:
+        """(n_m, 2): the interval each measured mode's true frequency lies in."""
+        tol = (DEFAULT_FREQUENCY_TOL * np.stack([self.frequency_hz] * 2, axis=1)
+               if self.frequency_tol_hz is None else self.frequency_tol_hz)
+        return np.stack([self.frequency_hz - tol[:, 0], self.frequency_hz + tol[:, 1]], axis=1)
 
 
 def undamped_modes(M: np.ndarray, K: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -137,7 +174,7 @@ def identify_modal(
     phi_meas = data.shapes / np.linalg.norm(data.shapes, axis=0)
     evals = [0]
 
-    def model(x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def paired(x: np.ndarray) -> tuple[np.ndarray, object, np.ndarray, np.ndarray, np.ndarray]:
         values = base.copy()
         values[idx] = np.exp(x)
         mats = problem.assemble(values)
@@ -151,6 +188,10 @@ def identify_modal(
         fratio = np.abs(np.log(lam[elastic][:, None] / w2_meas[None, :]))
         score = m - 0.01 * fratio
         pairs = elastic[np.argmax(score, axis=0)]
+        return values, mats, lam, Z, pairs
+
+    def model(x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        values, mats, lam, Z, pairs = paired(x)
         dlam, dz = eigen_sensitivities(mats.M, mats.K, mats.dM[idx], mats.dK[idx], lam, Z,
                                        list(pairs))
         evals[0] += 1
@@ -189,17 +230,98 @@ def identify_modal(
     std, corr, sv, weak = covariance_report(J, r, list(free), values[idx],
                                             absolute_sigma=False)
     rms = float(np.sqrt(np.mean(r**2)))
-    at_bound = bool(np.any(np.isclose(sol.x, lo, atol=1e-6) | np.isclose(sol.x, hi, atol=1e-6)))
-    message = str(sol.message) + ("; a parameter sits on its bound" if at_bound else "")
+    on_bound = np.isclose(sol.x, lo, atol=1e-6) | np.isclose(sol.x, hi, atol=1e-6)
+    bound_names = [n for n, b in zip(free, on_bound, strict=True) if b]
+    # Trust (an audit: from appendix E itself, the truth of a simulated demo session, the
+    # fit went to k ~ 0.5e6 for 1e6 and reported converged, its measured modes paired with
+    # model modes 2-3x their frequency or at MAC 0.47, std 4-40x the values):
+    # each measured mode needs a model mode of its own, of the same shape and within the
+    # frequency's uncertainty, and the modes must determine the parameters.
+    pairs_report = _mode_pairs(paired(sol.x), O, data)
+    unmatched = [p for p in pairs_report if not p["matched"]]
+    with np.errstate(invalid="ignore"):
+        undetermined = [n for n, v, s in zip(free, values[idx], std, strict=True)
+                        if not np.isfinite(s) or s > abs(v)]
+    unresolved = sum(1 for w in weak if not w["resolved"])
+    converged = (bool(sol.status > 0) and not bound_names and not unmatched
+                 and not undetermined and not unresolved)
+    message = str(sol.message)
+    if bound_names:
+        message += (f"; on the bound of its range (start x/÷ {bounds_factor:g}): "
+                    + ", ".join(bound_names))
+    if unmatched:
+        message += (f"; {len(unmatched)} of {len(pairs_report)} measured mode(s) without a "
+                    f"model mode of their own at MAC >= {PAIR_MIN_MAC:g} within their "
+                    "frequency's uncertainty: " + ", ".join(_unmatched_text(p)
+                                                            for p in unmatched)
+                    + " (peaks that are not model modes, shapes read off resonance, or "
+                    "model error)")
+    if undetermined or unresolved:
+        message += ("; the modes do not determine the parameters: "
+                    + ("std above the value or null for "
+                       + ("every parameter" if len(undetermined) == len(free)
+                          else ", ".join(undetermined)) if undetermined else "")
+                    + ("; " if undetermined and unresolved else "")
+                    + (f"{unresolved} parameter combination(s) unresolved (std along "
+                       "them beyond an e-fold)" if unresolved else ""))
     if progress:
         progress(f"modal updating: rms residual {rms:.3g} after {evals[0]} evaluations")
     return FitResult(
         names=list(free), values=values[idx], std=std, correlation=corr,
-        cost=0.5 * float(r @ r), converged=bool(sol.status > 0) and not at_bound,
+        cost=0.5 * float(r @ r), converged=converged,
         evaluations=evals[0], wall_time_s=time.perf_counter() - t0, residual_kind="modal",
         singular_values=sv, weak_directions=weak, message=message,
-        extra={"rms_residual": rms},
+        extra={"rms_residual": rms, "on_bound": bound_names, "mode_pairs": pairs_report,
+               "pair_min_mac": PAIR_MIN_MAC, "undetermined": undetermined},
     )
+
+
+def _mode_pairs(state: tuple, O: np.ndarray, data: ModalData) -> list[dict[str, object]]:
+    """Each measured mode's model partner at the fit: frequencies, MAC, the interval the
+    measured frequency allows, and whether the pair holds (MAC >= PAIR_MIN_MAC, the model's
+    frequency in the interval, no other measured mode paired with the same model mode)."""
+    _, _, lam, Z, pairs = state
+    f_model = np.sqrt(np.clip(lam[pairs], 0.0, None)) / (2 * np.pi)
+    macs = np.array([mac(O @ Z[:, [s]], data.shapes[:, [i]])[0, 0]
+                     for i, s in enumerate(pairs)])
+    ranges = data.frequency_range_hz()
+    shared = np.array([np.count_nonzero(pairs == s) > 1 for s in pairs])
+    report = []
+    for i in range(pairs.size):
+        within = bool(ranges[i, 0] <= f_model[i] <= ranges[i, 1])
+        report.append({
+            "measured_hz": float(data.frequency_hz[i]), "model_hz": float(f_model[i]),
+            "mac": float(macs[i]),
+            "frequency_range_hz": [float(ranges[i, 0]), float(ranges[i, 1])],
+            "shared": bool(shared[i]),
+            "matched": bool(macs[i] >= PAIR_MIN_MAC and within and not shared[i])})
+    return report
+
+
+def _unmatched_text(p: dict) -> str:
+    lo, hi = p["frequency_range_hz"]
+    f, fm = p["measured_hz"], p["model_hz"]
+    # to the grid's precision: one decimal more than the uncertainty's leading digit
+    step = min(f - lo, hi - f)
+    nd = max(0, 1 - int(np.floor(np.log10(step)))) if step > 0 else 3
+    why = []
+    if fm < lo:
+        why.append(f"more than {f - lo:.{nd}f} Hz below")
+    elif fm > hi:
+        why.append(f"more than {hi - f:.{nd}f} Hz above")
+    if p["mac"] < PAIR_MIN_MAC:
+        why.append(f"MAC {p['mac']:.2f}")
+    if p["shared"]:
+        why.append("shared with another measured mode")
+    return f"{f:.{nd}f} Hz (model {fm:.{nd}f} Hz, {', '.join(why)})"
+
+
+def picking_lines(H: np.ndarray) -> np.ndarray:
+    """(n_f,) bool: the lines :func:`modes_from_frf` picks peaks on, those on which every
+    measured FRF (one with a finite, non-zero value somewhere) has a value."""
+    mag = np.abs(np.where(np.isfinite(H), H, 0.0)).reshape(H.shape[0], -1)
+    measured = np.any(mag > 0, axis=0)
+    return np.all(mag[:, measured] > 0, axis=1) & measured.any()
 
 
 def modes_from_frf(
@@ -208,19 +330,26 @@ def modes_from_frf(
     """Peak picking (ch. 4.5): peaks of the mean log|H|, shapes = the FRF column there.
 
     A simple single-degree-of-freedom estimator for lightly damped, well separated modes:
-    the column (input) with the largest response at each peak supplies the shape. NaN
-    lines are ignored; ``min_prominence`` is in natural-log units. Good enough to seed modal
-    updating; the EMA module does better.
+    the column (input) with the largest response at each peak supplies the shape. Unmeasured
+    FRFs (NaN throughout) are ignored, and lines on which a measured FRF has no value are
+    left out (:func:`picking_lines`; one failed line refused the whole file before);
+    ``min_prominence`` is in natural-log units. Good enough to seed modal
+    updating; the EMA module does better. Each frequency is known to the grid only: the
+    peak line is higher than both its neighbours, so a single resonance lies between them
+    (``frequency_tol_hz``: the spacing to each neighbour, a left-out line widening it).
     """
     from scipy.signal import find_peaks
 
-    Hm = np.where(np.isfinite(H), H, 0.0)
-    lines = np.abs(Hm).reshape(Hm.shape[0], -1)
-    lines = lines[:, np.all(lines > 0, axis=0)]
-    if lines.size == 0:
-        raise ValueError("no complete FRF line to pick peaks from")
-    # mean log-magnitude over the lines: every FRF counts, peaks of small ones too
-    total = np.mean(np.log(lines), axis=1)
+    use = picking_lines(H)
+    if use.sum() < 3:
+        raise ValueError(f"{int(use.sum())} frequency line(s) on which every measured FRF "
+                         "has a value: too few to pick peaks from")
+    f = np.asarray(frequency_hz, float)[use]
+    Hm = np.where(np.isfinite(H), H, 0.0)[use]
+    mag = np.abs(Hm).reshape(Hm.shape[0], -1)
+    mag = mag[:, np.all(mag > 0, axis=0)]
+    # mean log-magnitude over the FRFs: every FRF counts, peaks of small ones too
+    total = np.mean(np.log(mag), axis=1)
     peaks, props = find_peaks(total, prominence=min_prominence)
     if peaks.size == 0:
         raise ValueError("no resonance peaks found in the FRFs")
@@ -234,4 +363,6 @@ def modes_from_frf(
         # grid misses a lightly damped peak (the nearest mode dominates either way)
         u, _, _ = np.linalg.svd(np.stack([h.real, h.imag], axis=1), full_matrices=False)
         shapes.append(u[:, 0])
-    return ModalData(np.asarray(frequency_hz, float)[peaks], np.array(shapes).T)
+    # find_peaks never returns the first or last line: both neighbours exist
+    tol = np.stack([f[peaks] - f[peaks - 1], f[peaks + 1] - f[peaks]], axis=1)
+    return ModalData(f[peaks], np.array(shapes).T, frequency_tol_hz=tol)

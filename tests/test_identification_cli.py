@@ -134,3 +134,44 @@ def test_identify_json_dash_prints_the_json_alone_on_stdout(tmp_path: Path, caps
     assert doc["parameters"]["k_pubh"]["value"] == pytest.approx(1.3e5, rel=1e-6)
     assert doc["notes"] and "note: H_std holds no positive finite value" in captured.err
     assert sorted(p.name for p in tmp_path.iterdir()) == ["frf.h5", "zero_std.h5"]
+
+
+def test_modal_updating_refuses_version_b(tmp_path: Path, capsys) -> None:
+    """--version-b with --method modal was dropped without a word (exit 0, no f_k, f_c in
+    the JSON; audit); refused in one line like --gain-std, before anything is written."""
+    data = Path(__file__).parent / "data" / "demo_sim_seed1.h5"
+    out = tmp_path / "m.json"
+    assert main(["identify", str(data), "--method", "modal", "--version-b",
+                 "--json", str(out)]) == 1
+    err = capsys.readouterr().err
+    assert err.startswith("pelvislab identify: error: --version-b applies to --method frf")
+    assert err.count("\n") == 1, err
+    assert not out.exists()
+
+
+def test_modal_updating_picks_peaks_on_the_lines_it_has(tmp_path: Path, capsys) -> None:
+    """One failed line (every FRF NaN at 10 Hz, as the nine-point protocol's first step)
+    made every FRF "incomplete" and refused the file ("no complete FRF line to pick peaks
+    from", audit); a line one FRF lacks is left out too. Both are named in a note."""
+    src = tmp_path / "frf.h5"
+    frf = _frf_file(tmp_path / "full.h5", {})
+    H = frf.H.copy()
+    H[1] = np.nan  # 10 Hz, every FRF
+    measured = np.argwhere(np.isfinite(H[2]))[0]
+    H[20, measured[0], measured[1]] = np.nan  # 105 Hz, one FRF
+    write_frf(src, FrfSet(frf.frequency_hz, H, frf.outputs, frf.inputs))
+    out = tmp_path / "m.json"
+    assert main(["identify", str(src), "--method", "modal", "--json", str(out)]) == 0
+    doc = json.loads(out.read_text())
+    note = ("peak picking used 57 of 59 lines, leaving out 2 on which a measured FRF has no "
+            "value: 10, 105 Hz")
+    assert doc["notes"] == [note]
+    assert f"note: {note}" in capsys.readouterr().err
+    # the same peaks as from the whole file, where no left-out line is next to one
+    full = tmp_path / "m_full.json"
+    assert main(["identify", str(tmp_path / "full.h5"), "--method", "modal", "--json",
+                 str(full)]) == 0
+    whole = json.loads(full.read_text())["modes_hz"]
+    assert [f for f in whole if min(abs(f - 10), abs(f - 105)) > 5] == [
+        f for f in doc["modes_hz"] if min(abs(f - 10), abs(f - 105)) > 5]
+    assert "notes" not in json.loads(full.read_text())

@@ -45,7 +45,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--symmetric", action="store_true",
                    help="impose left/right symmetry (k_io, c_sij, m_innominate, ...)")
     p.add_argument("--version-b", action="store_true",
-                   help="also identify the eq. 7.2-7.3 factors f_k and f_c (ch. 7 version B)")
+                   help="also identify the eq. 7.2-7.3 factors f_k and f_c (ch. 7 version B; "
+                   "--method frf)")
     p.add_argument("--residual", choices=("auto", "log", "std", "eq610"), default="auto",
                    help="misfit: auto = std, weighted by the file's H_std or, without it, "
                    "by the noise estimated from the data (third differences along "
@@ -122,7 +123,11 @@ def identify_file(path: str | Path, method: str = "frf", params: list[str] | Non
         frf_with_jacobian,
         identify_frf,
     )
-    from pelvislab.model.identification_modal import identify_modal, modes_from_frf
+    from pelvislab.model.identification_modal import (
+        identify_modal,
+        modes_from_frf,
+        picking_lines,
+    )
     from pelvislab.model.identification_pelvis import pelvis_problem
     from pelvislab.model.pelvis import load_model
 
@@ -157,15 +162,22 @@ def identify_file(path: str | Path, method: str = "frf", params: list[str] | Non
     if method == "modal":
         if gain_std:
             raise ValueError("--gain-std applies to --method frf (the FRF fit)")
+        if version_b:
+            # it was dropped without a word (exit 0, no f_k, f_c in the JSON): audit
+            raise ValueError("--version-b applies to --method frf (the FRF fit; modal "
+                             "updating fits the modes of M and K, without f_k, f_c)")
         gain_std = 0.0
         if calibration_source == "option" and calibration_std:
             raise ValueError("--calibration-std applies to --method frf (the FRF fit)")
         calibration_note = None
-        data = modes_from_frf(frf.frequency_hz, frf.H)
+        try:
+            data = modes_from_frf(frf.frequency_hz, frf.H)
+        except ValueError as exc:
+            raise ValueError(f"{path}: {exc}") from None
+        noise_note = _dropped_lines_note(frf.frequency_hz, frf.H, picking_lines(frf.H))
         result = identify_modal(problem, data, free=free, progress=progress)
         extra: dict[str, Any] = {"method": "modal", "noise": None,
                                  "modes_hz": [float(f) for f in data.frequency_hz]}
-        noise_note = None
     elif method == "frf":
         kind = residual
         noise_source = "H_std" if H_std is not None else None
@@ -271,6 +283,17 @@ def modelled_channels(frf: Any, path: str | Path) -> tuple[Any, str | None]:
         acquired_at_s=frf.acquired_at_s, attrs=frf.attrs)
     return subset, (f"left out of the fit, on no modelled bone (design 4.1: bone \"\"; the "
                     f"model predicts nothing there): {named}")
+
+
+def _dropped_lines_note(frequency_hz: Any, H: Any, used: Any) -> str | None:
+    """A note naming the lines peak picking left out (``picking_lines``: some measured FRF
+    has no value there, e.g. a failed step); None when it used every line."""
+    dropped = [f"{frequency_hz[k]:g}" for k in range(len(used)) if not used[k]]
+    if not dropped:
+        return None
+    return (f"peak picking used {len(used) - len(dropped)} of {len(used)} lines, leaving out "
+            f"{len(dropped)} on which a measured FRF has no value: "
+            f"{', '.join(dropped[:8])}{' ...' if len(dropped) > 8 else ''} Hz")
 
 
 def _unestimated_noise_note(frf: Any) -> str | None:
