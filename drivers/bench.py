@@ -12,7 +12,7 @@ section 2 to instruments and resources::
     [calibration]
     drive_newton_per_volt = "8.5-0.4j"   # drive volts -> force (N/V); number, "a+bj", {re, im}
     # or, per frequency: drive_calibration_file = "drive_cal.csv" (docs/bench-file.md)
-    speed_of_sound_m_s = 1540.0          # default for every digitizer channel
+    speed_of_sound_m_s = 1540.0          # every digitizer channel (over the protocol's)
     [calibration.channel_speed_of_sound_m_s]
     2 = 1560.0                           # per-channel override (channel number as key)
 
@@ -169,19 +169,38 @@ class BenchConfig:
     """Hard limit on the shaker-drive amplitude, V pk-pk; enforced in the driver."""
     max_trigger_vpp: float | None = None
     """Optional limit on the trigger generator's pulse amplitude, V pk-pk."""
-    speed_of_sound_m_s: float = DEFAULT_SPEED_OF_SOUND_M_S
-    """Default speed of sound for every channel, m/s."""
+    speed_of_sound_m_s: float | None = None
+    """Speed of sound for every digitizer channel, m/s: it replaces the protocol's
+    ``ultrasound.speed_of_sound_m_s``. None: the bench file does not state it (the
+    protocol's applies)."""
     channel_speed_of_sound_m_s: Mapping[int, float] = field(default_factory=dict)
-    """Per digitizer channel (1-based) overrides, m/s."""
+    """Per digitizer channel (1-based) overrides, m/s: over ``speed_of_sound_m_s`` and the
+    protocol's."""
     reference_clock_hz: float = DEFAULT_REFERENCE_CLOCK_HZ
     """Shared reference clock (33220A option 001 / Acqiris external clock), Hz."""
     source: Path | None = None
     """The bench file this was read from (None: built in code)."""
 
     # ------------------------------------------------------------------ queries
-    def speed_of_sound_for(self, channel: int) -> float:
-        """Speed of sound (m/s) to use for digitizer ``channel`` (1-based)."""
-        return float(self.channel_speed_of_sound_m_s.get(channel, self.speed_of_sound_m_s))
+    def speed_of_sound_for(self, channel: int,
+                           protocol_m_s: float = DEFAULT_SPEED_OF_SOUND_M_S) -> float:
+        """Speed of sound (m/s) to assume on digitizer ``channel`` (1-based): the bench
+        file's value for that channel, else its value for every channel, else
+        ``protocol_m_s`` (the protocol's ``ultrasound.speed_of_sound_m_s``). The bench file
+        describes the setup measured that day, so it wins over the protocol."""
+        if channel in self.channel_speed_of_sound_m_s:
+            return float(self.channel_speed_of_sound_m_s[channel])
+        if self.speed_of_sound_m_s is not None:
+            return float(self.speed_of_sound_m_s)
+        return float(protocol_m_s)
+
+    def speed_of_sound_source(self, channel: int) -> str:
+        """Which key gives :meth:`speed_of_sound_for` ``channel``: the bench file's
+        ``calibration.channel_speed_of_sound_m_s.<ch>`` or ``calibration.speed_of_sound_m_s``,
+        or ``""`` (the protocol's value)."""
+        if channel in self.channel_speed_of_sound_m_s:
+            return f"calibration.channel_speed_of_sound_m_s.{channel}"
+        return "calibration.speed_of_sound_m_s" if self.speed_of_sound_m_s is not None else ""
 
     @property
     def drive_calibration_range_hz(self) -> tuple[float, float] | None:
@@ -333,9 +352,10 @@ class BenchConfig:
 
         n_per_v, table_hz, table_n_per_v, table_source, drive_u_rel = attempt(
             drive_calibration, (complex(1.0, 0.0), (), (), None, ()))
-        c_default = attempt(lambda: _positive(
-            cal.get("speed_of_sound_m_s", DEFAULT_SPEED_OF_SOUND_M_S),
-            "calibration.speed_of_sound_m_s", err), DEFAULT_SPEED_OF_SOUND_M_S)
+        c_default = None  # not stated: the protocol's applies
+        if "speed_of_sound_m_s" in cal:
+            c_default = attempt(lambda: _positive(
+                cal["speed_of_sound_m_s"], "calibration.speed_of_sound_m_s", err))
         per_channel: dict[int, float] = {}
         raw_pc = cal.get("channel_speed_of_sound_m_s", {})
         if not isinstance(raw_pc, Mapping):
