@@ -46,6 +46,7 @@ from pelvislab.acquisition.session import (
     frf_from_steps,
 )
 from pelvislab.acquisition.tracking import gate_problem
+from pelvislab.drivers.bench import SPEED_OF_SOUND_RANGE_M_S
 
 __all__ = [
     "DRIVE_PHASE_AT_FIRST_PULSE_RAD",
@@ -1822,10 +1823,11 @@ def reprocess_session(source: Path | str, target: Path | str, tracking_options: 
         raise FileExistsError(f"{target} exists; not overwriting it")
     if target.resolve() == source.resolve():
         raise ValueError("--out must differ from the session being reprocessed")
+    low, high = SPEED_OF_SOUND_RANGE_M_S
     if speed_of_sound_m_s is not None and not (
-            math.isfinite(speed_of_sound_m_s) and 100.0 < speed_of_sound_m_s <= 10_000.0):
+            math.isfinite(speed_of_sound_m_s) and low < speed_of_sound_m_s <= high):
         raise ValueError(f"speed of sound {speed_of_sound_m_s} m/s: must be within "
-                         "100-10000 m/s")
+                         f"{low:g}-{high:g} m/s")
     if not target.parent.is_dir():
         raise FileNotFoundError(f"output folder {target.parent} does not exist")
     remove_stale_partials(target)

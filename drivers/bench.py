@@ -59,6 +59,10 @@ log = logging.getLogger(__name__)
 
 DEFAULT_SPEED_OF_SOUND_M_S = 1540.0
 """Soft-tissue speed of sound used by the thesis (ch. 8), m/s."""
+SPEED_OF_SOUND_RANGE_M_S = (100.0, 10_000.0)
+"""Speeds of sound accepted anywhere (bench file, protocol, ``reprocess --speed-of-sound``),
+m/s: above the first, at most the second. Outside it a value is a units slip (15.6 for
+1560 scaled |H| by 0.01), not a medium."""
 DEFAULT_MAX_DRIVE_VPP = 2.0
 """Default shaker-drive limit (V pk-pk into the amplifier) when the bench file gives none."""
 DEFAULT_REFERENCE_CLOCK_HZ = 10e6
@@ -354,7 +358,7 @@ class BenchConfig:
             drive_calibration, (complex(1.0, 0.0), (), (), None, ()))
         c_default = None  # not stated: the protocol's applies
         if "speed_of_sound_m_s" in cal:
-            c_default = attempt(lambda: _positive(
+            c_default = attempt(lambda: _speed_of_sound(
                 cal["speed_of_sound_m_s"], "calibration.speed_of_sound_m_s", err))
         per_channel: dict[int, float] = {}
         raw_pc = cal.get("channel_speed_of_sound_m_s", {})
@@ -371,7 +375,7 @@ class BenchConfig:
                 raise err(key, "channel must be an integer (1-based)") from None
             if ch < 1:
                 raise err(key, "channel must be >= 1")
-            per_channel[ch] = _positive(v, key, err)
+            per_channel[ch] = _speed_of_sound(v, key, err)
 
         for k, v in raw_pc.items():
             attempt(lambda k=k, v=v: channel_speed(k, v))
@@ -503,6 +507,16 @@ def _positive(value: Any, key: str, err: _ErrFactory) -> float:
     v = float(value)
     if not (math.isfinite(v) and v > 0):
         raise err(key, f"must be finite and > 0, got {value!r}")
+    return v
+
+
+def _speed_of_sound(value: Any, key: str, err: _ErrFactory) -> float:
+    # only > 0 was checked: 15.6 (1560 typed in the wrong unit) passed bench check,
+    # protocol check --bench and run, and scaled |H| by 0.01 (an audit)
+    v = _positive(value, key, err)
+    low, high = SPEED_OF_SOUND_RANGE_M_S
+    if not low < v <= high:
+        raise err(key, f"must be > {low:g} and <= {high:g} m/s, got {value!r}")
     return v
 
 

@@ -147,3 +147,50 @@ def test_the_checks_say_where_the_bench_replaces_the_protocols_value(tmp_path, c
     assert main(["bench", "check", str(bench)]) == 0
     assert ("  speed of sound: 1600 m/s on every channel (over the protocol's); ch2 1540 m/s"
             ) in capsys.readouterr().out
+
+
+@pytest.mark.parametrize("calibration, key", [
+    ("[calibration.channel_speed_of_sound_m_s]\n2 = 15.6\n",
+     "calibration.channel_speed_of_sound_m_s.2"),
+    ("speed_of_sound_m_s = 15.6\n", "calibration.speed_of_sound_m_s"),
+    ("speed_of_sound_m_s = 1.54e6\n", "calibration.speed_of_sound_m_s"),
+])
+def test_a_speed_of_sound_in_another_unit_is_refused_before_anything_runs(
+        tmp_path, capsys, calibration, key):
+    # 15.6 for 1560 passed bench check, protocol check --bench and run (only > 0 was
+    # checked) and scaled |H| by 0.01 (an audit)
+    from pelvislab.app.cli import main
+
+    protocol, bench = _files(tmp_path, calibration)
+    out = tmp_path / "s.h5"
+    for argv in (["bench", "check", str(bench)],
+                 ["protocol", "check", str(protocol), "--bench", str(bench)],
+                 ["run", str(protocol), "--bench", str(bench), "--out", str(out)]):
+        assert main(argv) == 1, argv
+        err = capsys.readouterr().err
+        assert f"{key}: must be > 100 and <= 10000 m/s, got " in err, (argv, err)
+    assert not out.exists()
+
+
+@pytest.mark.parametrize("c, ok", [(100.0, False), (100.5, True), (10_000.0, True),
+                                   (10_000.5, False)])
+def test_bench_protocol_and_reprocess_share_one_range(tmp_path, c, ok):
+    from pelvislab.acquisition.protocol import ProtocolError, load_protocol
+    from pelvislab.acquisition.runner import reprocess_session
+    from pelvislab.drivers.bench import BenchConfigError
+
+    protocol, bench = _files(tmp_path, f"speed_of_sound_m_s = {c}\n", protocol_c=c)
+    outcomes = []
+    for check in (lambda: BenchConfig.load(bench), lambda: load_protocol(protocol)):
+        try:
+            check()
+            outcomes.append(True)
+        except (BenchConfigError, ProtocolError):
+            outcomes.append(False)
+    try:  # refused before the source is even looked for
+        reprocess_session(tmp_path / "none.h5", tmp_path / "out.h5", None, c)
+    except ValueError as exc:
+        outcomes.append("speed of sound" not in str(exc))
+    except FileNotFoundError:
+        outcomes.append(True)
+    assert outcomes == [ok] * 3
