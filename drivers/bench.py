@@ -443,6 +443,16 @@ class BenchConfig:
         pulsers = tuple(p for p in read_pulsers if p is not None)
         if not simulated and not raw_pulsers:
             problems.append("pulsers: missing: at least one [[pulsers]] table")
+        # a speed of sound for a channel the digitizer does not have (3 on the 2-channel
+        # DP235) was accepted and never used (an audit)
+        digitizer = roles["digitizer"]
+        channels, model = _digitizer_channels(
+            digitizer.driver if digitizer is not None else _DEFAULT_DRIVER["digitizer"])
+        for ch in sorted(set(per_channel) - set(channels)):
+            problems.append(
+                f"calibration.channel_speed_of_sound_m_s.{ch}: no digitizer channel {ch}: "
+                f"the {model}{' (simulated)' if simulated else ''} has channels "
+                f"{', '.join(str(c) for c in channels)}")
         for i, pulser in enumerate(read_pulsers):
             # the run configures pulsers by their order (the first feeds digitizer channel
             # 1): a `channel` saying otherwise was accepted and ignored, leaving a channel's
@@ -508,6 +518,16 @@ def _positive(value: Any, key: str, err: _ErrFactory) -> float:
     if not (math.isfinite(v) and v > 0):
         raise err(key, f"must be finite and > 0, got {value!r}")
     return v
+
+
+def _digitizer_channels(driver: str) -> tuple[tuple[int, ...], str]:
+    """The channels (1-based) of the digitizer that ``driver`` drives, and its model. The
+    simulated bench's digitizer is a simulated DP235: the same channels."""
+    if driver == "acqiris":
+        from pelvislab.drivers.acqiris import DP235_CHANNELS, AcqirisDigitizer
+
+        return tuple(DP235_CHANNELS), AcqirisDigitizer.model
+    raise BenchConfigError(f"digitizer.driver: unknown driver {driver!r}")
 
 
 def _speed_of_sound(value: Any, key: str, err: _ErrFactory) -> float:

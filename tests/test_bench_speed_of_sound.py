@@ -194,3 +194,32 @@ def test_bench_protocol_and_reprocess_share_one_range(tmp_path, c, ok):
     except FileNotFoundError:
         outcomes.append(True)
     assert outcomes == [ok] * 3
+
+
+def test_a_speed_of_sound_for_a_channel_the_digitizer_lacks_is_refused(tmp_path, capsys):
+    # `3 = 1560.0` on the 2-channel DP235 passed every check and was never used (an audit)
+    from pelvislab.app.cli import main
+
+    protocol, bench = _files(tmp_path, "[calibration.channel_speed_of_sound_m_s]\n"
+                                       "2 = 1560.0\n3 = 1560.0\n")
+    out = tmp_path / "s.h5"
+    for argv in (["bench", "check", str(bench)],
+                 ["protocol", "check", str(protocol), "--bench", str(bench)],
+                 ["run", str(protocol), "--bench", str(bench), "--out", str(out)]):
+        assert main(argv) == 1, argv
+        err = capsys.readouterr().err
+        assert ("calibration.channel_speed_of_sound_m_s.3: no digitizer channel 3: the "
+                "Acqiris DP235 (simulated) has channels 1, 2") in err, (argv, err)
+        assert "channel_speed_of_sound_m_s.2" not in err
+    assert not out.exists()
+    real = (BENCH.replace("simulated = true", "simulated = false")
+            + "[calibration.channel_speed_of_sound_m_s]\n3 = 1560.0\n"
+            + '[trigger]\nresource = "USB0::1::2::A::INSTR"\nload_ohm = 50\n'
+            + '[drive]\nresource = "USB0::1::2::B::INSTR"\nload_ohm = "inf"\n'
+            + '[digitizer]\nresource = "PCI::INSTR0"\n[[pulsers]]\nresource = "loop://"\n')
+    (tmp_path / "real.toml").write_text(real)
+    from pelvislab.drivers.bench import BenchConfigError
+
+    with pytest.raises(BenchConfigError, match=r"\.3: no digitizer channel 3: the Acqiris "
+                       r"DP235 has channels 1, 2"):
+        BenchConfig.load(tmp_path / "real.toml")
