@@ -379,7 +379,7 @@ class BenchConfig:
 
         for k, v in raw_pc.items():
             attempt(lambda k=k, v=v: channel_speed(k, v))
-        ref_hz = attempt(lambda: _positive(
+        ref_hz = attempt(lambda: _reference_clock(
             cal.get("reference_clock_hz", DEFAULT_REFERENCE_CLOCK_HZ),
             "calibration.reference_clock_hz", err), DEFAULT_REFERENCE_CLOCK_HZ)
 
@@ -410,6 +410,8 @@ class BenchConfig:
                             and v <= _OPTION_MAX[k]):
                         raise err(f"{label}.{k}", f"must be {'>=' if low == 0 else '>'} 0 "
                                   f"and <= {_OPTION_MAX[k]:g}, got {v!r}")
+                if k == "external_clock_hz" and v != 0:
+                    _reference_clock(v, f"{label}.{k}", err, "0 (the internal clock) or ")
                 opts[k] = v
             if "resource" not in raw:
                 raise err(f"{label}.resource", "missing")
@@ -528,6 +530,29 @@ def _digitizer_channels(driver: str) -> tuple[tuple[int, ...], str]:
 
         return tuple(DP235_CHANNELS), AcqirisDigitizer.model
     raise BenchConfigError(f"digitizer.driver: unknown driver {driver!r}")
+
+
+def _reference_clock(value: Any, key: str, err: _ErrFactory, other: str = "") -> float:
+    # only > 0 was checked: `reference_clock_hz = 10` (MHz typed) was accepted and bench
+    # check printed "reference locked" (an audit). The generators lock to the shared
+    # reference only within their option 001's lock range; the digitizer takes it as its
+    # external 10 MHz reference (AcqrsD1_configExtClock type 2)
+    from pelvislab.drivers.agilent33220a import (
+        EXTERNAL_REFERENCE_HZ,
+        EXTERNAL_REFERENCE_LOCK_RANGE_HZ,
+    )
+
+    v = _positive(value, key, err)
+    if abs(v - EXTERNAL_REFERENCE_HZ) <= EXTERNAL_REFERENCE_LOCK_RANGE_HZ:
+        return v
+    mhz = f"{EXTERNAL_REFERENCE_HZ / 1e6:g}"
+    hint = ""
+    for factor, unit in ((1e6, "MHz"), (1e3, "kHz")):
+        if abs(v * factor - EXTERNAL_REFERENCE_HZ) <= EXTERNAL_REFERENCE_LOCK_RANGE_HZ:
+            hint = f" ({unit} typed? the key is in Hz: {mhz}e6)"
+    raise err(key, f"must be {other}the shared {mhz} MHz reference in Hz, {mhz}e6 +- "
+              f"{EXTERNAL_REFERENCE_LOCK_RANGE_HZ:g} Hz (the 33220A's option 001 lock range), "
+              f"got {value!r} Hz{hint}")
 
 
 def _speed_of_sound(value: Any, key: str, err: _ErrFactory) -> float:
