@@ -26,6 +26,8 @@ from typing import Any
 
 import numpy as np
 
+from pelvislab.drivers.bench import SPEED_OF_SOUND_RANGE_M_S
+
 __all__ = [
     "PROTOCOL_SCHEMA",
     "PROTOCOL_SCHEMA_VERSION",
@@ -695,8 +697,8 @@ def parse_protocol(text: str, source: str = "<string>", limits: BenchLimits | No
                  maximum=limits.max_sample_rate_hz)
     samples = _integer(us, "samples", "ultrasound", p, d.samples, 8, 1_000_000)
     delay = _number(us, "delay_s", "ultrasound", p, d.delay_s, minimum=0.0, exclusive=False)
-    c = _number(us, "speed_of_sound_m_s", "ultrasound", p, d.speed_of_sound_m_s, minimum=100.0,
-                maximum=10_000.0)
+    c = _number(us, "speed_of_sound_m_s", "ultrasound", p, d.speed_of_sound_m_s,
+                minimum=SPEED_OF_SOUND_RANGE_M_S[0], maximum=SPEED_OF_SOUND_RANGE_M_S[1])
     fsv = _number(us, "full_scale_v", "ultrasound", p, d.full_scale_v, minimum=0.0)
     offset = _number(us, "offset_v", "ultrasound", p, d.offset_v)
     tw = _number(us, "trigger_width_s", "ultrasound", p, d.trigger_width_s, minimum=0.0)

@@ -46,6 +46,7 @@ from pelvislab.acquisition.session import (
     frf_from_steps,
 )
 from pelvislab.acquisition.tracking import gate_problem
+from pelvislab.drivers.bench import SPEED_OF_SOUND_RANGE_M_S
 
 __all__ = [
     "DRIVE_PHASE_AT_FIRST_PULSE_RAD",
@@ -1266,8 +1267,7 @@ class Runner:
             if ch not in records:
                 raise RuntimeError(f"digitizer returned no record for channel {ch}")
             rec = records[ch]
-            override = dict(getattr(cfg, "channel_speed_of_sound_m_s", {}) or {})
-            c = float(override.get(ch, us.speed_of_sound_m_s))
+            c = speed_of_sound_used(cfg, ch, us.speed_of_sound_m_s)
             cd = ChannelData(
                 name=f"ch{ch}", codes=np.asarray(rec.codes),
                 trigger_offset_s=np.asarray(rec.trigger_offset_s, dtype=float),
@@ -1475,6 +1475,7 @@ def prepare_session(protocol_path: Path | str, out_path: Path | str,
     # before any file or instrument is opened (it left a new session file behind: review)
     check_protocol_gates(protocol, tracking_options)
     skip: list[tuple[str, float, int]] = []
+    every: list[StepData] = []
     problems: list[str] = []
     previous_run: tuple[str, str] | None = None
     if out.is_dir():  # "exists; use --resume" sent the user the wrong way (review, session 39)
@@ -1538,6 +1539,7 @@ def prepare_session(protocol_path: Path | str, out_path: Path | str,
             with SessionReader(out) as reader:
                 recorded = reader.bench()
             differences = bench_differences(recorded, description)
+            differences += speed_of_sound_differences(every, bench.config, protocol)
             if differences:
                 raise ValueError(
                     f"--resume: {out} was measured on another bench ({'; '.join(differences)}"
@@ -1561,6 +1563,9 @@ def prepare_session(protocol_path: Path | str, out_path: Path | str,
                        f" session, bench {description['name']!r}", flush=True)
             for problem in problems:
                 writer.log(f"resume: step {problem}; measured again", "WARNING")
+            replaced = speed_of_sound_note(bench.config, protocol)
+            if replaced:
+                writer.log(replaced)
             if resume:
                 writer.repair_frf()
             if subject_id is not None:
@@ -1578,26 +1583,80 @@ def prepare_session(protocol_path: Path | str, out_path: Path | str,
                            previous_run=previous_run)
 
 
+def speed_of_sound_used(config: Any, channel: int, protocol_m_s: float) -> float:
+    """The speed of sound (m/s) tracking assumes on digitizer ``channel``: the bench
+    file's per-channel value, else its ``[calibration] speed_of_sound_m_s``, else the
+    protocol's ``ultrasound.speed_of_sound_m_s`` (``protocol_m_s``). The bench file wins:
+    it describes the setup measured that day (before, its global value was recorded in
+    ``/bench`` and given to the simulated echoes but not used here: an audit)."""
+    if hasattr(config, "speed_of_sound_for"):
+        return float(config.speed_of_sound_for(channel, protocol_m_s))
+    return float(protocol_m_s)
+
+
+def speed_of_sound_differences(steps: Any, config: Any, protocol: Any) -> list[str]:
+    """Channels whose complete ``steps`` (of a session being resumed) were tracked with
+    another speed of sound than the one the bench ``config`` and ``protocol`` give now: the
+    new steps would not be comparable with them in one FRF. Compared on the steps' echoes
+    datasets (what was used), not on ``/bench``: a session written before the bench file's
+    ``[calibration] speed_of_sound_m_s`` was applied recorded it there without using it."""
+    recorded: dict[int, set[float]] = {}
+    for step in steps:
+        if step.status != STATUS_COMPLETE:
+            continue
+        for channel in step.channels:
+            name = str(channel.name)
+            if name.startswith("ch") and name[2:].isdigit():
+                recorded.setdefault(int(name[2:]), set()).add(
+                    float(channel.speed_of_sound_m_s))
+    out = []
+    us = protocol.ultrasound.speed_of_sound_m_s
+    for ch in sorted(recorded):
+        now = speed_of_sound_used(config, ch, us)
+        then = sorted(recorded[ch])
+        if any(not math.isclose(c, now, rel_tol=1e-9) for c in then):
+            source = getattr(config, "speed_of_sound_source", lambda _ch: "")(ch)
+            why = f"the bench file's {source}" if source else "the protocol's"
+            out.append(f"speed of sound on ch{ch}: {', '.join(f'{c:g}' for c in then)} m/s "
+                       f"in the session's steps, {now:g} m/s now ({why})")
+    return out
+
+
+def speed_of_sound_note(config: Any, protocol: Any) -> str:
+    """One line naming the channels on which the bench file's speed of sound replaces a
+    different one in ``protocol`` (``""`` when none does)."""
+    us = float(protocol.ultrasound.speed_of_sound_m_s)
+    parts = []
+    for ch in sorted(protocol.channels):
+        c = speed_of_sound_used(config, ch, us)
+        if not math.isclose(c, us, rel_tol=1e-9):
+            source = getattr(config, "speed_of_sound_source", lambda _ch: "")(ch)
+            parts.append(f"ch{ch} {c:g} m/s ({source})")
+    if not parts:
+        return ""
+    return (f"speed of sound from the bench file: {', '.join(parts)}; the protocol's "
+            f"{us:g} m/s is not used there")
+
+
 BENCH_KEYS_THAT_SHAPE_THE_DATA = ("simulated", "drive_newton_per_volt",
                                   "drive_calibration_frequency_hz",
-                                  "drive_calibration_newton_per_volt", "speed_of_sound_m_s")
+                                  "drive_calibration_newton_per_volt")
+"""The speed of sound shapes the data too: :func:`speed_of_sound_differences` compares it
+on the session's steps."""
 
 
 def bench_differences(recorded: dict[str, Any], current: dict[str, Any]) -> list[str]:
     """What differs between a session's ``/bench`` and the bench now open, among what
-    shapes the measured FRF: simulated or real, the drive chain's force calibration (N/V,
-    one constant, NaN for a per-frequency table, or the table) and the speed of sound
-    (also per channel). Instrument identities may change (a repaired instrument) without
-    changing the data."""
+    shapes the measured FRF: simulated or real and the drive chain's force calibration
+    (N/V, one constant, NaN for a per-frequency table, or the table). Instrument
+    identities may change (a repaired instrument) without changing the data. The speed of
+    sound is compared on the steps themselves (:func:`speed_of_sound_differences`)."""
     def norm(value: Any) -> Any:
         if isinstance(value, np.generic):
             value = value.item()
         return complex(value) if isinstance(value, complex) else value
 
     def value(bench: dict[str, Any], key: str) -> Any:
-        # a channel without its own speed of sound uses the bench's
-        if key.startswith("speed_of_sound_m_s_ch") and key not in bench:
-            return norm(bench.get("speed_of_sound_m_s"))
         return norm(bench.get(key))
 
     def differs(key: str) -> bool:
@@ -1623,7 +1682,6 @@ def bench_differences(recorded: dict[str, Any], current: dict[str, Any]) -> list
         out.append(f"drive calibration ({', '.join(calibration)}): {then} in the session, "
                    f"{now} now")
     keys = [k for k in BENCH_KEYS_THAT_SHAPE_THE_DATA if k not in _DRIVE_CALIBRATION_KEYS]
-    keys += sorted(k for k in {*recorded, *current} if k.startswith("speed_of_sound_m_s_ch"))
     out += [f"{key}: {value(recorded, key)!r} in the session, {value(current, key)!r} now"
             for key in keys if differs(key)]
     return out
@@ -1785,10 +1843,11 @@ def reprocess_session(source: Path | str, target: Path | str, tracking_options: 
         raise FileExistsError(f"{target} exists; not overwriting it")
     if target.resolve() == source.resolve():
         raise ValueError("--out must differ from the session being reprocessed")
+    low, high = SPEED_OF_SOUND_RANGE_M_S
     if speed_of_sound_m_s is not None and not (
-            math.isfinite(speed_of_sound_m_s) and 100.0 < speed_of_sound_m_s <= 10_000.0):
+            math.isfinite(speed_of_sound_m_s) and low < speed_of_sound_m_s <= high):
         raise ValueError(f"speed of sound {speed_of_sound_m_s} m/s: must be within "
-                         "100-10000 m/s")
+                         f"{low:g}-{high:g} m/s")
     if not target.parent.is_dir():
         raise FileNotFoundError(f"output folder {target.parent} does not exist")
     remove_stale_partials(target)

@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import datetime as _dt
 import logging
+import math
 import os
 import re
 import time
@@ -823,7 +824,10 @@ def bench_description(bench: Any) -> dict[str, Any]:
         "source": str(cfg.source) if cfg.source is not None else "",
         "drive_newton_per_volt": np.complex128(cfg.drive_newton_per_volt),
         "max_drive_vpp": float(cfg.max_drive_vpp),
-        "speed_of_sound_m_s": float(cfg.speed_of_sound_m_s),
+        # NaN: the bench file states none, the protocol's applies (what each channel
+        # used is on its echoes datasets)
+        "speed_of_sound_m_s": (math.nan if cfg.speed_of_sound_m_s is None
+                               else float(cfg.speed_of_sound_m_s)),
         "reference_clock_hz": float(cfg.reference_clock_hz),
     }
     table_hz = tuple(getattr(cfg, "drive_calibration_frequency_hz", ()))

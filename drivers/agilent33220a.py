@@ -89,6 +89,12 @@ RESET_STATE: dict[str, Any] = {
 
 REFERENCE_UNLOCKED_CODE = 580
 """Error 'Reference phase-locked loop is unlocked' (option 001) [UG error list] — check."""
+EXTERNAL_REFERENCE_HZ = 10e6
+"""The external timebase (option 001) input's frequency: the shared 10 MHz reference of
+design section 2 [DS]."""
+EXTERNAL_REFERENCE_LOCK_RANGE_HZ = 500.0
+"""Option 001 locks to ``EXTERNAL_REFERENCE_HZ`` plus or minus this: 10 MHz +- 500 Hz
+(50 ppm) [DS "External Reference Input", lock range] — check."""
 
 
 class ReferenceUnlockedError(InstrumentError):

@@ -12,7 +12,7 @@ section 2 to instruments and resources::
     [calibration]
     drive_newton_per_volt = "8.5-0.4j"   # drive volts -> force (N/V); number, "a+bj", {re, im}
     # or, per frequency: drive_calibration_file = "drive_cal.csv" (docs/bench-file.md)
-    speed_of_sound_m_s = 1540.0          # default for every digitizer channel
+    speed_of_sound_m_s = 1540.0          # every digitizer channel (over the protocol's)
     [calibration.channel_speed_of_sound_m_s]
     2 = 1560.0                           # per-channel override (channel number as key)
 
@@ -59,6 +59,10 @@ log = logging.getLogger(__name__)
 
 DEFAULT_SPEED_OF_SOUND_M_S = 1540.0
 """Soft-tissue speed of sound used by the thesis (ch. 8), m/s."""
+SPEED_OF_SOUND_RANGE_M_S = (100.0, 10_000.0)
+"""Speeds of sound accepted anywhere (bench file, protocol, ``reprocess --speed-of-sound``),
+m/s: above the first, at most the second. Outside it a value is a units slip (15.6 for
+1560 scaled |H| by 0.01), not a medium."""
 DEFAULT_MAX_DRIVE_VPP = 2.0
 """Default shaker-drive limit (V pk-pk into the amplifier) when the bench file gives none."""
 DEFAULT_REFERENCE_CLOCK_HZ = 10e6
@@ -169,19 +173,38 @@ class BenchConfig:
     """Hard limit on the shaker-drive amplitude, V pk-pk; enforced in the driver."""
     max_trigger_vpp: float | None = None
     """Optional limit on the trigger generator's pulse amplitude, V pk-pk."""
-    speed_of_sound_m_s: float = DEFAULT_SPEED_OF_SOUND_M_S
-    """Default speed of sound for every channel, m/s."""
+    speed_of_sound_m_s: float | None = None
+    """Speed of sound for every digitizer channel, m/s: it replaces the protocol's
+    ``ultrasound.speed_of_sound_m_s``. None: the bench file does not state it (the
+    protocol's applies)."""
     channel_speed_of_sound_m_s: Mapping[int, float] = field(default_factory=dict)
-    """Per digitizer channel (1-based) overrides, m/s."""
+    """Per digitizer channel (1-based) overrides, m/s: over ``speed_of_sound_m_s`` and the
+    protocol's."""
     reference_clock_hz: float = DEFAULT_REFERENCE_CLOCK_HZ
     """Shared reference clock (33220A option 001 / Acqiris external clock), Hz."""
     source: Path | None = None
     """The bench file this was read from (None: built in code)."""
 
     # ------------------------------------------------------------------ queries
-    def speed_of_sound_for(self, channel: int) -> float:
-        """Speed of sound (m/s) to use for digitizer ``channel`` (1-based)."""
-        return float(self.channel_speed_of_sound_m_s.get(channel, self.speed_of_sound_m_s))
+    def speed_of_sound_for(self, channel: int,
+                           protocol_m_s: float = DEFAULT_SPEED_OF_SOUND_M_S) -> float:
+        """Speed of sound (m/s) to assume on digitizer ``channel`` (1-based): the bench
+        file's value for that channel, else its value for every channel, else
+        ``protocol_m_s`` (the protocol's ``ultrasound.speed_of_sound_m_s``). The bench file
+        describes the setup measured that day, so it wins over the protocol."""
+        if channel in self.channel_speed_of_sound_m_s:
+            return float(self.channel_speed_of_sound_m_s[channel])
+        if self.speed_of_sound_m_s is not None:
+            return float(self.speed_of_sound_m_s)
+        return float(protocol_m_s)
+
+    def speed_of_sound_source(self, channel: int) -> str:
+        """Which key gives :meth:`speed_of_sound_for` ``channel``: the bench file's
+        ``calibration.channel_speed_of_sound_m_s.<ch>`` or ``calibration.speed_of_sound_m_s``,
+        or ``""`` (the protocol's value)."""
+        if channel in self.channel_speed_of_sound_m_s:
+            return f"calibration.channel_speed_of_sound_m_s.{channel}"
+        return "calibration.speed_of_sound_m_s" if self.speed_of_sound_m_s is not None else ""
 
     @property
     def drive_calibration_range_hz(self) -> tuple[float, float] | None:
@@ -333,9 +356,10 @@ class BenchConfig:
 
         n_per_v, table_hz, table_n_per_v, table_source, drive_u_rel = attempt(
             drive_calibration, (complex(1.0, 0.0), (), (), None, ()))
-        c_default = attempt(lambda: _positive(
-            cal.get("speed_of_sound_m_s", DEFAULT_SPEED_OF_SOUND_M_S),
-            "calibration.speed_of_sound_m_s", err), DEFAULT_SPEED_OF_SOUND_M_S)
+        c_default = None  # not stated: the protocol's applies
+        if "speed_of_sound_m_s" in cal:
+            c_default = attempt(lambda: _speed_of_sound(
+                cal["speed_of_sound_m_s"], "calibration.speed_of_sound_m_s", err))
         per_channel: dict[int, float] = {}
         raw_pc = cal.get("channel_speed_of_sound_m_s", {})
         if not isinstance(raw_pc, Mapping):
@@ -351,11 +375,11 @@ class BenchConfig:
                 raise err(key, "channel must be an integer (1-based)") from None
             if ch < 1:
                 raise err(key, "channel must be >= 1")
-            per_channel[ch] = _positive(v, key, err)
+            per_channel[ch] = _speed_of_sound(v, key, err)
 
         for k, v in raw_pc.items():
             attempt(lambda k=k, v=v: channel_speed(k, v))
-        ref_hz = attempt(lambda: _positive(
+        ref_hz = attempt(lambda: _reference_clock(
             cal.get("reference_clock_hz", DEFAULT_REFERENCE_CLOCK_HZ),
             "calibration.reference_clock_hz", err), DEFAULT_REFERENCE_CLOCK_HZ)
 
@@ -386,6 +410,8 @@ class BenchConfig:
                             and v <= _OPTION_MAX[k]):
                         raise err(f"{label}.{k}", f"must be {'>=' if low == 0 else '>'} 0 "
                                   f"and <= {_OPTION_MAX[k]:g}, got {v!r}")
+                if k == "external_clock_hz" and v != 0:
+                    _reference_clock(v, f"{label}.{k}", err, "0 (the internal clock) or ")
                 opts[k] = v
             if "resource" not in raw:
                 raise err(f"{label}.resource", "missing")
@@ -419,6 +445,16 @@ class BenchConfig:
         pulsers = tuple(p for p in read_pulsers if p is not None)
         if not simulated and not raw_pulsers:
             problems.append("pulsers: missing: at least one [[pulsers]] table")
+        # a speed of sound for a channel the digitizer does not have (3 on the 2-channel
+        # DP235) was accepted and never used (an audit)
+        digitizer = roles["digitizer"]
+        channels, model = _digitizer_channels(
+            digitizer.driver if digitizer is not None else _DEFAULT_DRIVER["digitizer"])
+        for ch in sorted(set(per_channel) - set(channels)):
+            problems.append(
+                f"calibration.channel_speed_of_sound_m_s.{ch}: no digitizer channel {ch}: "
+                f"the {model}{' (simulated)' if simulated else ''} has channels "
+                f"{', '.join(str(c) for c in channels)}")
         for i, pulser in enumerate(read_pulsers):
             # the run configures pulsers by their order (the first feeds digitizer channel
             # 1): a `channel` saying otherwise was accepted and ignored, leaving a channel's
@@ -483,6 +519,49 @@ def _positive(value: Any, key: str, err: _ErrFactory) -> float:
     v = float(value)
     if not (math.isfinite(v) and v > 0):
         raise err(key, f"must be finite and > 0, got {value!r}")
+    return v
+
+
+def _digitizer_channels(driver: str) -> tuple[tuple[int, ...], str]:
+    """The channels (1-based) of the digitizer that ``driver`` drives, and its model. The
+    simulated bench's digitizer is a simulated DP235: the same channels."""
+    if driver == "acqiris":
+        from pelvislab.drivers.acqiris import DP235_CHANNELS, AcqirisDigitizer
+
+        return tuple(DP235_CHANNELS), AcqirisDigitizer.model
+    raise BenchConfigError(f"digitizer.driver: unknown driver {driver!r}")
+
+
+def _reference_clock(value: Any, key: str, err: _ErrFactory, other: str = "") -> float:
+    # only > 0 was checked: `reference_clock_hz = 10` (MHz typed) was accepted and bench
+    # check printed "reference locked" (an audit). The generators lock to the shared
+    # reference only within their option 001's lock range; the digitizer takes it as its
+    # external 10 MHz reference (AcqrsD1_configExtClock type 2)
+    from pelvislab.drivers.agilent33220a import (
+        EXTERNAL_REFERENCE_HZ,
+        EXTERNAL_REFERENCE_LOCK_RANGE_HZ,
+    )
+
+    v = _positive(value, key, err)
+    if abs(v - EXTERNAL_REFERENCE_HZ) <= EXTERNAL_REFERENCE_LOCK_RANGE_HZ:
+        return v
+    mhz = f"{EXTERNAL_REFERENCE_HZ / 1e6:g}"
+    hint = ""
+    for factor, unit in ((1e6, "MHz"), (1e3, "kHz")):
+        if abs(v * factor - EXTERNAL_REFERENCE_HZ) <= EXTERNAL_REFERENCE_LOCK_RANGE_HZ:
+            hint = f" ({unit} typed? the key is in Hz: {mhz}e6)"
+    raise err(key, f"must be {other}the shared {mhz} MHz reference in Hz, {mhz}e6 +- "
+              f"{EXTERNAL_REFERENCE_LOCK_RANGE_HZ:g} Hz (the 33220A's option 001 lock range), "
+              f"got {value!r} Hz{hint}")
+
+
+def _speed_of_sound(value: Any, key: str, err: _ErrFactory) -> float:
+    # only > 0 was checked: 15.6 (1560 typed in the wrong unit) passed bench check,
+    # protocol check --bench and run, and scaled |H| by 0.01 (an audit)
+    v = _positive(value, key, err)
+    low, high = SPEED_OF_SOUND_RANGE_M_S
+    if not low < v <= high:
+        raise err(key, f"must be > {low:g} and <= {high:g} m/s, got {value!r}")
     return v
 
 

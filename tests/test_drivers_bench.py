@@ -86,6 +86,13 @@ def test_good_bench_file_parses(tmp_path):
         (('load_ohm = "inf"', 'load_ohm = "inf"\nmax_vpp = -1.0'), "drive.max_vpp"),
         (('resource = "PCI::INSTR0"', 'resource = "PCI::INSTR0"\nexternal_clock_hz = -1'),
          "digitizer.external_clock_hz"),
+        # 10 (MHz typed) was accepted and bench check said "reference locked" (an audit)
+        (("speed_of_sound_m_s = 1550.0", "speed_of_sound_m_s = 1550.0\n"
+          "reference_clock_hz = 10"), "calibration.reference_clock_hz"),
+        (("speed_of_sound_m_s = 1550.0", "speed_of_sound_m_s = 1550.0\n"
+          "reference_clock_hz = 10.001e6"), "calibration.reference_clock_hz"),
+        (('resource = "PCI::INSTR0"', 'resource = "PCI::INSTR0"\nexternal_clock_hz = 10'),
+         "digitizer.external_clock_hz"),
     ],
 )
 def test_bad_bench_file_names_the_key(tmp_path, edit, key):
@@ -93,6 +100,26 @@ def test_bad_bench_file_names_the_key(tmp_path, edit, key):
     assert text != GOOD
     with pytest.raises(BenchConfigError, match=f"{key.replace('.', '[.]')}: "):
         BenchConfig.load(write(tmp_path, text))
+
+
+def test_a_reference_clock_in_another_unit_is_refused_naming_the_unit(tmp_path, capsys):
+    from pelvislab.app.cli import main
+
+    text = GOOD.replace("speed_of_sound_m_s = 1550.0",
+                        "speed_of_sound_m_s = 1550.0\nreference_clock_hz = 10")
+    assert main(["bench", "check", str(write(tmp_path, text))]) == 1
+    err = capsys.readouterr().err
+    assert ("calibration.reference_clock_hz: must be the shared 10 MHz reference in Hz, 10e6 "
+            "+- 500 Hz (the 33220A's option 001 lock range), got 10 Hz (MHz typed? the key "
+            "is in Hz: 10e6)") in err
+    # within the lock range: a reference a little off 10 MHz, or the digitizer's own
+    for ok in ("reference_clock_hz = 10.0004e6", "reference_clock_hz = 9_999_600"):
+        text = GOOD.replace("speed_of_sound_m_s = 1550.0", f"speed_of_sound_m_s = 1550.0\n{ok}")
+        assert BenchConfig.load(write(tmp_path, text)).reference_clock_hz == pytest.approx(
+            10e6, abs=500)
+    text = GOOD.replace('resource = "PCI::INSTR0"',
+                        'resource = "PCI::INSTR0"\nexternal_clock_hz = 10e6')
+    assert BenchConfig.load(write(tmp_path, text)).digitizer.options["external_clock_hz"] == 10e6
 
 
 def test_an_external_clock_of_zero_is_the_internal_clock(tmp_path):

@@ -55,13 +55,25 @@ def test_resume_says_how_the_last_run_ended(tmp_path, capsys):
 
 
 def test_a_channel_speed_of_sound_added_or_removed_is_a_difference():
-    from pelvislab.acquisition.runner import bench_differences
+    # compared on the steps' echoes (what was used), no longer on /bench: a session written
+    # before the bench's global value was applied recorded it there unused
+    from types import SimpleNamespace
 
-    plain = {"simulated": True, "drive_newton_per_volt": 1.0, "speed_of_sound_m_s": 1540.0}
-    with_ch1 = dict(plain, speed_of_sound_m_s_ch1=1480.0)
-    assert bench_differences(plain, with_ch1) and bench_differences(with_ch1, plain)
-    same_as_default = dict(plain, speed_of_sound_m_s_ch1=1540.0)
-    assert bench_differences(plain, same_as_default) == []
+    from pelvislab.acquisition.runner import speed_of_sound_differences
+    from pelvislab.acquisition.session import STATUS_COMPLETE
+
+    protocol = SimpleNamespace(ultrasound=SimpleNamespace(speed_of_sound_m_s=1540.0))
+
+    def steps(c):
+        return [SimpleNamespace(status=STATUS_COMPLETE,
+                                channels=[SimpleNamespace(name="ch1", speed_of_sound_m_s=c)])]
+
+    plain = BenchConfig.default()
+    with_ch1 = dataclasses.replace(plain, channel_speed_of_sound_m_s={1: 1480.0})
+    assert speed_of_sound_differences(steps(1540.0), with_ch1, protocol)
+    assert speed_of_sound_differences(steps(1480.0), plain, protocol)
+    same_as_protocol = dataclasses.replace(plain, channel_speed_of_sound_m_s={1: 1540.0})
+    assert speed_of_sound_differences(steps(1540.0), same_as_protocol, protocol) == []
 
 
 def test_resuming_a_finished_session_opens_and_writes_nothing(tmp_path, capsys):

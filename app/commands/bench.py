@@ -61,6 +61,18 @@ def drive_calibration_text(config: Any) -> str:
             f"{config.drive_calibration_source}")
 
 
+def speed_of_sound_text(config: Any) -> str:
+    """The bench file's speed of sound in a few words: what every channel and which
+    channels get, over the protocol's ``ultrasound.speed_of_sound_m_s``."""
+    every = config.speed_of_sound_m_s
+    text = (f"{every:g} m/s on every channel (over the protocol's)" if every is not None
+            else "the protocol's")
+    own = dict(config.channel_speed_of_sound_m_s)
+    if own:
+        text += "; " + ", ".join(f"ch{ch} {c:g} m/s" for ch, c in sorted(own.items()))
+    return text
+
+
 def _instrument_line(role: str, instrument: Any, lock: str) -> str:
     return (f"  {role:10s} {getattr(instrument, 'identity', '?')}  "
             f"[{getattr(instrument, 'resource', '')}]" + (f"  {lock}" if lock else ""))
@@ -105,6 +117,7 @@ def check_command(args: argparse.Namespace) -> int:
 
     say(f"{config.name}{' (SIMULATED)' if config.simulated else ''}")
     say(f"  drive calibration: {drive_calibration_text(config)}")
+    say(f"  speed of sound: {speed_of_sound_text(config)}")
     listed: set[str] = set()
 
     def answered(role: str, instrument: Any) -> None:

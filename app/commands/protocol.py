@@ -26,11 +26,15 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 def check_command(args: argparse.Namespace) -> int:
     """Print the plan summary and warnings; invalid files raise a one-line error."""
     from pelvislab.acquisition.protocol import BenchLimits, load_protocol
+    from pelvislab.acquisition.runner import speed_of_sound_note
     from pelvislab.drivers.bench import BenchConfig
 
     config = BenchConfig.load(args.bench) if args.bench else BenchConfig.default()
     protocol = load_protocol(args.file, BenchLimits.from_config(config))
     print(protocol.summary())
+    replaced = speed_of_sound_note(config, protocol)
+    if replaced:
+        print(f"note: {replaced}", file=sys.stderr)
     for warning in protocol.warnings:
         print(f"warning: {warning}", file=sys.stderr)
     if args.strict and protocol.warnings:

@@ -278,9 +278,14 @@ def wait_for_operator(args: argparse.Namespace) -> bool:
 def _run_and_report(args: argparse.Namespace, prepared: Any, restore: dict[int, Any]) -> int:
     """Run ``prepared`` under the signal handlers, close it, print the summary; returns the
     exit code. ``restore`` receives the handlers that ``run_command`` puts back."""
+    from pelvislab.acquisition.runner import speed_of_sound_note
+
     with prepared:
         for warning in prepared.protocol.warnings:
             print(f"warning: {warning}", file=sys.stderr)
+        replaced = speed_of_sound_note(prepared.bench.config, prepared.protocol)
+        if replaced:
+            print(f"note: {replaced}", file=sys.stderr)
         if prepared.previous_run is not None:
             status, reason = prepared.previous_run
             print(f"resuming {args.out}: its last run ended {status}"
