@@ -68,6 +68,11 @@ DP235_MAX_SAMPLES_PER_CHANNEL = 8 * 1024 * 1024
 memory option, as the simulated DP235 models it, ``sim_instruments.instruments``); the
 thesis (ch. 8) names the DP235 but not its memory option; unconfirmed against the unit.
 The record needs ``n_pulses x samples`` (the driver's per-segment padding is not counted)."""
+MAX_POINT_DISTANCE_M = 1.0
+"""A point farther than this from the model origin (between the SIAS, design 4.1) is
+refused: no place on a pelvis is (the landmark catalogue's points lie within 0.16 m of it,
+every coordinate within 0.15 m), so it is a unit slip, millimetres typed into
+``position_m`` (a run measured 2 of 2 steps of a point 93 m away, every FRF line NaN)."""
 CHANNEL_KEYS = {"ch1": 1, "ch2": 2, "ch3": 3, "ch4": 4}
 BONES = ("innominate_right", "innominate_left", "sacrum", "")
 SUBJECT_POSITIONS = ("face-up", "face-down", "side", "specimen", "phantom", "simulated", "")
@@ -625,6 +630,19 @@ def _point(name: str, entry: Mapping[str, Any], where: str, p: _Problems,
     else:
         p.add(f"{where}.position_m", "missing")
         pos = None
+    if pos is not None:
+        distance = math.sqrt(sum(v * v for v in pos))
+        if distance > MAX_POINT_DISTANCE_M:
+            key = "position_mm" if "position_mm" in entry else "position_m"
+            given = "[" + ", ".join(f"{v:g}" for v in entry[key]) + "]"
+            rule = (f"{given} is {distance:.3g} m from the model origin (between the SIAS), "
+                    f"where no pelvis is (at most {MAX_POINT_DISTANCE_M:g} m)")
+            if key == "position_m":
+                in_m = "[" + ", ".join(f"{v / 1000.0:g}" for v in entry[key]) + "]"
+                rule += (f": position_m is in metres, so if these are millimetres write "
+                         f"position_m = {in_m} or position_mm = {given}")
+            p.add(f"{where}.{key}", rule)
+            pos = None
     if "direction" not in entry:
         p.add(f"{where}.direction", "missing (unit vector bone -> transducer)")
         direction = None
@@ -881,14 +899,18 @@ def parse_protocol(text: str, source: str = "<string>", limits: BenchLimits | No
 
     # points and setups ----------------------------------------------------------
     own: dict[str, Point] = {}
+    refused_points: set[str] = set()  # [points] entries refused above: said once, there
     pts = _table(data, "points", p)
     for pname, entry in pts.items():
         if not isinstance(entry, Mapping):
             p.add(f"points.{pname}", "must be a table")
+            refused_points.add(pname)
             continue
         point = _point(pname, entry, f"points.{pname}", p)
         if point is not None:
             own[pname] = point
+        else:
+            refused_points.add(pname)
     catalogue = dict(load_landmarks() if landmarks is None else landmarks)
     known_points = {**catalogue, **own}
 
@@ -906,6 +928,10 @@ def parse_protocol(text: str, source: str = "<string>", limits: BenchLimits | No
     def resolve(pname: Any, key: str) -> str | None:
         if not isinstance(pname, str) or not pname:
             p.add(key, f"must be a point name (string), got {pname!r}")
+            return None
+        if pname in refused_points:
+            # its [points] entry is named with the reason; "unknown point" here too was a
+            # knock-on of it (audit), and the catalogue's point of that name is not meant
             return None
         if pname not in known_points:
             close = sorted(k for k in known_points if k[:3].lower() == pname[:3].lower())[:5]
