@@ -20,6 +20,7 @@ import re
 import tomllib
 from collections.abc import Mapping
 from dataclasses import dataclass, field
+from functools import partial
 from importlib import resources
 from pathlib import Path
 from typing import Any
@@ -42,6 +43,7 @@ __all__ = [
     "Sweep",
     "Ultrasound",
     "drive_profile_vpp",
+    "instrument_problems",
     "load_landmarks",
     "load_protocol",
     "parse_protocol",
@@ -68,6 +70,11 @@ DP235_MAX_SAMPLES_PER_CHANNEL = 8 * 1024 * 1024
 memory option, as the simulated DP235 models it, ``sim_instruments.instruments``); the
 thesis (ch. 8) names the DP235 but not its memory option; unconfirmed against the unit.
 The record needs ``n_pulses x samples`` (the driver's per-segment padding is not counted)."""
+MAX_POINT_DISTANCE_M = 1.0
+"""A point farther than this from the model origin (between the SIAS, design 4.1) is
+refused: no place on a pelvis is (the landmark catalogue's points lie within 0.16 m of it,
+every coordinate within 0.15 m), so it is a unit slip, millimetres typed into
+``position_m`` (a run measured 2 of 2 steps of a point 93 m away, every FRF line NaN)."""
 CHANNEL_KEYS = {"ch1": 1, "ch2": 2, "ch3": 3, "ch4": 4}
 BONES = ("innominate_right", "innominate_left", "sacrum", "")
 SUBJECT_POSITIONS = ("face-up", "face-down", "side", "specimen", "phantom", "simulated", "")
@@ -230,6 +237,11 @@ class BenchLimits:
     drive_calibration_range_hz: tuple[float, float] | None = None
     """(lowest, highest) frequency of the bench's per-frequency drive calibration (Hz);
     None: one constant N/V, valid at every frequency."""
+    instruments: tuple[Any, ...] | None = None
+    """The bench's instruments (``pelvislab.drivers.bench.InstrumentModel``), whose own
+    checks the acquisition settings must pass (:func:`instrument_problems`); None: not known,
+    not checked (:func:`parse_protocol` without ``limits`` uses the default simulated
+    bench's)."""
 
     @classmethod
     def from_config(cls, config: Any) -> BenchLimits:
@@ -250,7 +262,8 @@ class BenchLimits:
                    trigger_load_ohm=config.generator_load_ohm("trigger"),
                    max_trigger_vpp=config.generator_limit_vpp("trigger"),
                    drive_calibration_range_hz=getattr(config, "drive_calibration_range_hz",
-                                                      None))
+                                                      None),
+                   instruments=tuple(config.instrument_models()))
 
 
 @dataclass(frozen=True)
@@ -619,6 +632,19 @@ def _point(name: str, entry: Mapping[str, Any], where: str, p: _Problems,
     else:
         p.add(f"{where}.position_m", "missing")
         pos = None
+    if pos is not None:
+        distance = math.sqrt(sum(v * v for v in pos))
+        if distance > MAX_POINT_DISTANCE_M:
+            key = "position_mm" if "position_mm" in entry else "position_m"
+            given = "[" + ", ".join(f"{v:g}" for v in entry[key]) + "]"
+            rule = (f"{given} is {distance:.3g} m from the model origin (between the SIAS), "
+                    f"where no pelvis is (at most {MAX_POINT_DISTANCE_M:g} m)")
+            if key == "position_m":
+                in_m = "[" + ", ".join(f"{v / 1000.0:g}" for v in entry[key]) + "]"
+                rule += (f": position_m is in metres, so if these are millimetres write "
+                         f"position_m = {in_m} or position_mm = {given}")
+            p.add(f"{where}.{key}", rule)
+            pos = None
     if "direction" not in entry:
         p.add(f"{where}.direction", "missing (unit vector bone -> transducer)")
         direction = None
@@ -643,7 +669,10 @@ def parse_protocol(text: str, source: str = "<string>", limits: BenchLimits | No
     ``limits``: the bench's limits (default: the simulated bench). ``landmarks``: the point
     catalogue (default: the shipped ``protocols/landmarks.toml``).
     """
-    limits = limits or BenchLimits()
+    if limits is None:
+        from pelvislab.drivers.bench import BenchConfig
+
+        limits = BenchLimits(instruments=BenchConfig.default().instrument_models())
     try:
         data = tomllib.loads(text)
     except tomllib.TOMLDecodeError as exc:
@@ -872,14 +901,18 @@ def parse_protocol(text: str, source: str = "<string>", limits: BenchLimits | No
 
     # points and setups ----------------------------------------------------------
     own: dict[str, Point] = {}
+    refused_points: set[str] = set()  # [points] entries refused above: said once, there
     pts = _table(data, "points", p)
     for pname, entry in pts.items():
         if not isinstance(entry, Mapping):
             p.add(f"points.{pname}", "must be a table")
+            refused_points.add(pname)
             continue
         point = _point(pname, entry, f"points.{pname}", p)
         if point is not None:
             own[pname] = point
+        else:
+            refused_points.add(pname)
     catalogue = dict(load_landmarks() if landmarks is None else landmarks)
     known_points = {**catalogue, **own}
 
@@ -897,6 +930,10 @@ def parse_protocol(text: str, source: str = "<string>", limits: BenchLimits | No
     def resolve(pname: Any, key: str) -> str | None:
         if not isinstance(pname, str) or not pname:
             p.add(key, f"must be a point name (string), got {pname!r}")
+            return None
+        if pname in refused_points:
+            # its [points] entry is named with the reason; "unknown point" here too was a
+            # knock-on of it (audit), and the catalogue's point of that name is not meant
             return None
         if pname not in known_points:
             close = sorted(k for k in known_points if k[:3].lower() == pname[:3].lower())[:5]
@@ -964,6 +1001,17 @@ def parse_protocol(text: str, source: str = "<string>", limits: BenchLimits | No
     if sweep is not None and len(setups) * len(sweep.frequencies_hz) > MAX_STEPS:
         p.add("setups", f"setups x frequencies exceeds {MAX_STEPS} steps")
 
+    if ultrasound is not None and limits.instruments is not None:
+        # what the bench's own instruments accept (a 70 dB gain passed the check and the run
+        # then failed on it as an instrument fault, leaving a 0-step file: audit); after
+        # the file's own rules, which keep a key they already refused
+        taken = {item.split(": ", 1)[0] for item in p.items}
+        used_channels = {ch for s in setups for ch in s.transducers}
+        for problem in _instrument_problems(ultrasound, freqs, periods, used_channels,
+                                            limits.instruments, limits.name):
+            if problem.split(": ", 1)[0] not in taken:
+                p.items.append(problem)
+
     if p.items or sweep is None or ultrasound is None or name is None:
         if not p.items:
             p.add("sweep", "incomplete")
@@ -998,6 +1046,95 @@ def parse_protocol(text: str, source: str = "<string>", limits: BenchLimits | No
             "move those lines")
     return Protocol(name, description, subject, sweep, ultrasound, tuple(setups), used, text,
                     source, tuple(warnings), excitations)
+
+
+_TRIGGER_KEYS = {"prf_hz": "ultrasound.prf_hz", "frequency_hz": "ultrasound.prf_hz",
+                 "period_s": "ultrasound.prf_hz", "width_s": "ultrasound.trigger_width_s",
+                 "edge_s": "ultrasound.trigger_width_s", "high_v": "ultrasound.trigger_high_v",
+                 "amplitude_vpp": "ultrasound.trigger_high_v",
+                 "offset_v": "ultrasound.trigger_high_v"}
+"""The trigger generator's ``check_pulse_burst`` arguments -> the protocol's keys
+(``n_pulses``: the record length's key)."""
+_DIGITIZER_KEYS = {"channels": "setups", "sample_rate_hz": "ultrasound.sample_rate_hz",
+                   "n_samples": "ultrasound.samples", "delay_s": "ultrasound.delay_s",
+                   "full_scale_v": "ultrasound.full_scale_v",
+                   "offset_v": "ultrasound.offset_v"}
+"""The digitizer's ``check_sequence`` arguments -> the protocol's keys (``n_segments``:
+the record length's key)."""
+
+
+def instrument_problems(protocol: Protocol, instruments: Any, bench_name: str) -> list[str]:
+    """``KEY: rule`` for every setting of ``protocol`` that one of ``instruments`` (the
+    ``InstrumentModel`` of an open bench, :meth:`pelvislab.drivers.bench.Bench.
+    instrument_models`, or of a bench file) refuses by its own checks, the ones its
+    configuring methods run before sending anything. Empty: every configuration the run
+    makes (pulsers; the trigger burst and the digitizer record of every step) passes them."""
+    return _instrument_problems(protocol.ultrasound, list(protocol.sweep.frequencies_hz),
+                                protocol.sweep.periods_per_step, set(protocol.channels),
+                                instruments, bench_name)
+
+
+def _instrument_problems(us: Ultrasound, frequencies: list[float] | None,
+                         periods: float | None, channels: set[int], instruments: Any,
+                         bench_name: str) -> list[str]:
+    from pelvislab.drivers.interfaces import LimitError
+
+    pulses_key = "sweep.periods_per_step" if periods is not None else "ultrasound.pulses"
+    # the record lengths of the plan (largest first), as Protocol.n_pulses counts them
+    records: dict[int, float] = {}
+    if periods is None:
+        records[int(us.pulses)] = math.nan  # every record: no frequency to name
+    elif frequencies:
+        for f in sorted(frequencies, reverse=True):
+            records[int(math.ceil(periods * us.prf_hz / f - 1e-9))] = f
+    lengths = sorted(records, reverse=True)
+    found: dict[tuple[str, str, str], list[str]] = {}
+
+    def refused(model: Any, keys: Mapping[str, str], call: partial[Any],
+                n_pulses: int | None = None) -> bool:
+        """Run one check (``call()``); note what it refuses under the protocol's key."""
+        try:
+            call()
+        except LimitError as exc:
+            setting = getattr(exc, "setting", None)
+            record = setting in ("n_pulses", "n_segments")
+            key = pulses_key if record else keys.get(str(setting), "ultrasound")
+            text = str(exc)
+            if record and n_pulses is not None and math.isfinite(records[n_pulses]):
+                text += f" (the record at {records[n_pulses]:g} Hz)"
+            found.setdefault((key, model.model, text), []).append(model.role)
+            return True
+        return False
+
+    for model in instruments:
+        role = str(model.role)
+        checks = model.checks
+        if role.startswith("pulsers"):
+            check = getattr(checks, "check_configuration", None)
+            if check is not None and (not channels or model.channel in channels):
+                refused(model, {k: f"ultrasound.{k}" for k in _US},
+                        partial(check, us.gain_db, us.pulse_energy, us.damping_ohm,
+                                us.high_pass_hz, us.low_pass_hz))
+        elif role == "trigger" and hasattr(checks, "check_pulse_burst"):
+            load = model.load_ohm if model.load_ohm is not None else math.inf
+            for n in lengths:  # one message per instrument: the longest record first
+                if refused(model, _TRIGGER_KEYS,
+                           partial(checks.check_pulse_burst, us.prf_hz, n, us.trigger_width_s,
+                                   us.trigger_high_v, load_ohm=load, max_vpp=model.max_vpp),
+                           n):
+                    break
+        elif role == "digitizer" and hasattr(checks, "check_sequence"):
+            for n in lengths:
+                if refused(model, _DIGITIZER_KEYS,
+                           partial(checks.check_sequence, sorted(channels) or [1],
+                                   us.sample_rate_hz, us.samples, n, us.delay_s,
+                                   us.full_scale_v, us.offset_v), n):
+                    break
+    out = []
+    for (key, model_name, text), roles in found.items():
+        out.append(f"{key}: the {model_name} ({', '.join(roles)} of {bench_name}) refuses "
+                   f"it: {text}")
+    return out
 
 
 def harmonic_aliases(protocol: Protocol, harmonics: tuple[int, ...] = (2, 3)

@@ -1457,7 +1457,12 @@ def prepare_session(protocol_path: Path | str, out_path: Path | str,
     with the session. ``subject_id`` overrides the protocol's ``subject.id`` in the session's
     root attribute ``subject_id`` (the /protocol text stays as the file was).
     """
-    from pelvislab.acquisition.protocol import BenchLimits, load_protocol
+    from pelvislab.acquisition.protocol import (
+        BenchLimits,
+        ProtocolError,
+        instrument_problems,
+        load_protocol,
+    )
     from pelvislab.acquisition.session import bench_description, check_subject_id
     from pelvislab.drivers.bench import BenchConfig, open_bench
 
@@ -1534,6 +1539,16 @@ def prepare_session(protocol_path: Path | str, out_path: Path | str,
     if bench is None:
         bench = open_bench(bench_file)
     try:
+        # the open instruments' own checks of every configuration the run will make,
+        # before the session file exists: a setting they refuse is bad input (exit 1,
+        # nothing written), not a fault of a run that left a 0-step file blocking the
+        # name (audit). The protocol check did the same with the bench file's classes;
+        # this asks the instruments actually open (an instrument may know more)
+        models = getattr(bench, "instrument_models", None)
+        refused = instrument_problems(protocol, models(), str(bench.config.name)) \
+            if models is not None else []
+        if refused:
+            raise ProtocolError(protocol.source, refused)
         description = bench_description(bench)
         if resume:
             with SessionReader(out) as reader:

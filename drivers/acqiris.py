@@ -307,32 +307,48 @@ class AcqirisDigitizer:
         return buf.value.decode("latin-1", "replace").strip() or "(empty message)"
 
     # ---- Digitizer interface -----------------------------------------------------------
+    @staticmethod
+    def check_sequence(channels: Sequence[int], sample_rate_hz: float, n_samples: int,
+                       n_segments: int, delay_s: float, full_scale_v: float,
+                       offset_v: float = 0.0) -> None:
+        """LimitError (``setting``: the argument's name) unless :meth:`configure_sequence`
+        would accept these arguments: channels in (1, 2); 0 < sample_rate_hz <= 500 MS/s;
+        full scale 50 mV to 5 V (DP235); n_samples, n_segments >= 1. Nothing is called:
+        what ``configure_sequence`` checks first, so that a plan can be checked before the
+        card is open."""
+        chans = tuple(int(c) for c in channels)
+        if not chans or len(set(chans)) != len(chans) or \
+                any(c not in DP235_CHANNELS for c in chans):
+            raise LimitError(f"channels must be distinct values of {DP235_CHANNELS}, "
+                             f"got {list(channels)}", "channels")
+        fs_max = DP235_MAX_SAMPLE_RATE_HZ
+        if not (math.isfinite(sample_rate_hz) and 0 < sample_rate_hz <= fs_max):
+            raise LimitError(f"sample_rate_hz {sample_rate_hz!r} outside (0, 500e6]",
+                             "sample_rate_hz")
+        for name, v in (("n_samples", n_samples), ("n_segments", n_segments)):
+            if (isinstance(v, bool) or not isinstance(v, (int, float))
+                    or not math.isfinite(v) or int(v) != v or v < 1):
+                raise LimitError(f"{name} must be a positive integer, got {v!r}", name)
+        lo, hi = DP235_FULL_SCALE_V
+        if not lo <= full_scale_v <= hi:
+            raise LimitError(f"full_scale_v {full_scale_v!r} outside [{lo:g}, {hi:g}] V",
+                             "full_scale_v")
+        for name, v in (("delay_s", delay_s), ("offset_v", offset_v)):
+            if not math.isfinite(v):
+                raise LimitError(f"{name} must be finite, got {v!r}", name)
+
     def configure_sequence(self, channels: Sequence[int], sample_rate_hz: float,
                            n_samples: int, n_segments: int, delay_s: float,
                            full_scale_v: float, offset_v: float = 0.0) -> None:
         """Sequence mode with the external trigger (External 1, edge); see Digitizer.
 
-        Validated first: channels in (1, 2); 0 < sample_rate_hz <= 500 MS/s;
-        full scale 50 mV to 5 V (DP235); n_samples, n_segments >= 1.
+        Validated first (:meth:`check_sequence`): channels in (1, 2); 0 < sample_rate_hz
+        <= 500 MS/s; full scale 50 mV to 5 V (DP235); n_samples, n_segments >= 1.
         """
         self._abort_requested.clear()  # a new sequence: an earlier abort is over
+        self.check_sequence(channels, sample_rate_hz, n_samples, n_segments, delay_s,
+                            full_scale_v, offset_v)
         chans = tuple(int(c) for c in channels)
-        if not chans or len(set(chans)) != len(chans) or \
-                any(c not in DP235_CHANNELS for c in chans):
-            raise LimitError(f"channels must be distinct values of {DP235_CHANNELS}, "
-                             f"got {list(channels)}")
-        fs_max = DP235_MAX_SAMPLE_RATE_HZ
-        if not (math.isfinite(sample_rate_hz) and 0 < sample_rate_hz <= fs_max):
-            raise LimitError(f"sample_rate_hz {sample_rate_hz!r} outside (0, 500e6]")
-        for name, v in (("n_samples", n_samples), ("n_segments", n_segments)):
-            if (isinstance(v, bool) or not isinstance(v, (int, float))
-                    or not math.isfinite(v) or int(v) != v or v < 1):
-                raise LimitError(f"{name} must be a positive integer, got {v!r}")
-        lo, hi = DP235_FULL_SCALE_V
-        if not lo <= full_scale_v <= hi:
-            raise LimitError(f"full_scale_v {full_scale_v!r} outside [{lo:g}, {hi:g}] V")
-        if not math.isfinite(delay_s) or not math.isfinite(offset_v):
-            raise LimitError("delay_s and offset_v must be finite")
         self._stop_if_running()
         s = self._session()
         # a configuration that fails part way leaves the card's settings mixed: acquire

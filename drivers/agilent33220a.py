@@ -42,6 +42,7 @@ __all__ = [
     "check_amplitude_offset",
     "check_frequency",
     "check_pulse",
+    "check_pulse_burst",
     "load_factor",
     "min_pulse_width_s",
 ]
@@ -74,6 +75,8 @@ PULSE_EDGE_S = (5e-9, 100e-9)
 """FUNC:PULS:TRAN, both edges, 5 ns to 100 ns [UG]."""
 EDGE_TO_WIDTH_MAX = 0.625
 """Edge time <= 0.625 x pulse width [UG 'Pulse Waveforms']."""
+BURST_EDGE_S = 5e-9
+"""Edge time of the trigger pulses of :meth:`Agilent33220A.configure_pulse_burst`, s."""
 BURST_CYCLES = (1, 50_000)
 """BURS:NCYC 1 to 50 000 cycles [UG]."""
 BURST_PERIOD_S = (1e-6, 500.0)
@@ -121,12 +124,12 @@ def amplitude_limits_vpp(load_ohm: float) -> tuple[float, float]:
 def check_frequency(function: str, frequency_hz: float) -> None:
     """LimitError unless ``frequency_hz`` is within the function's range."""
     if function not in FREQUENCY_LIMITS_HZ:
-        raise LimitError(f"function {function!r} has no frequency setting")
+        raise LimitError(f"function {function!r} has no frequency setting", "function")
     lo, hi = FREQUENCY_LIMITS_HZ[function]
     if not (math.isfinite(frequency_hz) and lo <= frequency_hz <= hi):
         raise LimitError(
             f"frequency {frequency_hz!r} Hz outside the 33220A {function} range "
-            f"[{lo:g}, {hi:g}] Hz")
+            f"[{lo:g}, {hi:g}] Hz", "frequency_hz")
 
 
 def check_amplitude_offset(amplitude_vpp: float, offset_v: float, load_ohm: float,
@@ -138,26 +141,27 @@ def check_amplitude_offset(amplitude_vpp: float, offset_v: float, load_ohm: floa
     and ``|offset| + amplitude/2 <= max_vpp/2`` (the peak never exceeds what the limit
     allows for a symmetric signal).
     """
-    for name, v in (("amplitude", amplitude_vpp), ("offset", offset_v)):
+    for name, v, setting in (("amplitude", amplitude_vpp, "amplitude_vpp"),
+                             ("offset", offset_v, "offset_v")):
         if isinstance(v, bool) or not isinstance(v, int | float) or not math.isfinite(v):
-            raise LimitError(f"{name} must be a finite number, got {v!r}")
+            raise LimitError(f"{name} must be a finite number, got {v!r}", setting)
     lo, hi = amplitude_limits_vpp(load_ohm)
     load = "high-Z" if math.isinf(load_ohm) else f"{load_ohm:g} ohm"
     if not lo <= amplitude_vpp <= hi:
         raise LimitError(f"amplitude {amplitude_vpp:g} Vpp outside [{lo:g}, {hi:g}] Vpp "
-                         f"for a {load} load (33220A)")
+                         f"for a {load} load (33220A)", "amplitude_vpp")
     peak = abs(offset_v) + amplitude_vpp / 2.0
     vmax = MAX_PEAK_50OHM_V * load_factor(load_ohm)
     if peak > vmax * (1 + 1e-12):
         raise LimitError(f"|offset| + amplitude/2 = {peak:g} V exceeds {vmax:g} V for a "
-                         f"{load} load (33220A)")
+                         f"{load} load (33220A)", "offset_v")
     if max_vpp is not None:
         if amplitude_vpp > max_vpp * (1 + 1e-12):
             raise LimitError(f"amplitude {amplitude_vpp:g} Vpp exceeds the bench limit "
-                             f"{max_vpp:g} Vpp (bench file [limits])")
+                             f"{max_vpp:g} Vpp (bench file [limits])", "amplitude_vpp")
         if peak > max_vpp / 2.0 * (1 + 1e-12):
             raise LimitError(f"peak |offset| + amplitude/2 = {peak:g} V exceeds the bench "
-                             f"limit {max_vpp / 2:g} V (max {max_vpp:g} Vpp)")
+                             f"limit {max_vpp / 2:g} V (max {max_vpp:g} Vpp)", "offset_v")
 
 
 def min_pulse_width_s(period_s: float) -> float:
@@ -176,25 +180,49 @@ def check_pulse(period_s: float, width_s: float, edge_s: float) -> None:
     """LimitError unless period, width and edge time (s) satisfy the 33220A pulse rules:
     period in [200 ns, 2000 s]; Wmin <= width <= period - Wmin; edge in [5, 100] ns and
     edge <= 0.625 x width [UG/DS]."""
-    for name, v in (("period", period_s), ("width", width_s), ("edge time", edge_s)):
+    for name, v, setting in (("period", period_s, "period_s"), ("width", width_s, "width_s"),
+                             ("edge time", edge_s, "edge_s")):
         if not (isinstance(v, int | float) and math.isfinite(v) and v > 0):
-            raise LimitError(f"pulse {name} must be a finite positive number, got {v!r}")
+            raise LimitError(f"pulse {name} must be a finite positive number, got {v!r}",
+                             setting)
     lo, hi = PULSE_PERIOD_S
     if not lo <= period_s <= hi:
         raise LimitError(f"pulse period {period_s:g} s outside [{lo:g}, {hi:g}] s "
-                         f"(PRF {1 / period_s:g} Hz)")
+                         f"(PRF {1 / period_s:g} Hz)", "period_s")
     wmin = min_pulse_width_s(period_s)
     if width_s < wmin * (1 - 1e-9):
-        raise LimitError(f"pulse width {width_s:g} s below the minimum {wmin:g} s")
+        raise LimitError(f"pulse width {width_s:g} s below the minimum {wmin:g} s",
+                         "width_s")
     if width_s > (period_s - wmin) * (1 + 1e-12):
         raise LimitError(f"pulse width {width_s:g} s must be <= period - {wmin:g} s = "
-                         f"{period_s - wmin:g} s")
+                         f"{period_s - wmin:g} s", "width_s")
     elo, ehi = PULSE_EDGE_S
     if not elo * (1 - 1e-9) <= edge_s <= ehi * (1 + 1e-9):
-        raise LimitError(f"edge time {edge_s:g} s outside [{elo:g}, {ehi:g}] s")
+        raise LimitError(f"edge time {edge_s:g} s outside [{elo:g}, {ehi:g}] s", "edge_s")
     if edge_s > EDGE_TO_WIDTH_MAX * width_s * (1 + 1e-9):
         raise LimitError(f"edge time {edge_s:g} s must be <= 0.625 x width "
-                         f"= {EDGE_TO_WIDTH_MAX * width_s:g} s")
+                         f"= {EDGE_TO_WIDTH_MAX * width_s:g} s", "edge_s")
+
+
+def check_pulse_burst(prf_hz: float, n_pulses: int, width_s: float, high_v: float,
+                      low_v: float = 0.0, *, edge_s: float = BURST_EDGE_S,
+                      load_ohm: float = math.inf, max_vpp: float | None = None) -> None:
+    """LimitError (``setting`` naming the argument) unless
+    :meth:`Agilent33220A.configure_pulse_burst` with these arguments is within the 33220A's
+    rules for the declared ``load_ohm`` and the bench limit ``max_vpp``; nothing is sent.
+    What that method checks first (a plan can be checked before any instrument is open)."""
+    if not (isinstance(prf_hz, int | float) and math.isfinite(prf_hz) and prf_hz > 0):
+        raise LimitError(f"prf_hz must be a positive number, got {prf_hz!r}", "prf_hz")
+    check_frequency("pulse", prf_hz)
+    check_pulse(1.0 / prf_hz, width_s, edge_s)
+    if isinstance(n_pulses, bool) or int(n_pulses) != n_pulses or \
+            not BURST_CYCLES[0] <= n_pulses <= BURST_CYCLES[1]:
+        raise LimitError(f"n_pulses must be an integer in {list(BURST_CYCLES)} (burst "
+                         f"cycles), got {n_pulses!r}", "n_pulses")
+    if not high_v > low_v:
+        raise LimitError(f"high_v ({high_v!r} V) must be above low_v ({low_v!r} V)",
+                         "high_v")
+    check_amplitude_offset(high_v - low_v, (high_v + low_v) / 2.0, load_ohm, max_vpp)
 
 
 # --------------------------------------------------------------------------- the driver
@@ -470,28 +498,24 @@ class Agilent33220A(SCPIInstrument):
             self.amplitude = amplitude_vpp
         self._state["amplitude_vpp"] = amplitude_vpp
 
+    check_pulse_burst = staticmethod(check_pulse_burst)
+    """LimitError unless :meth:`configure_pulse_burst` would accept these arguments (give
+    the generator's ``load_ohm`` and ``max_vpp``); see the module function."""
+
     def configure_pulse_burst(self, prf_hz: float, n_pulses: int, width_s: float,
-                              high_v: float, low_v: float = 0.0, *, edge_s: float = 5e-9,
+                              high_v: float, low_v: float = 0.0, *,
+                              edge_s: float = BURST_EDGE_S,
                               slope: str = "positive") -> None:
         """Externally triggered burst of ``n_pulses`` pulses at ``prf_hz`` (Hz), ``width_s``
         (s) wide, from ``low_v`` to ``high_v`` (V), edges ``edge_s`` (s); output unchanged.
 
         Sent as amplitude ``high_v - low_v`` (Vpp) and offset ``(high_v + low_v)/2``.
         """
-        if not (isinstance(prf_hz, int | float) and math.isfinite(prf_hz) and prf_hz > 0):
-            raise LimitError(f"prf_hz must be a positive number, got {prf_hz!r}")
+        check_pulse_burst(prf_hz, n_pulses, width_s, high_v, low_v, edge_s=edge_s,
+                          load_ohm=self.load_ohm, max_vpp=self.max_vpp)
         period_s = 1.0 / prf_hz
-        check_frequency("pulse", prf_hz)
-        check_pulse(period_s, width_s, edge_s)
-        if isinstance(n_pulses, bool) or int(n_pulses) != n_pulses or \
-                not BURST_CYCLES[0] <= n_pulses <= BURST_CYCLES[1]:
-            raise LimitError(f"n_pulses must be an integer in {list(BURST_CYCLES)}, "
-                             f"got {n_pulses!r}")
-        if not high_v > low_v:
-            raise LimitError(f"high_v ({high_v!r} V) must be above low_v ({low_v!r} V)")
         amplitude_vpp = high_v - low_v
         offset_v = (high_v + low_v) / 2.0
-        check_amplitude_offset(amplitude_vpp, offset_v, self.load_ohm, self.max_vpp)
         Agilent33220A.trigger_slope.validate(slope)
         with self._operation("configure_pulse_burst"):
             self.function = "pulse"

@@ -52,6 +52,7 @@ __all__ = [
     "BenchConfig",
     "BenchConfigError",
     "InstrumentConfig",
+    "InstrumentModel",
     "open_bench",
 ]
 
@@ -137,6 +138,35 @@ class InstrumentConfig:
     """VISA resource, Acqiris resource (``PCI::INSTR0``) or serial port / pyserial URL."""
     options: Mapping[str, Any] = field(default_factory=dict)
     """Driver keyword options (validated names and types)."""
+
+
+@dataclass(frozen=True)
+class InstrumentModel:
+    """What one instrument of a bench accepts, for checking a plan before anything is sent
+    (``protocol check``, and ``run`` before the session file is created).
+
+    ``checks`` is the driver class (from a bench file: nothing open yet) or the open
+    instrument; its own side-effect-free checks are used, the ones its configuring methods
+    run first (``check_configuration`` of a pulser/receiver, ``check_pulse_burst`` of a
+    generator, ``check_sequence`` of a digitizer), each raising ``LimitError`` with the
+    refused argument in ``setting``. An instrument without them is not checked."""
+
+    role: str
+    """``trigger``, ``drive``, ``digitizer`` or ``pulsers[i]`` (the bench file's keys)."""
+    model: str
+    """What it is, for messages: ``Panametrics 5077PR``, ``Acqiris DP235``, ..."""
+    checks: Any
+    channel: int | None = None
+    """Pulsers: the digitizer channel (1-based) it feeds."""
+    load_ohm: float | None = None
+    """Generators: the declared load (ohm, inf = high-Z)."""
+    max_vpp: float | None = None
+    """Generators: the bench limit (V pk-pk), as the driver applies it."""
+
+
+def _model_name(checks: Any) -> str:
+    cls = checks if isinstance(checks, type) else type(checks)
+    return str(getattr(cls, "model", None) or cls.__name__)
 
 
 SIMULATED_TRIGGER_LOAD_OHM = 50.0
@@ -235,6 +265,37 @@ class BenchConfig:
                 return math.inf if role == "drive" else SIMULATED_TRIGGER_LOAD_OHM
             return None
         return math.inf if isinstance(load, str) else float(load)  # strings: "inf" (checked)
+
+    def instrument_models(self) -> tuple[InstrumentModel, ...]:
+        """The instruments this bench file opens, by their driver classes (imported here,
+        nothing opened): a real bench's by its sections' ``driver``; a simulated bench's as
+        ``open_simulated_bench`` opens them by default (the simulation is imported lazily,
+        as by :func:`open_bench`)."""
+        if self.simulated:
+            try:
+                from pelvislab.sim_instruments.bench import default_instrument_classes
+            except ImportError:  # no simulation installed: nothing known to check
+                return ()
+            classes = default_instrument_classes()
+            roles: list[tuple[str, Any, int | None]] = [
+                ("trigger", classes["trigger"], None), ("drive", classes["drive"], None),
+                ("digitizer", classes["digitizer"], None)]
+            roles += [(f"pulsers[{i}]", cls, i + 1)
+                      for i, cls in enumerate(classes["pulsers"])]
+        else:
+            roles = [(section.role, _driver_class(section.driver), None)
+                     for section in (self.trigger, self.drive, self.digitizer)
+                     if section is not None]
+            roles += [(section.role, _driver_class(section.driver), i + 1)
+                      for i, section in enumerate(self.pulsers)]
+        out = []
+        for role, cls, channel in roles:
+            generator = role in ("trigger", "drive")
+            out.append(InstrumentModel(
+                role, _model_name(cls), cls, channel,
+                load_ohm=self.generator_load_ohm(role) if generator else None,
+                max_vpp=self.generator_limit_vpp(role) if generator else None))
+        return tuple(out)
 
     # ------------------------------------------------------------------ builders
     @classmethod
@@ -739,6 +800,18 @@ class Bench:
     """Messages of failures met by safe_state()/close() (logged, never raised)."""
     _closed: bool = field(default=False, init=False, repr=False)
 
+    def instrument_models(self) -> tuple[InstrumentModel, ...]:
+        """The open instruments, for checking a plan against their own checks
+        (:class:`InstrumentModel`; the generators' load and limit as they apply them)."""
+        out = [InstrumentModel(role, _model_name(inst), inst,
+                               load_ohm=getattr(inst, "load_ohm", None),
+                               max_vpp=getattr(inst, "max_vpp", None))
+               for role, inst in (("trigger", self.trigger), ("drive", self.drive),
+                                  ("digitizer", self.digitizer))]
+        out += [InstrumentModel(f"pulsers[{i}]", _model_name(p), p, i + 1)
+                for i, p in enumerate(self.pulsers)]
+        return tuple(out)
+
     @property
     def generators(self) -> tuple[Generator, Generator]:
         """(drive, trigger): the drive first, so the shaker stops before anything else."""
@@ -828,6 +901,23 @@ class Bench:
 
 
 # --------------------------------------------------------------------------- factory
+def _driver_class(driver: str) -> Any:
+    """The class of a bench file's ``driver`` name (its module imported lazily)."""
+    if driver == "agilent33220a":
+        from pelvislab.drivers.agilent33220a import Agilent33220A
+
+        return Agilent33220A
+    if driver == "acqiris":
+        from pelvislab.drivers.acqiris import AcqirisDigitizer
+
+        return AcqirisDigitizer
+    if driver == "panametrics5077":
+        from pelvislab.drivers.panametrics5077 import Panametrics5077PR
+
+        return Panametrics5077PR
+    raise BenchConfigError(f"unknown driver {driver!r}")
+
+
 def _open_instrument(cfg: InstrumentConfig, bench: BenchConfig) -> Any:
     """Open one real instrument (driver modules imported lazily)."""
     opts = dict(cfg.options)

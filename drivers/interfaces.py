@@ -59,8 +59,15 @@ class InstrumentTimeoutError(InstrumentConnectionError):
 class LimitError(DriverError, ValueError):
     """A requested setting is outside the instrument's range or the bench's safety limit.
 
-    Raised BEFORE anything is sent to the instrument.
+    Raised BEFORE anything is sent to the instrument. ``setting``: the name of the refused
+    argument of the configuring call (``gain_db``, ``width_s``, ``full_scale_v``, ...) when
+    the check says it, so that a caller checking a plan (``protocol check``) can name its own
+    key for it; None otherwise.
     """
+
+    def __init__(self, message: str, setting: str | None = None) -> None:
+        super().__init__(message)
+        self.setting = setting
 
 
 # --------------------------------------------------------------------------- protocols

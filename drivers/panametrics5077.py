@@ -62,26 +62,48 @@ class SerialCommand:
     step: float | None = None
     status: str = UNCONFIRMED
 
+    def allowed(self) -> str:
+        """What the table accepts, in words: ``-20..59 dB in 1 dB steps``, ``one of: 50,
+        100, 200, 500 ohm`` (None shown as ``none``: filter out / full band)."""
+        unit = f" {self.unit}" if self.unit else ""
+        if self.choices is not None:
+            return "one of: " + ", ".join(_shown(k) for k in self.choices) + unit
+        if self.limits is None:
+            return "any number"
+        text = f"{self.limits[0]:g}..{self.limits[1]:g}{unit}"
+        return text + (f" in {self.step:g}{unit} steps" if self.step is not None else "")
+
     def token(self, value: Any) -> str:
-        """The instrument token for ``value`` (LimitError if not allowed)."""
+        """The instrument token for ``value`` (LimitError, ``setting`` = the command's
+        name, if the table does not allow it)."""
+        unit = f" {self.unit}" if self.unit else ""
         if self.choices is not None:
             key = value.strip().lower() if isinstance(value, str) else value
             if key in self.choices:
                 return self.choices[key]
-            raise LimitError(f"{self.name}: {value!r} is not one of "
-                             f"{[k for k in self.choices]} ({self.unit})")
+            shown = _shown(value) + (unit if isinstance(value, int | float) else "")
+            raise LimitError(f"{self.name} = {shown} is not {self.allowed()}", self.name)
         if isinstance(value, bool) or not isinstance(value, int | float) or \
                 not math.isfinite(value):
-            raise LimitError(f"{self.name}: expected a number, got {value!r}")
+            raise LimitError(f"{self.name}: expected a number, got {value!r}", self.name)
         if self.limits is not None and not self.limits[0] <= value <= self.limits[1]:
-            raise LimitError(f"{self.name} = {value!r} {self.unit} outside "
-                             f"[{self.limits[0]:g}, {self.limits[1]:g}]")
+            raise LimitError(f"{self.name} = {value:g}{unit} outside {self.allowed()}",
+                             self.name)
         if self.step is not None:
             n = round(value / self.step)
             if abs(n * self.step - value) > 1e-9 * max(1.0, abs(value)):
-                raise LimitError(f"{self.name} = {value!r} is not a multiple of {self.step:g}")
+                raise LimitError(f"{self.name} = {value:g}{unit} is not a multiple of "
+                                 f"{self.step:g}{unit} ({self.allowed()})", self.name)
             value = n * self.step
         return f"{value:g}"
+
+
+def _shown(value: Any) -> str:
+    if value is None:
+        return "none"
+    if isinstance(value, int | float) and not isinstance(value, bool):
+        return f"{value:g}"
+    return str(value)
 
 
 # ---------------------------------------------------------------- THE declared table
@@ -246,16 +268,35 @@ class Panametrics5077PR:
         self.settings[key] = token
 
     # ---- PulserReceiver interface ------------------------------------------------------
+    @staticmethod
+    def _configuration(gain_db: float, pulse_energy: str, damping_ohm: float,
+                       high_pass_hz: float | None, low_pass_hz: float | None
+                       ) -> dict[str, Any]:
+        return {"trigger": "external", "mode": "pulse-echo", "gain_db": gain_db,
+                "pulse_energy": pulse_energy, "damping_ohm": damping_ohm,
+                "high_pass_hz": high_pass_hz, "low_pass_hz": low_pass_hz}
+
+    @staticmethod
+    def check_configuration(gain_db: float, pulse_energy: str, damping_ohm: float,
+                            high_pass_hz: float | None, low_pass_hz: float | None) -> None:
+        """LimitError (``setting``: the argument's name) unless :meth:`configure` would
+        accept these values: every one against the declared table (:data:`COMMANDS`);
+        nothing is sent. What ``configure`` checks first, so that a plan can be checked
+        before the instrument is open (``protocol check``, ``run``)."""
+        values = Panametrics5077PR._configuration(gain_db, pulse_energy, damping_ohm,
+                                                  high_pass_hz, low_pass_hz)
+        for key, v in values.items():
+            COMMANDS[key].token(v)
+
     def configure(self, gain_db: float, pulse_energy: str, damping_ohm: float,
                   high_pass_hz: float | None, low_pass_hz: float | None) -> None:
         """External trigger, pulse-echo, gain (dB), pulse energy (``"100V"``..``"400V"``,
         ``"low"``/``"high"``), damping (ohm), filters (Hz, None = out/full band).
         All values are checked against the table before anything is sent."""
-        values = {"trigger": "external", "mode": "pulse-echo", "gain_db": gain_db,
-                  "pulse_energy": pulse_energy, "damping_ohm": damping_ohm,
-                  "high_pass_hz": high_pass_hz, "low_pass_hz": low_pass_hz}
-        for key, v in values.items():
-            COMMANDS[key].token(v)  # validate all first
+        values = self._configuration(gain_db, pulse_energy, damping_ohm, high_pass_hz,
+                                     low_pass_hz)
+        self.check_configuration(gain_db, pulse_energy, damping_ohm, high_pass_hz,
+                                 low_pass_hz)  # all first, before anything is sent
         try:
             for key, v in values.items():
                 self._set(key, v)

@@ -63,7 +63,8 @@ from pelvislab.sim_instruments.instruments import (
 from pelvislab.sim_instruments.layout import DEFAULT_CHANNELS, DEFAULT_EXCITATION
 from pelvislab.sim_instruments.world import SimClock, World
 
-__all__ = ["SIM_RESOURCES", "SimulatedBench", "open_simulated_bench", "yaml_path"]
+__all__ = ["SIM_RESOURCES", "SimulatedBench", "default_instrument_classes",
+           "open_simulated_bench", "yaml_path"]
 
 SIM_RESOURCES = {
     "trigger": "USB0::0x0957::0x0407::MY44000001::INSTR",
@@ -75,6 +76,24 @@ _OPTIONS = {"seed", "pacing", "model", "effects", "faults", "snr_db", "excitatio
             "excitation_direction", "channels", "acoustics", "bone_depth_m", "generators",
             "trigger_source", "trigger_latency_s", "trigger_jitter_s", "digitizer",
             "pulsers", "phantom"}
+
+
+DEFAULT_DIGITIZER = "python"
+DEFAULT_PULSERS = "panametrics"
+SIM_PULSER_CHANNELS = (1, 2)
+"""The simulated bench opens one pulser/receiver per digitizer channel."""
+
+
+def default_instrument_classes() -> dict[str, Any]:
+    """The classes :func:`open_simulated_bench` opens with its default options
+    (``{"trigger", "drive", "digitizer": class, "pulsers": (class per channel)}``): what
+    ``protocol check`` checks a protocol against for the simulated bench."""
+    from pelvislab.drivers.panametrics5077 import Panametrics5077PR
+
+    digitizer = {"python": SimDigitizer}[DEFAULT_DIGITIZER]
+    pulser = {"panametrics": Panametrics5077PR}[DEFAULT_PULSERS]
+    return {"trigger": Agilent33220A, "drive": Agilent33220A, "digitizer": digitizer,
+            "pulsers": tuple(pulser for _ in SIM_PULSER_CHANNELS)}
 
 
 @dataclass
@@ -180,7 +199,7 @@ def open_simulated_bench(config: BenchConfig | None = None, **sim_options: Any) 
             gen.transport_sim = transport  # type: ignore[attr-defined]
             opened.append(gen)
             gens[role] = gen
-        dig_kind = opt.get("digitizer", "python")
+        dig_kind = opt.get("digitizer", DEFAULT_DIGITIZER)
         digitizer: Any
         if dig_kind == "python":
             digitizer = SimDigitizer(world)
@@ -193,11 +212,11 @@ def open_simulated_bench(config: BenchConfig | None = None, **sim_options: Any) 
         else:
             raise ValueError(f"digitizer must be 'python' or 'acqiris', got {dig_kind!r}")
         opened.append(digitizer)
-        pul_kind = opt.get("pulsers", "panametrics")
+        pul_kind = opt.get("pulsers", DEFAULT_PULSERS)
         if pul_kind not in ("panametrics", "python"):
             raise ValueError(f"pulsers must be 'panametrics' or 'python', got {pul_kind!r}")
         pulsers: list[Any] = []
-        for ch in (1, 2):
+        for ch in SIM_PULSER_CHANNELS:
             resource = (cfg.pulsers[ch - 1].resource if len(cfg.pulsers) >= ch
                         else f"sim://5077pr/{ch}")
             if pul_kind == "python":

@@ -163,6 +163,8 @@ class SimDigitizer:
     AcqrsD1 calls the real driver would make.
     """
 
+    model = "simulated Acqiris DP235"
+
     def __init__(self, world: World, resource: str = "SIM::DP235::INSTR") -> None:
         self.world = world
         self.resource = resource
@@ -175,31 +177,48 @@ class SimDigitizer:
     def _log(self, text: str) -> None:
         self.command_log.append((time.monotonic(), text))
 
+    @staticmethod
+    def check_sequence(channels: Sequence[int], sample_rate_hz: float, n_samples: int,
+                       n_segments: int, delay_s: float, full_scale_v: float,
+                       offset_v: float = 0.0) -> None:
+        """LimitError (``setting``: the argument's name) unless :meth:`configure_sequence`
+        would accept these arguments; nothing else happens (a plan checked before the
+        bench is open: ``protocol check``, ``run``)."""
+        chans = [int(c) for c in channels]
+        if not chans or len(set(chans)) != len(chans) or \
+                any(c not in DIGITIZER_CHANNELS for c in chans):
+            raise LimitError(f"channels must be distinct values of {DIGITIZER_CHANNELS}, "
+                             f"got {list(channels)}", "channels")
+        if not (math.isfinite(sample_rate_hz) and 0 < sample_rate_hz <= 500e6):
+            raise LimitError(f"sample_rate_hz must be in (0, 500e6], got {sample_rate_hz!r}",
+                             "sample_rate_hz")
+        if int(n_samples) != n_samples or not 16 <= n_samples <= 65536:
+            raise LimitError(f"n_samples must be an integer in [16, 65536], got {n_samples!r}",
+                             "n_samples")
+        if int(n_segments) != n_segments or n_segments < 1:
+            raise LimitError(f"n_segments must be a positive integer, got {n_segments!r}",
+                             "n_segments")
+        if n_samples * n_segments > MAX_SAMPLES_PER_CHANNEL:
+            raise LimitError(f"{n_segments} x {n_samples} samples exceed the "
+                             f"{MAX_SAMPLES_PER_CHANNEL} samples of memory per channel",
+                             "n_segments")
+        if not (math.isfinite(delay_s) and 0 <= delay_s <= 1e-3):
+            raise LimitError(f"delay_s must be in [0, 1 ms], got {delay_s!r}", "delay_s")
+        if not (math.isfinite(full_scale_v) and 0.05 <= full_scale_v <= 5.0):
+            raise LimitError(f"full_scale_v must be in [0.05, 5] V, got {full_scale_v!r}",
+                             "full_scale_v")
+        if not (math.isfinite(offset_v) and abs(offset_v) <= 2.0 * full_scale_v):
+            raise LimitError(f"offset_v must be within +-2 full scales, got {offset_v!r}",
+                             "offset_v")
+
     def configure_sequence(self, channels: Sequence[int], sample_rate_hz: float,
                            n_samples: int, n_segments: int, delay_s: float,
                            full_scale_v: float, offset_v: float = 0.0) -> None:
         """Sequence mode; validated like the DP235 (see :class:`Digitizer`)."""
         self._check_open()
+        self.check_sequence(channels, sample_rate_hz, n_samples, n_segments, delay_s,
+                            full_scale_v, offset_v)
         chans = [int(c) for c in channels]
-        if not chans or len(set(chans)) != len(chans) or \
-                any(c not in DIGITIZER_CHANNELS for c in chans):
-            raise LimitError(f"channels must be distinct values of {DIGITIZER_CHANNELS}, "
-                             f"got {list(channels)}")
-        if not (math.isfinite(sample_rate_hz) and 0 < sample_rate_hz <= 500e6):
-            raise LimitError(f"sample_rate_hz must be in (0, 500e6], got {sample_rate_hz!r}")
-        if int(n_samples) != n_samples or not 16 <= n_samples <= 65536:
-            raise LimitError(f"n_samples must be an integer in [16, 65536], got {n_samples!r}")
-        if int(n_segments) != n_segments or n_segments < 1:
-            raise LimitError(f"n_segments must be a positive integer, got {n_segments!r}")
-        if n_samples * n_segments > MAX_SAMPLES_PER_CHANNEL:
-            raise LimitError(f"{n_segments} x {n_samples} samples exceed the "
-                             f"{MAX_SAMPLES_PER_CHANNEL} samples of memory per channel")
-        if not (math.isfinite(delay_s) and 0 <= delay_s <= 1e-3):
-            raise LimitError(f"delay_s must be in [0, 1 ms], got {delay_s!r}")
-        if not (math.isfinite(full_scale_v) and 0.05 <= full_scale_v <= 5.0):
-            raise LimitError(f"full_scale_v must be in [0.05, 5] V, got {full_scale_v!r}")
-        if not (math.isfinite(offset_v) and abs(offset_v) <= 2.0 * full_scale_v):
-            raise LimitError(f"offset_v must be within +-2 full scales, got {offset_v!r}")
         self._lost_check()
         self._log(f"AcqrsD1_configHorizontal(sampInterval={1.0 / sample_rate_hz:.6g}, "
                   f"delayTime={delay_s:.6g})")
@@ -265,6 +284,7 @@ class SimPulserReceiver:
     (100 V), ``"medium"`` (200 V), ``"high"`` (400 V) or a voltage (``"300"``, ``"300V"``).
     """
 
+    model = "simulated Panametrics 5077PR"
     GAIN_DB = (-20.0, 59.0)
 
     def __init__(self, world: World, channel: int, resource: str = "") -> None:
@@ -306,19 +326,32 @@ class SimPulserReceiver:
             raise LimitError(f"pulse_energy {pulse_energy!r}: voltage must be 100-400 V")
         return volts
 
+    @classmethod
+    def check_configuration(cls, gain_db: float, pulse_energy: str, damping_ohm: float,
+                            high_pass_hz: float | None, low_pass_hz: float | None) -> None:
+        """LimitError (``setting``: the argument's name) unless :meth:`configure` would
+        accept these values; nothing else happens."""
+        if not (math.isfinite(gain_db) and cls.GAIN_DB[0] <= gain_db <= cls.GAIN_DB[1]):
+            raise LimitError(f"gain_db must be in {list(cls.GAIN_DB)}, got {gain_db!r}",
+                             "gain_db")
+        try:
+            cls.pulse_voltage(pulse_energy)
+        except LimitError as exc:
+            raise LimitError(str(exc), "pulse_energy") from None
+        if not (math.isfinite(damping_ohm) and damping_ohm > 0):
+            raise LimitError(f"damping_ohm must be > 0, got {damping_ohm!r}", "damping_ohm")
+        for name, v in (("high_pass_hz", high_pass_hz), ("low_pass_hz", low_pass_hz)):
+            if v is not None and not (math.isfinite(v) and v > 0):
+                raise LimitError(f"{name} must be > 0 or None, got {v!r}", name)
+
     def configure(self, gain_db: float, pulse_energy: str, damping_ohm: float,
                   high_pass_hz: float | None, low_pass_hz: float | None) -> None:
         """Gain, energy, damping and filters; fires on the external trigger from now on."""
         if self._closed:
             raise DriverError(f"simulated 5077PR ch{self.channel}: already closed")
-        if not (math.isfinite(gain_db) and self.GAIN_DB[0] <= gain_db <= self.GAIN_DB[1]):
-            raise LimitError(f"gain_db must be in {list(self.GAIN_DB)}, got {gain_db!r}")
+        self.check_configuration(gain_db, pulse_energy, damping_ohm, high_pass_hz,
+                                 low_pass_hz)
         volts = self.pulse_voltage(pulse_energy)
-        if not (math.isfinite(damping_ohm) and damping_ohm > 0):
-            raise LimitError(f"damping_ohm must be > 0, got {damping_ohm!r}")
-        for name, v in (("high_pass_hz", high_pass_hz), ("low_pass_hz", low_pass_hz)):
-            if v is not None and not (math.isfinite(v) and v > 0):
-                raise LimitError(f"{name} must be > 0 or None, got {v!r}")
         self._gate("configure")
         self._log(f"GAIN {gain_db:g}")
         self._log(f"ENERGY {volts:g}V")

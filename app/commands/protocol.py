@@ -13,12 +13,13 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     sub.required = True
     c = sub.add_parser("check", help="validate a protocol file and print its estimated duration",
                        description="Validate a protocol (schema pelvislab-protocol v1, "
-                       "docs/protocols.md) against the bench limits; print the plan, the "
+                       "docs/protocols.md) against the bench limits and what its instruments' "
+                       "drivers accept; print the plan, the "
                        "estimated duration and any warnings. Exit 1 with a one-line reason "
                        "naming each offending key when it is invalid.")
     c.add_argument("file", metavar="FILE", help="protocol file (TOML)")
-    c.add_argument("--bench", metavar="BENCH.toml", help="bench file whose limits apply "
-                   "(default: the simulated bench)")
+    c.add_argument("--bench", metavar="BENCH.toml", help="bench file whose limits and "
+                   "instruments apply (default: the simulated bench)")
     c.add_argument("--strict", action="store_true", help="treat warnings as errors (exit 1)")
     c.set_defaults(handler=check_command)
 

@@ -1,0 +1,94 @@
+"""A protocol's own [points]: positions no pelvis has are refused as the unit slip they are,
+and a refused entry is reported once, by its own key (audit: ``position_m = [-93.0, 0.0,
+30.0]``, millimetres in a metres field, passed the check and ``run`` said "session complete:
+2 of 2 steps" with every FRF line NaN; a bad ``direction`` also drew "unknown point
+'probe'" for each setup using it)."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+
+from pelvislab.acquisition.protocol import load_landmarks
+from pelvislab.app.cli import main
+from tests.test_protocol_schema import base, parse, problems_of
+
+PROBE = """\
+schema = "pelvislab-protocol"
+schema_version = 1
+name = "probe"
+[sweep]
+frequencies_hz = [80.0, 180.0]
+drive_vpp = 0.2
+periods_per_step = 10
+[points.probe]
+bone = "innominate_right"
+POSITION
+direction = [-1.0, 0.0, 0.0]
+[[setups]]
+name = "a"
+excitation = "SIAS_R_x"
+transducers = { ch1 = "probe" }
+"""
+
+
+def test_millimetres_in_position_m_are_refused_before_anything_runs(tmp_path, capsys):
+    path = tmp_path / "probe.toml"
+    path.write_text(PROBE.replace("POSITION", "position_m = [-93.0, 0.0, 30.0]"))
+    assert main(["protocol", "check", str(path)]) == 1
+    err = capsys.readouterr().err.strip()
+    assert "\n" not in err
+    assert err.startswith(f"pelvislab protocol check: error: {path}: "
+                          "points.probe.position_m: [-93, 0, 30] is 97.7 m from the model "
+                          "origin")
+    # says metres and what was meant
+    assert ("position_m is in metres, so if these are millimetres write position_m = "
+            "[-0.093, 0, 0.03] or position_mm = [-93, 0, 30]") in err
+    assert "unknown point" not in err
+    out = tmp_path / "probe.h5"
+    assert main(["run", str(path), "--out", str(out), "--quiet"]) == 1
+    assert "points.probe.position_m" in capsys.readouterr().err and not out.exists()
+    # the same point in millimetres, or in metres, is fine
+    for position in ("position_mm = [-93.0, 0.0, 30.0]", "position_m = [-0.093, 0.0, 0.03]"):
+        path.write_text(PROBE.replace("POSITION", position))
+        assert main(["protocol", "check", str(path)]) == 0
+    capsys.readouterr()
+
+
+def test_the_limit_is_far_outside_the_landmark_catalogue():
+    from pelvislab.acquisition.protocol import MAX_POINT_DISTANCE_M
+
+    farthest = max(math.dist(pt.position_m, (0.0, 0.0, 0.0))
+                   for pt in load_landmarks().values())
+    assert farthest < 0.2 < MAX_POINT_DISTANCE_M  # the catalogue: within 0.16 m
+    data = base()
+    data["points"] = {"far": {"bone": "", "position_mm": [1200.0, 0.0, 0.0],
+                              "direction": [0.0, 0.0, 1.0]}}
+    data["setups"][0]["transducers"]["ch2"] = "far"
+    message = problems_of(data)
+    assert "points.far.position_mm: [1200, 0, 0] is 1.2 m from the model origin" in message
+    assert "millimetres typed" not in message  # position_mm is millimetres already
+    data["points"]["far"]["position_mm"] = [990.0, 0.0, 0.0]
+    assert parse(data).points["far"].position_m == pytest.approx((0.99, 0.0, 0.0))
+
+
+@pytest.mark.parametrize("entry, key", [
+    ({"bone": "", "position_m": [0.0, 0.0, 0.0], "direction": [-1.0, 0.0, 1.0]},
+     "points.probe.direction"),
+    ({"bone": "", "position_m": [0.0, 0.0, 0.0]}, "points.probe.direction"),
+    ({"bone": "femur", "position_m": [0.0, 0.0, 0.0], "direction": [0.0, 0.0, 1.0]},
+     "points.probe.bone"),
+    ({"bone": "", "position_m": [-93.0, 0.0, 30.0], "direction": [0.0, 0.0, 1.0]},
+     "points.probe.position_m"),
+    ("not a table", "points.probe"),
+])
+def test_a_refused_point_is_reported_once_not_again_as_unknown(entry, key):
+    data = base()
+    data["points"] = {"probe": entry}
+    data["setups"][0]["transducers"]["ch2"] = "probe"
+    data["setups"][0]["excitation"] = "probe"
+    message = problems_of(data)
+    assert "unknown point" not in message
+    problems = message.split(": ", 1)[1].split("; ")
+    assert len(problems) == 1 and problems[0].startswith(f"{key}: "), problems
