@@ -1267,7 +1267,8 @@ class Runner:
             if ch not in records:
                 raise RuntimeError(f"digitizer returned no record for channel {ch}")
             rec = records[ch]
-            c = speed_of_sound_used(cfg, ch, us.speed_of_sound_m_s)
+            c = speed_of_sound_used(cfg, ch, us.speed_of_sound_m_s,
+                                    test_object=not proto.points[setup.excitation].bone)
             cd = ChannelData(
                 name=f"ch{ch}", codes=np.asarray(rec.codes),
                 trigger_offset_s=np.asarray(rec.trigger_offset_s, dtype=float),
@@ -1598,59 +1599,75 @@ def prepare_session(protocol_path: Path | str, out_path: Path | str,
                            previous_run=previous_run)
 
 
-def speed_of_sound_used(config: Any, channel: int, protocol_m_s: float) -> float:
+def speed_of_sound_used(config: Any, channel: int, protocol_m_s: float,
+                        test_object: bool = False) -> float:
     """The speed of sound (m/s) tracking assumes on digitizer ``channel``: the bench
-    file's per-channel value, else its ``[calibration] speed_of_sound_m_s``, else the
-    protocol's ``ultrasound.speed_of_sound_m_s`` (``protocol_m_s``). The bench file wins:
-    it describes the setup measured that day (before, its global value was recorded in
-    ``/bench`` and given to the simulated echoes but not used here: an audit)."""
+    file's per-channel value, else its ``[calibration] speed_of_sound_m_s`` (not on a
+    ``test_object``: a setup whose excitation is on no bone, the validation protocols'
+    phantoms in water), else the protocol's ``ultrasound.speed_of_sound_m_s``
+    (``protocol_m_s``). The bench file describes the setup measured that day (before, its
+    global value was recorded in ``/bench`` and given to the simulated echoes but not used
+    here: an audit); its value for every channel is the tissue's (``BenchConfig.
+    speed_of_sound_for``)."""
     if hasattr(config, "speed_of_sound_for"):
-        return float(config.speed_of_sound_for(channel, protocol_m_s))
+        return float(config.speed_of_sound_for(channel, protocol_m_s, test_object))
     return float(protocol_m_s)
+
+
+def _source(config: Any, channel: int, test_object: bool) -> str:
+    source = getattr(config, "speed_of_sound_source", None)
+    return source(channel, test_object) if source is not None else ""
 
 
 def speed_of_sound_differences(steps: Any, config: Any, protocol: Any) -> list[str]:
     """Channels whose complete ``steps`` (of a session being resumed) were tracked with
-    another speed of sound than the one the bench ``config`` and ``protocol`` give now: the
-    new steps would not be comparable with them in one FRF. Compared on the steps' echoes
-    datasets (what was used), not on ``/bench``: a session written before the bench file's
-    ``[calibration] speed_of_sound_m_s`` was applied recorded it there without using it."""
-    recorded: dict[int, set[float]] = {}
+    another speed of sound than the one the bench ``config`` and ``protocol`` give now for
+    the same setup: the new steps would not be comparable with them in one FRF. Compared on
+    the steps' echoes datasets (what was used), not on ``/bench``: a session written before
+    the bench file's ``[calibration] speed_of_sound_m_s`` was applied recorded it there
+    without using it."""
+    us = protocol.ultrasound.speed_of_sound_m_s
+    found: dict[int, tuple[set[float], float, str]] = {}
     for step in steps:
         if step.status != STATUS_COMPLETE:
             continue
+        excitation = getattr(step, "input", None)
+        test_object = excitation is not None and not excitation.bone
         for channel in step.channels:
             name = str(channel.name)
-            if name.startswith("ch") and name[2:].isdigit():
-                recorded.setdefault(int(name[2:]), set()).add(
-                    float(channel.speed_of_sound_m_s))
+            if not (name.startswith("ch") and name[2:].isdigit()):
+                continue
+            ch = int(name[2:])
+            then = float(channel.speed_of_sound_m_s)
+            now = speed_of_sound_used(config, ch, us, test_object)
+            if not math.isclose(then, now, rel_tol=1e-9):
+                seen = found.setdefault(ch, (set(), now, _source(config, ch, test_object)))
+                seen[0].add(then)
     out = []
-    us = protocol.ultrasound.speed_of_sound_m_s
-    for ch in sorted(recorded):
-        now = speed_of_sound_used(config, ch, us)
-        then = sorted(recorded[ch])
-        if any(not math.isclose(c, now, rel_tol=1e-9) for c in then):
-            source = getattr(config, "speed_of_sound_source", lambda _ch: "")(ch)
-            why = f"the bench file's {source}" if source else "the protocol's"
-            out.append(f"speed of sound on ch{ch}: {', '.join(f'{c:g}' for c in then)} m/s "
-                       f"in the session's steps, {now:g} m/s now ({why})")
+    for ch in sorted(found):
+        then, now, source = found[ch]
+        why = f"the bench file's {source}" if source else "the protocol's"
+        out.append(f"speed of sound on ch{ch}: {', '.join(f'{c:g}' for c in sorted(then))} "
+                   f"m/s in the session's steps, {now:g} m/s now ({why})")
     return out
 
 
 def speed_of_sound_note(config: Any, protocol: Any) -> str:
     """One line naming the channels on which the bench file's speed of sound replaces a
-    different one in ``protocol`` (``""`` when none does)."""
+    different one in ``protocol`` (``""`` when none does; setups on a test object keep the
+    protocol's, :func:`speed_of_sound_used`)."""
     us = float(protocol.ultrasound.speed_of_sound_m_s)
-    parts = []
-    for ch in sorted(protocol.channels):
-        c = speed_of_sound_used(config, ch, us)
-        if not math.isclose(c, us, rel_tol=1e-9):
-            source = getattr(config, "speed_of_sound_source", lambda _ch: "")(ch)
-            parts.append(f"ch{ch} {c:g} m/s ({source})")
+    parts: dict[int, str] = {}
+    for setup in protocol.setups:
+        test_object = not protocol.points[setup.excitation].bone
+        for ch in sorted(setup.transducers):
+            c = speed_of_sound_used(config, ch, us, test_object)
+            if ch not in parts and not math.isclose(c, us, rel_tol=1e-9):
+                parts[ch] = f"ch{ch} {c:g} m/s ({_source(config, ch, test_object)})"
     if not parts:
         return ""
-    return (f"speed of sound from the bench file: {', '.join(parts)}; the protocol's "
-            f"{us:g} m/s is not used there")
+    return (f"speed of sound from the bench file: {', '.join(parts[c] for c in sorted(parts))}"
+            f"; the protocol's {us:g} m/s is not used there")
 
 
 BENCH_KEYS_THAT_SHAPE_THE_DATA = ("simulated", "drive_newton_per_volt",

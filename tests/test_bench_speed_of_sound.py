@@ -1,5 +1,6 @@
 """The bench file's speed of sound: which value tracking uses (per-channel bench value >
-the bench's value for every channel > the protocol's), recorded on each echoes dataset,
+the bench's value for every channel, on tissue only > the protocol's), recorded on each
+echoes dataset,
 and compared on resume (an audit found the bench's global value recorded in /bench, given
 to the simulated echoes, and never used by the runner: |H| 0.964x at 1600 m/s)."""
 
@@ -223,3 +224,36 @@ def test_a_speed_of_sound_for_a_channel_the_digitizer_lacks_is_refused(tmp_path,
     with pytest.raises(BenchConfigError, match=r"\.3: no digitizer channel 3: the Acqiris "
                        r"DP235 has channels 1, 2"):
         BenchConfig.load(tmp_path / "real.toml")
+
+
+def test_a_test_object_keeps_the_protocols_speed_of_sound(tmp_path):
+    """The bench's value for every channel is the tissue's: on a setup whose excitation is
+    on no bone (validation_amplitude: the piezo face in water, 1480 m/s) the protocol's
+    value holds, as the simulated phantom's echoes keep theirs. A bench file stating 1540
+    m/s read the validation amplitudes +4.05 % (review, session 41). A per-channel value
+    still applies there (an explicit calibration of that transducer's path)."""
+    from pathlib import Path
+
+    from pelvislab.acquisition.protocol import load_protocol
+    from pelvislab.acquisition.runner import speed_of_sound_note
+
+    shipped = Path(__file__).resolve().parents[1] / "protocols" / "validation_amplitude.toml"
+    _, plain = _files(tmp_path, "", name="plain")
+    _, stated = _files(tmp_path, "speed_of_sound_m_s = 1540.0\n", name="stated")
+    _, per_channel = _files(tmp_path, "[calibration.channel_speed_of_sound_m_s]\n1 = 1490.0\n",
+                            name="channel")
+    config = BenchConfig.load(stated)
+    assert speed_of_sound_note(config, load_protocol(shipped)) == ""
+    assert config.speed_of_sound_for(1, 1480.0, test_object=True) == 1480.0
+    assert config.speed_of_sound_for(1, 1480.0) == 1540.0
+    assert BenchConfig.load(per_channel).speed_of_sound_for(1, 1480.0, test_object=True) == 1490
+    phasors = {}
+    for name, bench in (("plain", plain), ("stated", stated)):
+        out = tmp_path / f"{name}.h5"
+        assert _run(shipped, bench, out).status == "completed"
+        used, _ = _used(out)
+        assert used == {"ch1": {1480.0}}, (name, used)
+        with SessionReader(out) as reader:
+            phasors[name] = np.array([ch.phasor_m for step in reader.steps(with_echoes=False)
+                                      for ch in step.channels])
+    np.testing.assert_allclose(np.abs(phasors["stated"]), np.abs(phasors["plain"]), rtol=1e-9)
