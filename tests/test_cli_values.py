@@ -144,3 +144,26 @@ def test_a_completed_run_that_lost_lines_says_so_in_its_last_line(tmp_path, caps
     assert last.startswith("session complete: 2 of 2 steps"), last
     assert last.endswith("1 of 4 FRF values missing (steps whose channels failed quality: "
                          "see the warnings above), at 10 Hz"), last
+
+
+def test_the_missing_values_count_planned_pairs_that_lost_every_line(tmp_path):
+    # review, session 41: a pair whose channel failed at every step added nothing, and a
+    # run missing 78 of 616 planned values said "1 of 539"
+    import shutil
+    from pathlib import Path
+
+    from pelvislab.acquisition.protocol import load_protocol
+    from pelvislab.app.commands.run import _missing_frf_values
+    from pelvislab.tests.test_identify_estimated_noise import DATA
+
+    protocol = load_protocol(Path(__file__).resolve().parents[1] / "protocols" / "demo.toml")
+    copy = tmp_path / "s.h5"
+    shutil.copy(DATA, copy)
+    assert _missing_frf_values(str(copy), protocol) == ""
+    with h5py.File(copy, "a") as handle:
+        H = handle["frf/H"][()]
+        H[:, 1, 0] = np.nan
+        H[3, 2, 1] = np.nan
+        handle["frf/H"][...] = H
+    said = _missing_frf_values(str(copy), protocol)
+    assert said.startswith("; 78 of 616 FRF values missing"), said

@@ -329,36 +329,44 @@ def _report(args: argparse.Namespace, prepared: Any, final: Any, elapsed: float)
             f"hand; {where}")
         return EXIT_UNSAFE
     if final.status == "completed":
-        say(f"session complete: {where} ({elapsed:.1f} s)" + _missing_frf_values(args.out))
+        say(f"session complete: {where} ({elapsed:.1f} s)"
+            + _missing_frf_values(args.out, prepared.protocol))
         return 0
     say(f"pelvislab run: {final.status}: {final.reason}; outputs off; {where}")
     return {"failed": EXIT_FAULT, "aborted": EXIT_ABORTED}.get(final.status, EXIT_INTERRUPTED)
 
 
-def _missing_frf_values(path: str) -> str:
+def _missing_frf_values(path: str, protocol: Any) -> str:
     """``"; K of N FRF values missing ..."`` for a completed session whose /frf lacks
-    values where its (output, input) pairs were measured (steps whose channels failed
-    quality), else "". A run that lost a line in every setup ended "session complete"
-    with nothing but the quality warnings scrolled past to say so (audit, session 41)."""
+    values the ``protocol`` plans (each setup's (looked-at point, excitation) pair at every
+    line; steps whose channels failed quality), else "". A run that lost a line in every
+    setup ended "session complete" with nothing but the quality warnings scrolled past to
+    say so (audit, session 41); a pair that lost every line counts too (review)."""
     import numpy as np
 
     from pelvislab.acquisition.frfset import read_frf
 
     try:
         frf = read_frf(path)
+        planned = {(point, setup.excitation) for setup in protocol.setups
+                   for point in setup.transducers.values()}
     except Exception:  # the summary is a convenience; the file's state is what it is
         return ""
-    H = frf.H
-    measured_pairs = np.isfinite(H).any(axis=0)
-    n_values = int(measured_pairs.sum()) * H.shape[0]
-    missing = n_values - int(np.isfinite(H)[:, measured_pairs].sum())
+    outputs, inputs = list(frf.outputs.name), list(frf.inputs.name)
+    lost = np.zeros(frf.H.shape[0], bool)
+    missing = 0
+    for output, excitation in planned:
+        held = (np.isfinite(frf.H[:, outputs.index(output), inputs.index(excitation)])
+                if output in outputs and excitation in inputs
+                else np.zeros(frf.H.shape[0], bool))
+        missing += int((~held).sum())
+        lost |= ~held
     if not missing:
         return ""
-    lines = np.flatnonzero(~np.isfinite(H)[:, measured_pairs].all(axis=1))
-    frequencies = frf.frequency_hz[lines]
-    shown = ", ".join(f"{f:g}" for f in frequencies[:6]) + (" ..." if lines.size > 6 else "")
-    return (f"; {missing} of {n_values} FRF values missing (steps whose channels failed "
-            f"quality: see the warnings above), at {shown} Hz")
+    frequencies = frf.frequency_hz[lost]
+    shown = ", ".join(f"{f:g}" for f in frequencies[:6]) + (" ..." if lost.sum() > 6 else "")
+    return (f"; {missing} of {len(planned) * frf.H.shape[0]} FRF values missing (steps "
+            f"whose channels failed quality: see the warnings above), at {shown} Hz")
 
 
 def _run_with_signals(prepared: Any, close: bool = False,
