@@ -258,7 +258,7 @@ def third_differences(h: np.ndarray, frequency_hz: np.ndarray | None = None
 
     On evenly spaced lines the difference is Δ³h (coefficients 1, −3, 3, −1: noise variance
     Σc²σ² = 20σ² for white noise). Where the four lines are unevenly spaced
-    (``frequency_hz`` given, steps differing by more than 1e-9 relative) it is the divided
+    (``frequency_hz`` given, steps differing by more than 1e-6 relative) it is the divided
     difference, weights 1/Π_{m≠k}(f_k − f_m), which vanishes on any quadratic as Δ³ does
     on an even grid, scaled to Σc² = 20 so that both estimate the same σ². Plain Δ³ on an
     uneven grid leaves even a straight line in: on alternating 1/2 Hz steps, noise 1 % of
@@ -274,7 +274,9 @@ def third_differences(h: np.ndarray, frequency_hz: np.ndarray | None = None
         return d, c2, uneven
     f4 = np.lib.stride_tricks.sliding_window_view(np.asarray(frequency_hz, float), 4)
     steps = np.diff(f4, axis=1)
-    uneven = np.any(np.abs(steps - steps[:, :1]) > 1e-9 * np.abs(steps[:, :1]), axis=1)
+    # 1e-6 relative: sweep frequencies are rounded to 1e-9 Hz, which moves a 1/3 Hz step
+    # by 3e-9 of itself; a grid meant to be uneven differs by far more (review, session 41)
+    uneven = np.any(np.abs(steps - steps[:, :1]) > 1e-6 * np.abs(steps[:, :1]), axis=1)
     if uneven.any():
         fu = f4[uneven]
         span = fu[:, :, None] - fu[:, None, :]

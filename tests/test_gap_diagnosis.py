@@ -196,6 +196,8 @@ def test_third_differences_vanish_on_a_quadratic_on_any_grid():
     assert np.allclose(c2.sum(axis=1), 20.0)
     even = np.arange(5.0, 50.0, 1.5)
     d_even, c2_even, uneven_even = third_differences(even**3, even)
+    thirds = np.round(5.0 + np.arange(60) / 3.0, 9)  # a sweep's 1e-9 Hz rounding: even
+    assert not third_differences(thirds, thirds)[2].any()
     assert not uneven_even.any() and np.array_equal(d_even, np.diff(even**3, 3))
     assert np.array_equal(c2_even, np.tile([1.0, 9.0, 9.0, 1.0], (d_even.size, 1)))
     alternating = np.cumsum(np.r_[5.0, np.tile([1.0, 2.0], 20)])
