@@ -92,6 +92,20 @@ def _verbose_anywhere(parser: argparse.ArgumentParser) -> None:
                 _verbose_anywhere(sub)
 
 
+def _command_parser(parser: argparse.ArgumentParser,
+                    args: argparse.Namespace) -> argparse.ArgumentParser:
+    """The (sub)command parser that ``args`` went through (``gap diagnose``'s for a
+    ``gap diagnose`` command line), for its one-line usage errors."""
+    for key in ("command", *sorted(k for k in vars(args) if k.endswith("_command"))):
+        name = getattr(args, key, None)
+        choices = next((a.choices for a in parser._actions  # argparse keeps them only there
+                        if isinstance(a, argparse._SubParsersAction)), None)
+        if not isinstance(name, str) or not choices or name not in choices:
+            break
+        parser = choices[name]
+    return parser
+
+
 class Terminated(KeyboardInterrupt):
     """SIGTERM or SIGHUP asked the command to stop: handled as Ctrl-C is (files cleaned up,
     worker processes terminated, exit 130). A subclass of KeyboardInterrupt so that no
@@ -122,7 +136,10 @@ def _stop_on_termination_signals() -> dict[int, object]:
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of the ``pelvislab`` console script; returns the process exit code."""
     parser = build_parser()
-    args = parser.parse_args(argv)
+    args, unknown = parser.parse_known_args(argv)
+    if unknown:  # argparse names only the top-level parser for these: name the command
+        sub = _command_parser(parser, args)
+        sub.error(f"unrecognized arguments: {' '.join(unknown)}")
     configure_logging(args.verbose)
     previous = _stop_on_termination_signals()
     try:

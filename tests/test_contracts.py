@@ -122,6 +122,8 @@ def test_every_design_command_has_help(argv: list[str], capsys: pytest.CaptureFi
 
 @pytest.mark.parametrize("argv", [[], ["frobnicate"], ["gap"], ["gap", "diagnose"],
                                   ["identify", "s.h5", "--json", "o", "--gain-std", "abc"],
+                                  ["identify", "s.h5", "--json", "o", "--bogus"],
+                                  ["gap", "diagnose", "s.h5", "--json", "o", "--bogus", "3"],
                                   ["run", "p.toml", "--out", "s.h5", "--wait-prompts",
                                    "--auto-continue"]])
 def test_usage_errors_are_one_line(argv: list[str], capsys: pytest.CaptureFixture) -> None:
