@@ -343,12 +343,27 @@ def _column_at_peak(Hk: np.ndarray, measured: np.ndarray, iterations: int = 50
     return np.where(seen, phi, 0.0)
 
 
+PICKING_MIN_LINE_SHARE = 0.9
+"""An FRF holding fewer than this share of the lines the fullest FRF holds is left out of
+peak picking (:func:`picking_frfs`) rather than taking its missing lines from every FRF."""
+
+
+def picking_frfs(H: np.ndarray) -> np.ndarray:
+    """(n_out, n_in) bool: the FRFs :func:`modes_from_frf` picks peaks from: measured (a
+    finite, non-zero value somewhere) on at least :data:`PICKING_MIN_LINE_SHARE` of the
+    lines the fullest FRF holds. One FRF measured on part of the band, or on alternate
+    lines, took the other lines from every FRF: a chain's three modes became one (review,
+    session 41)."""
+    held = (np.abs(np.where(np.isfinite(H), H, 0.0)) > 0).sum(axis=0)
+    return (held > 0) & (held >= PICKING_MIN_LINE_SHARE * held.max())
+
+
 def picking_lines(H: np.ndarray) -> np.ndarray:
     """(n_f,) bool: the lines :func:`modes_from_frf` picks peaks on, those on which every
-    measured FRF (one with a finite, non-zero value somewhere) has a value."""
-    mag = np.abs(np.where(np.isfinite(H), H, 0.0)).reshape(H.shape[0], -1)
-    measured = np.any(mag > 0, axis=0)
-    return np.all(mag[:, measured] > 0, axis=1) & measured.any()
+    FRF of :func:`picking_frfs` has a value."""
+    mag = np.abs(np.where(np.isfinite(H), H, 0.0))
+    kept = picking_frfs(H)
+    return np.all(mag[:, kept] > 0, axis=1) & kept.any()
 
 
 def modes_from_frf(
@@ -358,8 +373,9 @@ def modes_from_frf(
 
     A simple single-degree-of-freedom estimator for lightly damped, well separated modes:
     the column (input) with the largest response at each peak supplies the shape. Unmeasured
-    FRFs (NaN throughout) are ignored, and lines on which a measured FRF has no value are
-    left out (:func:`picking_lines`; one failed line refused the whole file before);
+    FRFs (NaN throughout) and FRFs holding under 90 % of the lines are left out of the
+    picking (:func:`picking_frfs`), and lines on which a kept FRF has no value are left out
+    (:func:`picking_lines`; one failed line refused the whole file before);
     ``min_prominence`` is in natural-log units. Good enough to seed modal
     updating; the EMA module does better. Each frequency is known to the grid only: the
     peak line is higher than both its neighbours, so a single resonance lies between them

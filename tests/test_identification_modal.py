@@ -12,6 +12,7 @@ from pelvislab.model.identification_modal import (
     identify_modal,
     mac,
     modes_from_frf,
+    picking_frfs,
     picking_lines,
     undamped_modes,
 )
@@ -251,3 +252,21 @@ def test_finer_lines_do_not_refuse_a_better_fit() -> None:
         res = identify_modal(p, data, free=["k1"], start=start, n_rigid=0)
         assert abs(res.values[0] / truth[k[1]] - 1) < 0.01, (step, res.values)
         assert res.converged, (step, res.message)
+
+
+def test_an_frf_on_part_of_the_band_is_left_out_of_peak_picking() -> None:
+    """One FRF measured up to 20 Hz took the lines above from every FRF: the chain's
+    modes at 10.5, 31 and 37.5 Hz became one (review, session 41). An FRF holding under 90
+    % of the lines is left out of the picking instead; so is one on alternate lines."""
+    p = chain_problem(3, seed=1, damping=1.0)
+    f = np.arange(1.0, 80.0, 0.5)
+    H = synth(p, p.nominal, f)
+    whole = modes_from_frf(f, H)
+    assert whole.frequency_hz.size == 3
+    for hole in (f > 20, np.arange(f.size) % 2 == 1):
+        holed = H.copy()
+        holed[hole, 1, 0] = np.nan
+        assert not picking_frfs(holed)[1, 0] and picking_frfs(holed)[0, 0]
+        assert picking_lines(holed).all()
+        np.testing.assert_array_equal(modes_from_frf(f, holed).frequency_hz,
+                                      whole.frequency_hz)

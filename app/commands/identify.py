@@ -126,6 +126,7 @@ def identify_file(path: str | Path, method: str = "frf", params: list[str] | Non
     from pelvislab.model.identification_modal import (
         identify_modal,
         modes_from_frf,
+        picking_frfs,
         picking_lines,
     )
     from pelvislab.model.identification_pelvis import pelvis_problem
@@ -174,7 +175,7 @@ def identify_file(path: str | Path, method: str = "frf", params: list[str] | Non
             data = modes_from_frf(frf.frequency_hz, frf.H)
         except ValueError as exc:
             raise ValueError(f"{path}: {exc}") from None
-        noise_note = _dropped_lines_note(frf.frequency_hz, frf.H, picking_lines(frf.H))
+        noise_note = _dropped_lines_note(frf, picking_lines(frf.H), picking_frfs(frf.H))
         result = identify_modal(problem, data, free=free, progress=progress)
         extra: dict[str, Any] = {"method": "modal", "noise": None,
                                  "modes_hz": [float(f) for f in data.frequency_hz]}
@@ -285,15 +286,26 @@ def modelled_channels(frf: Any, path: str | Path) -> tuple[Any, str | None]:
                     f"model predicts nothing there): {named}")
 
 
-def _dropped_lines_note(frequency_hz: Any, H: Any, used: Any) -> str | None:
-    """A note naming the lines peak picking left out (``picking_lines``: some measured FRF
-    has no value there, e.g. a failed step); None when it used every line."""
-    dropped = [f"{frequency_hz[k]:g}" for k in range(len(used)) if not used[k]]
-    if not dropped:
+def _dropped_lines_note(frf: Any, used: Any, kept: Any) -> str | None:
+    """A note naming what peak picking left out: measured FRFs holding under 90 % of the
+    lines (``picking_frfs``) and lines on which a kept FRF has no value (``picking_lines``:
+    e.g. a failed step); None when it used every line of every measured FRF."""
+    import numpy as np
+
+    parts = []
+    measured = np.isfinite(frf.H).any(axis=0)
+    left = [f"{frf.outputs.name[o]}/{frf.inputs.name[i]}"
+            for o, i in zip(*np.nonzero(measured & ~np.asarray(kept)), strict=True)]
+    if left:
+        parts.append(f"{len(left)} FRF(s) holding under 90 % of the lines the fullest holds: "
+                     + ", ".join(left[:8]) + (" ..." if len(left) > 8 else ""))
+    dropped = [f"{frf.frequency_hz[k]:g}" for k in range(len(used)) if not used[k]]
+    if dropped:
+        parts.append(f"{len(dropped)} of {len(used)} lines on which a kept FRF has no value: "
+                     f"{', '.join(dropped[:8])}{' ...' if len(dropped) > 8 else ''} Hz")
+    if not parts:
         return None
-    return (f"peak picking used {len(used) - len(dropped)} of {len(used)} lines, leaving out "
-            f"{len(dropped)} on which a measured FRF has no value: "
-            f"{', '.join(dropped[:8])}{' ...' if len(dropped) > 8 else ''} Hz")
+    return "peak picking left out " + "; and ".join(parts)
 
 
 def _unestimated_noise_note(frf: Any) -> str | None:
