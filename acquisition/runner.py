@@ -1003,7 +1003,8 @@ class Runner:
 
     def _silent_on_simulated_bench(self) -> list[str]:
         """Points on no bone that a transducer looks at in a setup whose excitation is on a
-        bone: the simulated bench has nothing there to echo. Where the excitation itself is
+        bone: the simulated bench has nothing there that moves (a still echo, quality ok, an
+        FRF of noise; review, session 41). Where the excitation itself is
         on no bone it drives the ch. 8.3 phantom, whose faces do echo (the validation
         protocols: this warning said their data were void while every step was ok)."""
         points = self.protocol.points
@@ -1032,8 +1033,9 @@ class Runner:
             if self.bench.simulated and silent:
                 self._log(f"the simulated bench models the pelvis, and a phantom only where "
                           f"the shaker drives a point on no bone: points on no bone looked "
-                          f"at while the shaker is on the pelvis ({', '.join(silent)}) give "
-                          f"no echo there", "WARNING")
+                          f"at while the shaker is on the pelvis ({', '.join(silent)}) do "
+                          f"not move there (a still echo: their FRF holds noise only)",
+                          "WARNING")
             n_done = self._run_plan(todo, n_done, n_total)
         except _Stop as exc:
             status, reason = self._abort_status, str(exc) or "aborted"
