@@ -27,6 +27,7 @@ from typing import Any
 
 import numpy as np
 
+from pelvislab.drivers.acqiris import DP235_MAX_SAMPLES_PER_CHANNEL
 from pelvislab.drivers.bench import SPEED_OF_SOUND_RANGE_M_S
 
 __all__ = [
@@ -65,11 +66,6 @@ MIN_DRIVE_VPP = 0.02
 minimum amplitude into an open circuit (10 mVpp into 50 ohm, 20 mVpp high-Z; data sheet,
 ``pelvislab.drivers.agilent33220a.AMPLITUDE_50OHM_VPP``); the bench drives high-Z."""
 DRIVE_MODES = ("fixed", "auto")
-DP235_MAX_SAMPLES_PER_CHANNEL = 8 * 1024 * 1024
-"""Acqiris DP235 acquisition memory per channel assumed, samples (8 Mi points: the largest
-memory option, as the simulated DP235 models it, ``sim_instruments.instruments``); the
-thesis (ch. 8) names the DP235 but not its memory option; unconfirmed against the unit.
-The record needs ``n_pulses x samples`` (the driver's per-segment padding is not counted)."""
 MAX_POINT_DISTANCE_M = 1.0
 """A point farther than this from the model origin (between the SIAS, design 4.1) is
 refused: no place on a pelvis is (the landmark catalogue's points lie within 0.16 m of it,
@@ -226,7 +222,9 @@ class BenchLimits:
     max_sample_rate_hz: float = 500e6
     name: str = "simulated bench"
     max_samples_per_channel: int = DP235_MAX_SAMPLES_PER_CHANNEL
-    """Digitizer acquisition memory per channel (samples): one record, all segments."""
+    """Digitizer acquisition memory per channel (samples): one record, all segments,
+    ``n_pulses x samples`` (the driver's per-segment padding is not counted); the Acqiris
+    DP235's as assumed in ``pelvislab.drivers.acqiris``."""
     trigger_load_ohm: float | None = None
     """The trigger generator's declared load (ohm, inf = high-Z); None: not known."""
     max_trigger_vpp: float | None = None

@@ -76,6 +76,10 @@ READ_MODE_SEQUENCE = 1                # ReadModeSeqW
 
 # --- DP235 (data sheet, as known to us) ------------------------------------------------------
 DP235_CHANNELS = (1, 2)
+DP235_MAX_SAMPLES_PER_CHANNEL = 8 * 1024 * 1024
+"""Acquisition memory per channel assumed, samples (8 Mi points: the largest memory option;
+the thesis, ch. 8, names the DP235 but not its memory option; unconfirmed against the
+unit). The simulated DP235 and the protocol check use this one figure."""
 DP235_MAX_SAMPLE_RATE_HZ = 500e6
 DP235_FULL_SCALE_V = (0.05, 5.0)
 

@@ -21,6 +21,7 @@ import time
 from collections.abc import Sequence
 from typing import Any
 
+from pelvislab.drivers.acqiris import DP235_CHANNELS, DP235_MAX_SAMPLES_PER_CHANNEL
 from pelvislab.drivers.interfaces import (
     DriverError,
     InstrumentConnectionError,
@@ -47,11 +48,11 @@ __all__ = [
     "SimTransport",
 ]
 
-MAX_SAMPLES_PER_CHANNEL = 8 * 1024 * 1024
-"""Acquisition memory per channel of the simulated DP235 (samples)."""
+MAX_SAMPLES_PER_CHANNEL = DP235_MAX_SAMPLES_PER_CHANNEL
+"""Acquisition memory per channel of the simulated DP235 (samples): the real one's."""
 PULSE_ENERGY_V = {"low": 100.0, "medium": 200.0, "high": 400.0}
 """Pulser voltage of the named energy settings (5077PR: 100-400 V)."""
-DIGITIZER_CHANNELS = (1, 2)
+DIGITIZER_CHANNELS = DP235_CHANNELS
 
 
 # --------------------------------------------------------------------------- generators
