@@ -39,30 +39,34 @@ def _frf(damping_n_s_per_m: dict[str, float], f_k: float = 0.0) -> np.ndarray:
     return _layout_frf(m, c, k, f_k)
 
 
-def _layout_frf(m: np.ndarray, c: np.ndarray, k: np.ndarray, f_k: float = 0.0) -> np.ndarray:
+def _layout_frf(m: np.ndarray, c: np.ndarray, k: np.ndarray, f_k: float = 0.0,
+                lines: slice = slice(None)) -> np.ndarray:
     """FRFs (m/N) of M, C, K (independent model's coordinates) at the benchmark layout's
-    outputs and inputs, K scaled by (1 + f_k ω / (4 ω_max)) (eq. 7.1, 7.3)."""
+    outputs and inputs on its grid's ``lines``, K scaled by (1 + f_k ω / (4 ω_max))
+    (eq. 7.1, 7.3; ω_max of the whole grid)."""
     d_out = np.array([d @ ip.point_map(b, p) for b, p, d in
                       zip(OUTPUTS.bone, OUTPUTS.position_m, OUTPUTS.direction, strict=True)])
     d_in = np.array([d @ ip.point_map(b, p) for b, p, d in
                      zip(INPUTS.bone, INPUTS.position_m, INPUTS.direction, strict=True)])
     w_max = 2 * np.pi * FREQUENCY_HZ.max()
-    H = np.empty((FREQUENCY_HZ.size, len(d_out), len(d_in)), complex)
-    for i, w in enumerate(2 * np.pi * FREQUENCY_HZ):
+    f_hz = FREQUENCY_HZ[lines]
+    H = np.empty((f_hz.size, len(d_out), len(d_in)), complex)
+    for i, w in enumerate(2 * np.pi * f_hz):
         z = -w * w * m + 1j * w * c + k * (1 + f_k * w / (4 * w_max))
         H[i] = d_out @ np.linalg.solve(z, d_in.T)
     return H
 
 
-def _data(H: np.ndarray, seed: int, noise_of_peak: float = 0.01, noise_of_h: float = 0.0):
-    """``H`` with complex noise ``noise_of_peak`` of each FRF's peak (or ``noise_of_h`` of
-    |H| line by line), measured pairs only."""
+def _data(H: np.ndarray, seed: int, noise_of_peak: float = 0.01, noise_of_h: float = 0.0,
+          lines: slice = slice(None)):
+    """``H`` (on the grid's ``lines``) with complex noise ``noise_of_peak`` of each FRF's
+    peak (or ``noise_of_h`` of |H| line by line), measured pairs only."""
     rng = np.random.default_rng(seed)
     sigma = (noise_of_h * np.abs(H) if noise_of_h else
              noise_of_peak * np.max(np.abs(H), axis=0, keepdims=True) * np.ones(H.shape))
     H = H + sigma / np.sqrt(2) * (rng.normal(size=H.shape) + 1j * rng.normal(size=H.shape))
     measured = MEASURED[None] & np.ones(H.shape, bool)
-    return prepare_data(FREQUENCY_HZ, np.where(measured, H, np.nan + 0j),
+    return prepare_data(FREQUENCY_HZ[lines], np.where(measured, H, np.nan + 0j),
                         np.where(measured, sigma, np.nan), OUTPUTS, INPUTS)
 
 
@@ -107,7 +111,9 @@ def test_strong_spring_on_a_per_dashpot_subject_is_refitted_with_the_extension()
     # the noise. The library here leaves the support out (with it: 76 s against 46 s on
     # one core, the same spring at the same gap): what the test needs is the spring's own
     # refit, and without it the spring stops at gap 13.8 and the last assertion fails
-    # (checked by disabling the stage's "no candidate near the noise" branch)
+    # (checked by disabling the stage's "no candidate near the noise" branch). On every
+    # other line of the grid (99 lines; 42 -> 25 s on one core, the same verdict and place:
+    # gap 0.48, 0.52 on all 197 lines) that check still fails: the spring stops at 13.6
     mass = {"innominate_right": 0.479, "innominate_left": 0.659, "sacrum": 0.255}
     stiffness = {"io_R": 1.034e6, "asa_R": 7.16e5, "asd_R": 1.251e6, "pss_R": 7.98e5,
                  "psl_R": 9.25e5, "io_L": 1.221e6, "asa_L": 7.10e5, "asd_L": 1.214e6,
@@ -121,7 +127,9 @@ def test_strong_spring_on_a_per_dashpot_subject_is_refitted_with_the_extension()
     axis = (l5_m - crest_m) / np.linalg.norm(l5_m - crest_m)
     row = axis @ ip.point_map("innominate_right", crest_m)
     k = k + 1.9e5 * np.outer(row, row)
-    data = _data(_layout_frf(m, c, k), seed=29, noise_of_h=0.0106)
+    every_other = slice(None, None, 2)
+    data = _data(_layout_frf(m, c, k, lines=every_other), seed=29, noise_of_h=0.0106,
+                 lines=every_other)
     report = diagnose(data, default_model(), GapOptions(
         effects=("per_dashpot_damping", "missing_ligament"))).report
     assert report["verdict"] == "missing_ligament", report["verdict_reason"]
