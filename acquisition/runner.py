@@ -1604,13 +1604,12 @@ def prepare_session(protocol_path: Path | str, out_path: Path | str,
 def speed_of_sound_used(config: Any, channel: int, protocol_m_s: float,
                         test_object: bool = False) -> float:
     """The speed of sound (m/s) tracking assumes on digitizer ``channel``: the bench
-    file's per-channel value, else its ``[calibration] speed_of_sound_m_s`` (not on a
-    ``test_object``: a setup whose excitation is on no bone, the validation protocols'
-    phantoms in water), else the protocol's ``ultrasound.speed_of_sound_m_s``
-    (``protocol_m_s``). The bench file describes the setup measured that day (before, its
+    file's per-channel value, else its ``[calibration] speed_of_sound_m_s``, else the
+    protocol's ``ultrasound.speed_of_sound_m_s`` (``protocol_m_s``); on a ``test_object``
+    (a setup whose excitation is on no bone, the validation protocols' phantoms in water)
+    the protocol's. The bench file describes the setup measured that day (before, its
     global value was recorded in ``/bench`` and given to the simulated echoes but not used
-    here: an audit); its value for every channel is the tissue's (``BenchConfig.
-    speed_of_sound_for``)."""
+    here: an audit); its values are the tissue's (``BenchConfig.speed_of_sound_for``)."""
     if hasattr(config, "speed_of_sound_for"):
         return float(config.speed_of_sound_for(channel, protocol_m_s, test_object))
     return float(protocol_m_s)

@@ -223,14 +223,16 @@ class BenchConfig:
         file's value for that channel, else its value for every channel, else
         ``protocol_m_s`` (the protocol's ``ultrasound.speed_of_sound_m_s``). The bench file
         describes the setup measured that day, so it wins over the protocol, except that
-        its value for every channel is the tissue's: on a ``test_object`` (a setup whose
-        excitation is on no bone: the validation protocols' phantoms in water, as the
-        simulated bench's phantoms keep their own) the protocol's value holds. A bench file
-        stating 1540 m/s read the validation protocols' amplitudes +4 % (review, session
-        41)."""
+        its values are the tissue's: on a ``test_object`` (a setup whose excitation is on
+        no bone: the validation protocols' phantoms in water, as the simulated bench's
+        phantoms keep their own) the protocol's value holds. A bench file stating 1540 m/s
+        read the validation protocols' amplitudes +4 %, one stating 1560 m/s for a channel
+        +5.4 % (reviews, session 41)."""
+        if test_object:
+            return float(protocol_m_s)
         if channel in self.channel_speed_of_sound_m_s:
             return float(self.channel_speed_of_sound_m_s[channel])
-        if self.speed_of_sound_m_s is not None and not test_object:
+        if self.speed_of_sound_m_s is not None:
             return float(self.speed_of_sound_m_s)
         return float(protocol_m_s)
 
@@ -238,10 +240,11 @@ class BenchConfig:
         """Which key gives :meth:`speed_of_sound_for` ``channel``: the bench file's
         ``calibration.channel_speed_of_sound_m_s.<ch>`` or ``calibration.speed_of_sound_m_s``,
         or ``""`` (the protocol's value)."""
+        if test_object:
+            return ""
         if channel in self.channel_speed_of_sound_m_s:
             return f"calibration.channel_speed_of_sound_m_s.{channel}"
-        return ("calibration.speed_of_sound_m_s"
-                if self.speed_of_sound_m_s is not None and not test_object else "")
+        return "calibration.speed_of_sound_m_s" if self.speed_of_sound_m_s is not None else ""
 
     @property
     def drive_calibration_range_hz(self) -> tuple[float, float] | None:

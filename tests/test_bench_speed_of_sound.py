@@ -147,6 +147,7 @@ def test_the_checks_say_where_the_bench_replaces_the_protocols_value(tmp_path, c
             ) in capsys.readouterr().err
     assert main(["bench", "check", str(bench)]) == 0
     assert ("  speed of sound: 1600 m/s on every channel (over the protocol's); ch2 1540 m/s"
+            "; on tissue: a test object (excitation on no bone) keeps the protocol's"
             ) in capsys.readouterr().out
 
 
@@ -230,8 +231,9 @@ def test_a_test_object_keeps_the_protocols_speed_of_sound(tmp_path):
     """The bench's value for every channel is the tissue's: on a setup whose excitation is
     on no bone (validation_amplitude: the piezo face in water, 1480 m/s) the protocol's
     value holds, as the simulated phantom's echoes keep theirs. A bench file stating 1540
-    m/s read the validation amplitudes +4.05 % (review, session 41). A per-channel value
-    still applies there (an explicit calibration of that transducer's path)."""
+    m/s read the validation amplitudes +4.05 % (review, session 41), and one stating
+    1560 m/s for a channel +5.4 % (the next review): per-channel values are the tissue's
+    too."""
     from pathlib import Path
 
     from pelvislab.acquisition.protocol import load_protocol
@@ -246,9 +248,10 @@ def test_a_test_object_keeps_the_protocols_speed_of_sound(tmp_path):
     assert speed_of_sound_note(config, load_protocol(shipped)) == ""
     assert config.speed_of_sound_for(1, 1480.0, test_object=True) == 1480.0
     assert config.speed_of_sound_for(1, 1480.0) == 1540.0
-    assert BenchConfig.load(per_channel).speed_of_sound_for(1, 1480.0, test_object=True) == 1490
+    assert BenchConfig.load(per_channel).speed_of_sound_for(1, 1480.0, test_object=True) == 1480
+    assert BenchConfig.load(per_channel).speed_of_sound_for(1, 1480.0) == 1490
     phasors = {}
-    for name, bench in (("plain", plain), ("stated", stated)):
+    for name, bench in (("plain", plain), ("stated", stated), ("channel", per_channel)):
         out = tmp_path / f"{name}.h5"
         assert _run(shipped, bench, out).status == "completed"
         used, _ = _used(out)
@@ -256,4 +259,5 @@ def test_a_test_object_keeps_the_protocols_speed_of_sound(tmp_path):
         with SessionReader(out) as reader:
             phasors[name] = np.array([ch.phasor_m for step in reader.steps(with_echoes=False)
                                       for ch in step.channels])
-    np.testing.assert_allclose(np.abs(phasors["stated"]), np.abs(phasors["plain"]), rtol=1e-9)
+    for name in ("stated", "channel"):
+        np.testing.assert_allclose(np.abs(phasors[name]), np.abs(phasors["plain"]), rtol=1e-9)

@@ -70,6 +70,8 @@ def speed_of_sound_text(config: Any) -> str:
     own = dict(config.channel_speed_of_sound_m_s)
     if own:
         text += "; " + ", ".join(f"ch{ch} {c:g} m/s" for ch, c in sorted(own.items()))
+    if every is not None or own:
+        text += "; on tissue: a test object (excitation on no bone) keeps the protocol's"
     return text
 
 
