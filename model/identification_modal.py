@@ -360,10 +360,16 @@ def picking_frfs(H: np.ndarray) -> np.ndarray:
 
 def picking_lines(H: np.ndarray) -> np.ndarray:
     """(n_f,) bool: the lines :func:`modes_from_frf` picks peaks on, those on which every
-    FRF of :func:`picking_frfs` has a value."""
-    mag = np.abs(np.where(np.isfinite(H), H, 0.0))
+    FRF of :func:`picking_frfs` has a value and every measured output has one from some
+    FRF: a shape has no value to take at an output nothing measured on that line (an FRF
+    left out of the picking may be the only one that measures its output: its missing
+    lines then read 0 in the shapes, MAC 0.63-0.78 for three demo-layout modes; review,
+    session 41)."""
+    held = np.abs(np.where(np.isfinite(H), H, 0.0)) > 0
     kept = picking_frfs(H)
-    return np.all(mag[:, kept] > 0, axis=1) & kept.any()
+    outputs = held.any(axis=(0, 2))
+    every_output = np.all(held.any(axis=2)[:, outputs], axis=1)
+    return np.all(held[:, kept], axis=1) & every_output & kept.any()
 
 
 def modes_from_frf(
