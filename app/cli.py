@@ -138,7 +138,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser = build_parser()
     args, unknown = parser.parse_known_args(argv)
     if unknown:  # argparse names only the top-level parser for these: name the command
-        sub = _command_parser(parser, args)
+        words = list(sys.argv[1:] if argv is None else argv)
+        before_command = (args.command in words and unknown[0] in words
+                          and words.index(unknown[0]) < words.index(args.command))
+        sub = parser if before_command else _command_parser(parser, args)
         sub.error(f"unrecognized arguments: {' '.join(unknown)}")
     configure_logging(args.verbose)
     previous = _stop_on_termination_signals()
