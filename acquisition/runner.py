@@ -1629,6 +1629,7 @@ def speed_of_sound_differences(steps: Any, config: Any, protocol: Any) -> list[s
     without using it."""
     us = protocol.ultrasound.speed_of_sound_m_s
     found: dict[int, tuple[set[float], float, str]] = {}
+    on_test_object: set[int] = set()
     for step in steps:
         if step.status != STATUS_COMPLETE:
             continue
@@ -1644,12 +1645,20 @@ def speed_of_sound_differences(steps: Any, config: Any, protocol: Any) -> list[s
             if not math.isclose(then, now, rel_tol=1e-9):
                 seen = found.setdefault(ch, (set(), now, _source(config, ch, test_object)))
                 seen[0].add(then)
+                if test_object:
+                    on_test_object.add(ch)
     out = []
     for ch in sorted(found):
         then, now, source = found[ch]
         why = f"the bench file's {source}" if source else "the protocol's"
-        out.append(f"speed of sound on ch{ch}: {', '.join(f'{c:g}' for c in sorted(then))} "
-                   f"m/s in the session's steps, {now:g} m/s now ({why})")
+        text = (f"speed of sound on ch{ch}: {', '.join(f'{c:g}' for c in sorted(then))} "
+                f"m/s in the session's steps, {now:g} m/s now ({why})")
+        if len(then) == 1 and ch not in on_test_object:
+            # the bench file may be the session's own: sessions recorded before session 41
+            # were tracked without its [calibration] speed_of_sound_m_s (review)
+            text += (f"; to track the new steps as these, give the bench file "
+                     f"[calibration.channel_speed_of_sound_m_s] {ch} = {min(then):g}")
+        out.append(text)
     return out
 
 

@@ -129,8 +129,15 @@ def test_resume_refuses_a_speed_of_sound_other_than_its_steps(tmp_path):
     # track at 1600: the steps decide, not /bench
     with h5py.File(out, "r+") as h5:
         h5["bench"].attrs["speed_of_sound_m_s"] = 1600.0
-    with pytest.raises(ValueError, match="speed of sound on ch1: 1540 m/s"):
+    with pytest.raises(ValueError, match="speed of sound on ch1: 1540 m/s") as refused:
         prepare_session(protocol, out, bench_path=fast, resume=True)
+    # the refusal says how to go on with that bench file (it may be the session's own)
+    fix = "[calibration.channel_speed_of_sound_m_s] 1 = 1540"
+    assert fix in str(refused.value)
+    _, kept = _files(tmp_path, "speed_of_sound_m_s = 1600.0\n"
+                     "[calibration.channel_speed_of_sound_m_s]\n1 = 1540.0\n2 = 1540.0\n",
+                     name="kept")
+    prepare_session(protocol, out, bench_path=kept, resume=True).close()
     _, same = _files(tmp_path, "speed_of_sound_m_s = 1540.0\n", name="same")
     with prepare_session(protocol, out, bench_path=same, resume=True) as session:
         assert session.run().status == "completed"
