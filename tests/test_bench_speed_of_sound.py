@@ -158,6 +158,22 @@ def test_the_checks_say_where_the_bench_replaces_the_protocols_value(tmp_path, c
             ) in capsys.readouterr().out
 
 
+def _refusals_of_every_command(tmp_path, capsys, protocol, bench):
+    """stderr of ``bench check``, ``protocol check --bench`` and ``run --bench``, each of
+    which must refuse ``bench`` (exit 1); the run must write no file."""
+    from pelvislab.app.cli import main
+
+    out = tmp_path / "s.h5"
+    errors = []
+    for argv in (["bench", "check", str(bench)],
+                 ["protocol", "check", str(protocol), "--bench", str(bench)],
+                 ["run", str(protocol), "--bench", str(bench), "--out", str(out)]):
+        assert main(argv) == 1, argv
+        errors.append(capsys.readouterr().err)
+    assert not out.exists()
+    return errors
+
+
 @pytest.mark.parametrize("calibration, key", [
     ("[calibration.channel_speed_of_sound_m_s]\n2 = 15.6\n",
      "calibration.channel_speed_of_sound_m_s.2"),
@@ -168,17 +184,10 @@ def test_a_speed_of_sound_in_another_unit_is_refused_before_anything_runs(
         tmp_path, capsys, calibration, key):
     # 15.6 for 1560 passed bench check, protocol check --bench and run (only > 0 was
     # checked) and scaled |H| by 0.01 (an audit)
-    from pelvislab.app.cli import main
 
     protocol, bench = _files(tmp_path, calibration)
-    out = tmp_path / "s.h5"
-    for argv in (["bench", "check", str(bench)],
-                 ["protocol", "check", str(protocol), "--bench", str(bench)],
-                 ["run", str(protocol), "--bench", str(bench), "--out", str(out)]):
-        assert main(argv) == 1, argv
-        err = capsys.readouterr().err
-        assert f"{key}: must be > 100 and <= 10000 m/s, got " in err, (argv, err)
-    assert not out.exists()
+    for err in _refusals_of_every_command(tmp_path, capsys, protocol, bench):
+        assert f"{key}: must be > 100 and <= 10000 m/s, got " in err, err
 
 
 @pytest.mark.parametrize("c, ok", [(100.0, False), (100.5, True), (10_000.0, True),
@@ -207,20 +216,13 @@ def test_bench_protocol_and_reprocess_share_one_range(tmp_path, c, ok):
 
 def test_a_speed_of_sound_for_a_channel_the_digitizer_lacks_is_refused(tmp_path, capsys):
     # `3 = 1560.0` on the 2-channel DP235 passed every check and was never used (an audit)
-    from pelvislab.app.cli import main
 
     protocol, bench = _files(tmp_path, "[calibration.channel_speed_of_sound_m_s]\n"
                                        "2 = 1560.0\n3 = 1560.0\n")
-    out = tmp_path / "s.h5"
-    for argv in (["bench", "check", str(bench)],
-                 ["protocol", "check", str(protocol), "--bench", str(bench)],
-                 ["run", str(protocol), "--bench", str(bench), "--out", str(out)]):
-        assert main(argv) == 1, argv
-        err = capsys.readouterr().err
+    for err in _refusals_of_every_command(tmp_path, capsys, protocol, bench):
         assert ("calibration.channel_speed_of_sound_m_s.3: no digitizer channel 3: the "
-                "Acqiris DP235 (simulated) has channels 1, 2") in err, (argv, err)
+                "Acqiris DP235 (simulated) has channels 1, 2") in err, err
         assert "channel_speed_of_sound_m_s.2" not in err
-    assert not out.exists()
     real = (BENCH.replace("simulated = true", "simulated = false")
             + "[calibration.channel_speed_of_sound_m_s]\n3 = 1560.0\n"
             + '[trigger]\nresource = "USB0::1::2::A::INSTR"\nload_ohm = 50\n'

@@ -204,11 +204,10 @@ def test_peak_picking_leaves_out_lines_a_measured_frf_lacks() -> None:
         modes_from_frf(f, H)
 
 
-def test_peak_picking_fills_an_output_the_strongest_input_missed() -> None:
-    """The demo's layout: each input misses one output. The strongest input's column read
-    the missed output as 0, so the picked shapes of the 38, 112 and 232 Hz modes of the
-    model's own noise-free FRFs came out at MAC 0.63-0.78 against the model's shapes; the
-    rank-one fit over the measured entries gives them >= 0.99 (review, session 41)."""
+def _demo_layout_model_frfs():
+    """The appendix-E model's noise-free FRFs in the demo's layout (each input misses one
+    output; NaN there) on 0.25 Hz lines, 30-300 Hz, with the model's undamped frequencies
+    and mode shapes at the outputs: (f, H, measured (n_out, n_in), f_model, shapes)."""
     from pelvislab.acquisition.frfset import read_frf
     from pelvislab.model.frf import frf
     from pelvislab.model.identification_pelvis import pelvis_problem
@@ -217,16 +216,24 @@ def test_peak_picking_fills_an_output_the_strongest_input_missed() -> None:
 
     layout = read_frf(DATA)
     measured = np.isfinite(layout.H).any(axis=0)
-    assert not measured.all(axis=0).any()  # no input measured every output
     problem, _ = pelvis_problem(default_model(), layout.outputs, layout.inputs)
     f = np.arange(30.0, 300.01, 0.25)
     H = frf(default_model(), f, layout.outputs, layout.inputs)
     H[:, ~measured] = np.nan
-    data = modes_from_frf(f, H)
     m = problem.assemble(problem.nominal)
     lam, Z = undamped_modes(m.M, m.K)
     f_model = np.sqrt(np.clip(lam, 0.0, None)) / (2 * np.pi)
-    shapes = np.asarray(problem.outputs) @ Z
+    return f, H, measured, f_model, np.asarray(problem.outputs) @ Z
+
+
+def test_peak_picking_fills_an_output_the_strongest_input_missed() -> None:
+    """The demo's layout: each input misses one output. The strongest input's column read
+    the missed output as 0, so the picked shapes of the 38, 112 and 232 Hz modes of the
+    model's own noise-free FRFs came out at MAC 0.63-0.78 against the model's shapes; the
+    rank-one fit over the measured entries gives them >= 0.99 (review, session 41)."""
+    f, H, measured, f_model, shapes = _demo_layout_model_frfs()
+    assert not measured.all(axis=0).any()  # no input measured every output
+    data = modes_from_frf(f, H)
     for target in (38.12, 111.98, 231.92):
         i = int(np.argmin(np.abs(data.frequency_hz - target)))
         j = int(np.argmin(np.abs(f_model - target)))
@@ -260,23 +267,8 @@ def test_an_frf_on_part_of_the_band_is_left_out_of_peak_picking() -> None:
     input; where it is the only one measuring its output, the lines it lacks stay out (a
     shape has nothing to take there: they read 0, MAC 0.776 at 112 Hz, the next review),
     and the shapes keep MAC >= 0.98 against the model's own."""
-    from pelvislab.acquisition.frfset import read_frf
-    from pelvislab.model.frf import frf
-    from pelvislab.model.identification_pelvis import pelvis_problem
-    from pelvislab.model.pelvis import default_model
-    from pelvislab.tests.test_identify_estimated_noise import DATA
-
-    layout = read_frf(DATA)
-    measured = np.isfinite(layout.H).any(axis=0)
-    problem, _ = pelvis_problem(default_model(), layout.outputs, layout.inputs)
-    f = np.arange(30.0, 300.01, 0.25)
-    H = frf(default_model(), f, layout.outputs, layout.inputs)
-    H[:, ~measured] = np.nan
+    f, H, measured, f_model, shapes = _demo_layout_model_frfs()
     whole = modes_from_frf(f, H)
-    m = problem.assemble(problem.nominal)
-    lam, Z = undamped_modes(m.M, m.K)
-    f_model = np.sqrt(np.clip(lam, 0.0, None)) / (2 * np.pi)
-    shapes = np.asarray(problem.outputs) @ Z
     both = np.flatnonzero(measured.all(axis=1))[0]  # an output both inputs measure
     only = np.flatnonzero(measured.sum(axis=1) == 1)[0]  # one only one input measures
     i_only = int(np.flatnonzero(measured[only])[0])
