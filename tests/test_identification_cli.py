@@ -149,6 +149,23 @@ def test_modal_updating_refuses_version_b(tmp_path: Path, capsys) -> None:
     assert not out.exists()
 
 
+@pytest.mark.parametrize("options", [["--residual", "log"], ["--a-b", "0.5"],
+                                     ["--starts", "3", "--seed", "0"]])
+def test_modal_updating_refuses_the_frf_fit_options(tmp_path: Path, capsys, options) -> None:
+    """--residual, --a-b, --starts and --seed shape the FRF fit only; with --method modal
+    they were ignored without a word (exit 0; session 41's note). An explicit --seed 0 is
+    refused too: it is not the default any more but an option the user gave."""
+    data = Path(__file__).parent / "data" / "demo_sim_seed1.h5"
+    out = tmp_path / "m.json"
+    assert main(["identify", str(data), "--method", "modal", *options,
+                 "--json", str(out)]) == 1
+    err = capsys.readouterr().err
+    named = [o for o in options if o.startswith("--")]
+    assert err.startswith(f"pelvislab identify: error: {', '.join(named)} appl"), err
+    assert "--method frf" in err and err.count("\n") == 1, err
+    assert not out.exists()
+
+
 def test_modal_updating_picks_peaks_on_the_lines_it_has(tmp_path: Path, capsys) -> None:
     """One failed line (every FRF NaN at 10 Hz, as the nine-point protocol's first step)
     made every FRF "incomplete" and refused the file ("no complete FRF line to pick peaks

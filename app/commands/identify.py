@@ -57,7 +57,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                    "default 1)")
     p.add_argument("--starts", type=int, default=None, metavar="N",
                    help="maximum number of starts of the global strategy")
-    p.add_argument("--seed", type=int, default=0, help="random seed of the multi-start")
+    p.add_argument("--seed", type=int, default=None,
+                   help="random seed of the multi-start (default 0)")
     p.add_argument("--gain-std", type=float, default=None, metavar="FRACTION",
                    help="standard uncertainty of each FRF's gain (a chain error common to its "
                    "lines), in the weights and the std; default 0.003 (the chain's ±0.5 %% "
@@ -101,7 +102,7 @@ def identify_file(path: str | Path, method: str = "frf", params: list[str] | Non
                   model_path: str | Path | None = None,
                   progress: Callable[[str], None] | None = None, *, symmetric: bool = False,
                   version_b: bool = False, residual: str = "auto", a_b: float | None = None,
-                  starts: int | None = None, seed: int = 0,
+                  starts: int | None = None, seed: int | None = None,
                   gain_std: float | None = None,
                   calibration_std: float | None = None) -> IdentificationReport:
     """Identify the pelvis model's parameters from the /frf of ``path`` (session or FRF-only).
@@ -110,6 +111,8 @@ def identify_file(path: str | Path, method: str = "frf", params: list[str] | Non
     :func:`pelvislab.model.identification.identify_frf` / ``identify_modal``.
     ``gain_std``: each FRF's gain uncertainty (``identify_frf(gain_std=)``); None: the
     measurement chain's :data:`DEFAULT_GAIN_STD` for the FRF fit, 0 for modal updating.
+    ``residual``, ``a_b``, ``starts``, ``seed`` shape the FRF fit only: given with modal
+    updating they are refused (they were ignored without a word). ``seed`` None: 0.
     ``calibration_std``: relative standard uncertainty of the drive chain's calibration,
     one gain common to every FRF (``identify_frf(chain_gain_std=)``); None: the session's
     recorded one (:func:`recorded_calibration_std`), else 0.
@@ -167,6 +170,15 @@ def identify_file(path: str | Path, method: str = "frf", params: list[str] | Non
             # it was dropped without a word (exit 0, no f_k, f_c in the JSON): audit
             raise ValueError("--version-b applies to --method frf (the FRF fit; modal "
                              "updating fits the modes of M and K, without f_k, f_c)")
+        # options of the FRF fit's misfit and multi-start: modal updating has neither, and
+        # they were dropped without a word (exit 0; session 41's note)
+        fit_only = [flag for flag, given in (
+            ("--residual", residual != "auto"), ("--a-b", a_b is not None),
+            ("--starts", starts is not None), ("--seed", seed is not None)) if given]
+        if fit_only:
+            raise ValueError(f"{', '.join(fit_only)} appl{'ies' if len(fit_only) == 1 else 'y'}"
+                             " to --method frf (the FRF fit's misfit and starts; modal "
+                             "updating fits picked modes from one start)")
         gain_std = 0.0
         if calibration_source == "option" and calibration_std:
             raise ValueError("--calibration-std applies to --method frf (the FRF fit)")
@@ -218,7 +230,7 @@ def identify_file(path: str | Path, method: str = "frf", params: list[str] | Non
         spec = ResidualSpec(kind, a=a_b / (1 + a_b), b=1 / (1 + a_b))
         if gain_std is None:
             gain_std = DEFAULT_GAIN_STD
-        strategy = default_strategy(kind, starts=starts, seed=seed)
+        strategy = default_strategy(kind, starts=starts, seed=0 if seed is None else seed)
         result = identify_frf(
             problem, frf.frequency_hz, frf.H, H_std, free=free, residual=spec,
             strategy=strategy, version_b=version_b, start_freq_dep=(f_k, f_c),
@@ -382,7 +394,7 @@ def recorded_calibration_std(path: str | Path, frequency_hz: Any
 def _identify(args: argparse.Namespace) -> int:
     if args.starts is not None and args.starts < 1:
         raise ValueError(f"--starts {args.starts}: must be >= 1")
-    if args.seed < 0:
+    if args.seed is not None and args.seed < 0:
         raise ValueError(f"--seed {args.seed}: must be >= 0")
     if args.gain_std is not None and not (
             math.isfinite(args.gain_std) and 0 <= args.gain_std < 0.5):
