@@ -926,7 +926,8 @@ class Runner:
         excitation = self.protocol.excitations[setup.excitation]
         place(excitation=excitation,
               channels={ch: self.protocol.points[name] for ch, name in setup.transducers.items()},
-              excitation_direction=excitation.direction)
+              excitation_direction=excitation.direction,
+              speed_of_sound_m_s=self.protocol.ultrasound.speed_of_sound_m_s)
         self._log(f"simulated operator placed the shaker at {excitation.name} and the "
                   f"transducers for setup {setup.name!r}")
 

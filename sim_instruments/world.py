@@ -294,21 +294,30 @@ class World:
         self.excitation_direction = excitation_direction
         self.channels: dict[int, ChannelSetup] = {}
         self._drift_state: dict[int, tuple[float, float]] = {}
+        self.protocol_speed_of_sound_m_s: float | None = None
         self.place(excitation=excitation, channels=channels,
                    excitation_direction=excitation_direction)
 
     # ------------------------------------------------------------------ the operator
     def place(self, excitation: str | Landmark | Any | None = None,
               channels: dict[int, str | Landmark | Any] | None = None,
-              excitation_direction: tuple[float, float, float] | None = None) -> None:
+              excitation_direction: tuple[float, float, float] | None = None,
+              speed_of_sound_m_s: float | None = None) -> None:
         """The (simulated) operator moves the shaker and/or the transducers.
 
         ``excitation``: landmark name or point; ``excitation_direction``: force direction
         (default: into the bone, minus the landmark's outward direction). ``channels``:
         digitizer channel -> landmark (its direction: bone -> transducer).
+        ``speed_of_sound_m_s``: the protocol's (``ultrasound.speed_of_sound_m_s``, m/s),
+        which the tracker assumes where the bench file states none; the simulated tissue
+        then has it (times any ``speed_of_sound_error``), as it has the bench file's value
+        where that states one. None keeps the last one given (at first the bench's
+        default, 1540 m/s).
         Call it where the runner prompts the operator to reposition the transducers.
         """
         with self._lock:
+            if speed_of_sound_m_s is not None:
+                self.protocol_speed_of_sound_m_s = float(speed_of_sound_m_s)
             if excitation is not None:
                 self.excitation = resolve(excitation)
                 self.excitation_direction = excitation_direction
@@ -549,8 +558,13 @@ class World:
             U = complex(H.get(ch, 0.0)) * force
             disp[ch] = U
             receiver = self.receivers.get(ch)
-            c_assumed = (self.phantom.speed_of_sound_m_s if self.on_phantom
-                         else float(self.config.speed_of_sound_for(ch)))
+            if self.on_phantom:
+                c_assumed = self.phantom.speed_of_sound_m_s
+            elif self.protocol_speed_of_sound_m_s is None:
+                c_assumed = float(self.config.speed_of_sound_for(ch))
+            else:  # the tracker's value: the bench file's, else the protocol's (session 42)
+                c_assumed = float(self.config.speed_of_sound_for(
+                    ch, self.protocol_speed_of_sound_m_s))
             ratio = self.speed_ratio(ch)
             meas[ch] = U / ratio
             drift = self._drift(ch, start + t_pulse)

@@ -107,9 +107,18 @@ def test_per_channel_value_then_bench_value_then_protocol(tmp_path):
     assert _used(tmp_path / "both.h5")[0] == {"ch1": {1600.0}, "ch2": {1560.0}}
     # a bench file without it: the protocol's, and /bench says the bench states none
     _, plain = _files(tmp_path, protocol_c=1500.0, name="plain")
-    assert _run(protocol, plain, tmp_path / "plain.h5").status == "completed"
+    truth: list = []
+    assert _run(protocol, plain, tmp_path / "plain.h5", truth=truth).status == "completed"
     used, recorded = _used(tmp_path / "plain.h5")
     assert used == {"ch1": {1500.0}, "ch2": {1500.0}} and math.isnan(recorded)
+    # the simulated tissue follows the protocol's value when the bench states none, as it
+    # follows the bench's: |H| as the simulator's truth (0.974x before: echoes sent at the
+    # simulator's own 1540 m/s, read with the protocol's 1500; session 41's note)
+    with SessionReader(tmp_path / "plain.h5") as reader:
+        measured = [ch.phasor_m for step in reader.steps(with_echoes=False)
+                    for ch in step.channels]
+    true = [t.measured_phasor_m[ch] for t in truth for ch in (1, 2)]
+    assert np.median(np.abs(measured) / np.abs(true)) == pytest.approx(1.0, abs=0.01)
     cfg = BenchConfig.load(both)
     assert [cfg.speed_of_sound_for(ch, 1500.0) for ch in (1, 2)] == [1600.0, 1560.0]
     assert BenchConfig.load(plain).speed_of_sound_for(1, 1500.0) == 1500.0

@@ -206,7 +206,7 @@ class TestBench(Bench):
 
     __test__ = False
 
-    def place(self, excitation, channels, excitation_direction):
+    def place(self, excitation, channels, excitation_direction, speed_of_sound_m_s=None):
         self.digitizer.points = {ch: p.name for ch, p in channels.items()}
         self.digitizer.excitation = excitation
 
