@@ -449,6 +449,15 @@ class ReplayView(QtWidgets.QWidget):
             text += "; outputs NOT CONFIRMED OFF at the end of a run"
         if reader.damaged:
             text += f"; {len(reader.damaged)} damaged step(s) skipped"
+        unstated = sorted(getattr(reader, "bone_unstated", ()))
+        if unstated and reader.frf_layout() is None:
+            # a session written from design 4.2 alone: reprocess would write these points
+            # on no modelled bone, and identify and gap leave such points out (reprocess
+            # said so; the replay did not: session 41's note)
+            named = ", ".join(f"{prefix} {name}" for prefix, name in unstated)
+            text += (f"; bone unknown for {named} (not in the landmark catalogue, no "
+                     f"output_bone/input_bone in the steps): reprocess writes them on no "
+                     f"modelled bone, which identify and gap leave out")
         self.file_label.setText(text)
         self.step_list.clear()
         for step in steps:

@@ -358,3 +358,30 @@ def test_the_bench_box_names_the_drive_calibration(qtbot, tmp_path):
     qtbot.addWidget(simulated)
     assert simulated.calibration_label.text() == ("drive calibration: 1+0j N/V at every "
                                                   "frequency")
+
+
+def test_replay_names_a_point_whose_bone_nothing_gives(operator_window, tmp_path):
+    # session 41's note: reprocess named such a point (a design-4.2-only session's point
+    # outside the landmark catalogue without output_bone), the replay said nothing
+    import h5py
+
+    from pelvislab.tests.test_resume_finished import _finished
+    from pelvislab.tests.test_session_design_only import _design_only_copy
+
+    _, original = _finished(tmp_path)
+    path = tmp_path / "bed.h5"
+    _design_only_copy(original, path, rename={"sacrum_x": "bed_frame_z"})
+    with h5py.File(path, "a") as handle:
+        for step in handle["steps"].values():
+            for ds in step["echoes"].values():
+                if ds.attrs.get("output") == "bed_frame_z":
+                    ds.attrs["output_position_m"] = [0.0, 0.0, -0.3]
+                    ds.attrs["output_direction"] = [0.0, 0.0, 1.0]
+    window = operator_window()
+    assert window.open_replay(path) is True
+    text = window.replay.file_label.text()
+    assert "bone unknown for output bed_frame_z (not in the landmark catalogue" in text
+    assert "SIAS_R_x" not in text.split("bone unknown")[1]  # the catalogue gives its bone
+    # the session it came from states every bone: no such words
+    assert window.open_replay(original) is True
+    assert "bone unknown" not in window.replay.file_label.text()
