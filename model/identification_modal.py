@@ -22,6 +22,11 @@ paired with a model mode of its own, at MAC >= :data:`PAIR_MIN_MAC` and with the
 frequency within the measured one's uncertainty (``ModalData.frequency_tol_hz``; peak
 picking: between the lines next to the peak), and the modes must determine every parameter
 (no unresolved direction, no std above the value). The message says which fails.
+
+Peak-picked modes (``ModalData.picking``) are weighted by a standard uncertainty per datum
+(the frequency's tolerance; the shape's picking bias on the model's own FRFs at the fit,
+:func:`_picking_shape_std`) and their std are absolute; modes given otherwise are fitted
+unweighted with std scaled by the misfit.
 """
 
 from __future__ import annotations
@@ -53,18 +58,39 @@ PAIR_MIN_MAC = 0.9
 DEFAULT_FREQUENCY_TOL = 0.01
 
 
+#: Standard uncertainty of each entry of a unit-normalised picked shape below which the
+#: picking-bias estimate is not trusted (FRF noise, the real direction of a complex column):
+#: 0.5 % of the shape's norm, the measurement chain's gain tolerance.
+SHAPE_STD_FLOOR = 0.005
+
+
+@dataclass(frozen=True)
+class PeakPicking:
+    """Where :func:`modes_from_frf` read the modes: the lines it picked on
+    (``frequency_hz``, (n_lines,) Hz), the FRF entries it used on each line (``measured``,
+    (n_lines, n_out, n_in) bool) and each mode's peak line (``peak_line``, (n_m,) index
+    into ``frequency_hz``). :func:`identify_modal` repeats the picking on the model's FRFs
+    there to estimate how far picking moves a shape from the undamped mode's."""
+
+    frequency_hz: np.ndarray
+    measured: np.ndarray
+    peak_line: np.ndarray
+
+
 @dataclass(frozen=True)
 class ModalData:
     """Measured modes: frequency_hz (n_m,), shapes (n_points, n_m) real, any scaling.
 
     ``frequency_tol_hz``: how far each true frequency may lie from ``frequency_hz``, (n_m,)
     either way or (n_m, 2) below and above (peak picking: up to the neighbouring lines);
-    None: :data:`DEFAULT_FREQUENCY_TOL` of the frequency.
+    None: :data:`DEFAULT_FREQUENCY_TOL` of the frequency. ``picking``: where peak picking
+    read them (:class:`PeakPicking`), None for modes given otherwise.
     """
 
     frequency_hz: np.ndarray
     shapes: np.ndarray
     frequency_tol_hz: np.ndarray | None = None
+    picking: PeakPicking | None = None
 
     def __post_init__(self) -> None:
         f = np.asarray(self.frequency_hz, float).reshape(-1)
@@ -173,6 +199,9 @@ def identify_modal(
     w2_meas = (2 * np.pi * data.frequency_hz) ** 2
     phi_meas = data.shapes / np.linalg.norm(data.shapes, axis=0)
     evals = [0]
+    # residual weights, 1 / standard uncertainty: set from the picking once it is known
+    weight_f = np.full(n_modes, float(frequency_weight))
+    weight_s = np.full(n_modes, float(shape_weight))
 
     def paired(x: np.ndarray) -> tuple[np.ndarray, object, np.ndarray, np.ndarray, np.ndarray]:
         values = base.copy()
@@ -195,18 +224,18 @@ def identify_modal(
         dlam, dz = eigen_sensitivities(mats.M, mats.K, mats.dM[idx], mats.dK[idx], lam, Z,
                                        list(pairs))
         evals[0] += 1
-        r_f = frequency_weight * (lam[pairs] / w2_meas - 1.0)
-        J_f = frequency_weight * dlam / w2_meas[:, None]
+        r_f = weight_f * (lam[pairs] / w2_meas - 1.0)
+        J_f = weight_f[:, None] * dlam / w2_meas[:, None]
         r_s, J_s = [], []
         for i, s in enumerate(pairs):
             u = O @ Z[:, s]
             nu = np.linalg.norm(u)
             n_hat = u / nu
             sign = np.sign(n_hat @ phi_meas[:, i]) or 1.0
-            r_s.append(shape_weight * (sign * n_hat - phi_meas[:, i]))
+            r_s.append(weight_s[i] * (sign * n_hat - phi_meas[:, i]))
             du = dz[i] @ O.T  # (n_p, n_points)
             dn = (du - np.outer(du @ n_hat, n_hat)) / nu
-            J_s.append(shape_weight * sign * dn.T)
+            J_s.append(weight_s[i] * sign * dn.T)
         r = np.concatenate([r_f, *r_s])
         J = np.vstack([J_f, *J_s]) * values[idx][None, :]  # d/dlog p
         return r, J
@@ -222,13 +251,37 @@ def identify_modal(
 
     x0 = np.log(base[idx])
     lo, hi = x0 - np.log(bounds_factor), x0 + np.log(bounds_factor)
-    sol = least_squares(lambda x: get(x)[0], x0, jac=lambda x: get(x)[1], bounds=(lo, hi),
-                        method="trf", ftol=1e-14, xtol=1e-14, gtol=1e-14, max_nfev=max_nfev)
+
+    def fit(start_x: np.ndarray):  # noqa: ANN202 - scipy's OptimizeResult
+        cache.clear()
+        return least_squares(lambda x: get(x)[0], start_x, jac=lambda x: get(x)[1],
+                             bounds=(lo, hi), method="trf", ftol=1e-14, xtol=1e-14,
+                             gtol=1e-14, max_nfev=max_nfev)
+
+    sol = fit(x0)
+    absolute = False
+    if data.picking is not None:
+        # Peak-picked modes are biased where modes are damped or close: a shape read off a
+        # peak carries its neighbours' response, and the fit matched such shapes exactly
+        # with std scaled by a near-zero misfit (a damped chain: converged 20-30 % off at
+        # |z| up to 100; session 42). Each datum gets a standard uncertainty instead: the
+        # frequency its tolerance (uniform over it), the shape the difference picking makes
+        # on the model's own FRFs at the fit (its damping) between the read shape and the
+        # undamped mode's, at least SHAPE_STD_FLOOR. The fit is redone with those weights
+        # and its std are absolute, scaled up by the misfit when it exceeds them.
+        tol = data.frequency_range_hz()
+        tol_rel = (tol[:, 1] - tol[:, 0]) / 2 / data.frequency_hz
+        weight_f[:] = 1.0 / (2 * tol_rel / np.sqrt(3.0))  # w^2 ratio: twice the f ratio
+        weight_s[:] = 1.0 / _picking_shape_std(problem, paired(sol.x), data.picking, O)
+        sol = fit(sol.x)
+        absolute = True
     r, J = get(sol.x)
     values = base.copy()
     values[idx] = np.exp(sol.x)
-    std, corr, sv, weak = covariance_report(J, r, list(free), values[idx],
-                                            absolute_sigma=False)
+    dof = max(r.size - len(free), 1)
+    misfit_scale = max(1.0, float(r @ r) / dof) if absolute else 1.0
+    std, corr, sv, weak = covariance_report(J / np.sqrt(misfit_scale), r, list(free),
+                                            values[idx], absolute_sigma=absolute)
     rms = float(np.sqrt(np.mean(r**2)))
     on_bound = np.isclose(sol.x, lo, atol=1e-6) | np.isclose(sol.x, hi, atol=1e-6)
     bound_names = [n for n, b in zip(free, on_bound, strict=True) if b]
@@ -406,13 +459,7 @@ def modes_from_frf(
     order = np.argsort(-props["prominences"])[:max_modes]
     peaks = np.sort(peaks[order])
     measured = np.isfinite(H[use]) & (np.abs(Hm) > 0)
-    shapes = []
-    for k in peaks:
-        h = _column_at_peak(Hm[k], measured[k])
-        # dominant real direction of the complex column: Im H on the peak, Re H when the
-        # grid misses a lightly damped peak (the nearest mode dominates either way)
-        u, _, _ = np.linalg.svd(np.stack([h.real, h.imag], axis=1), full_matrices=False)
-        shapes.append(u[:, 0])
+    shapes = [_picked_shape(Hm[k], measured[k]) for k in peaks]
     # find_peaks never returns the first or last line: both neighbours exist. At least
     # DEFAULT_FREQUENCY_TOL of the frequency: the peak of the mean log|H| is not the
     # undamped frequency the model is held against (damping, neighbouring modes), and a
@@ -421,4 +468,40 @@ def modes_from_frf(
     # session 41)
     spacing = np.stack([f[peaks] - f[peaks - 1], f[peaks + 1] - f[peaks]], axis=1)
     tol = np.maximum(spacing, DEFAULT_FREQUENCY_TOL * f[peaks][:, None])
-    return ModalData(f[peaks], np.array(shapes).T, frequency_tol_hz=tol)
+    return ModalData(f[peaks], np.array(shapes).T, frequency_tol_hz=tol,
+                     picking=PeakPicking(f, measured, peaks))
+
+
+def _picked_shape(Hk: np.ndarray, measured: np.ndarray) -> np.ndarray:
+    """The real shape peak picking reads at one line: the mode's column there
+    (:func:`_column_at_peak`) and its dominant real direction, Im H on the peak, Re H when
+    the grid misses a lightly damped peak (the nearest mode dominates either way); unit
+    norm, (n_out,)."""
+    h = _column_at_peak(Hk, measured)
+    u, _, _ = np.linalg.svd(np.stack([h.real, h.imag], axis=1), full_matrices=False)
+    return u[:, 0]
+
+
+def _picking_shape_std(problem: FrfProblem, state: tuple, picking: PeakPicking,
+                       O: np.ndarray) -> np.ndarray:
+    """(n_m,) standard uncertainty of each entry of each picked unit shape: the difference
+    between the shape peak picking reads off the model's FRFs at ``state`` (the fit's
+    values, the model's damping; same lines, entries and peak lines as the data) and the
+    paired undamped mode's shape, rms over the outputs, at least :data:`SHAPE_STD_FLOOR`.
+
+    A model estimate of the picking's bias: right to the extent the model's damping and
+    neighbouring modes are the subject's."""
+    from pelvislab.model.identification import frf_with_jacobian
+
+    _, mats, _, Z, pairs = state
+    lines = picking.frequency_hz[picking.peak_line]
+    H, _ = frf_with_jacobian(mats, problem.outputs, problem.inputs, lines,
+                             omega_max_rad_s=problem.omega_max_rad_s, jacobian=False)
+    std = np.empty(pairs.size)
+    for i, (s, k) in enumerate(zip(pairs, picking.peak_line, strict=True)):
+        read = _picked_shape(H[i], picking.measured[k])
+        mode = O @ Z[:, s]
+        mode = mode / np.linalg.norm(mode)
+        read = read * (np.sign(read @ mode) or 1.0)
+        std[i] = np.sqrt(np.mean((read - mode) ** 2))
+    return np.maximum(std, SHAPE_STD_FLOOR)
