@@ -1819,23 +1819,30 @@ def _cut_gate_note(quality: Mapping[str, Any]) -> str:
     return found.group(0) if found else ""
 
 
+def bone_unstated_points(frf: FrfSet, unstated: set[tuple[str, str]]
+                         ) -> list[tuple[str, str]]:
+    """The ``("output" | "input", name)`` points of ``frf`` written on no modelled bone only
+    because nothing gave their bone (``unstated``: ``SessionReader.bone_unstated``, points
+    some step left without a bone; ``frf`` takes each point from its steps, so a point
+    another step gives a bone is not among them)."""
+    return [(prefix, name)
+            for prefix, channels in (("output", frf.outputs), ("input", frf.inputs))
+            for name, bone in zip(channels.name, channels.bone, strict=True)
+            if bone == "" and (prefix, name) in unstated]
+
+
 def _bone_unstated_notes(frf: FrfSet, unstated: set[tuple[str, str]]) -> list[str]:
     """A note per point of ``frf`` written on no modelled bone only because nothing gave
     its bone (a session written from design 4.2 alone names its points only, and the
     landmark catalogue does not know this name): identify and gap diagnose then leave it
     out as deliberately off-bone, so the user hears that it was unknown instead."""
-    lines = []
-    for prefix, channels in (("output", frf.outputs), ("input", frf.inputs)):
-        for name, bone in zip(channels.name, channels.bone, strict=True):
-            if bone == "" and (prefix, name) in unstated:
-                lines.append(
-                    f"{prefix} point {name!r} is not in the landmark catalogue "
-                    f"(protocols/landmarks.toml) and its steps give no {prefix}_bone: written "
-                    f"as on no modelled bone (''), so identify and gap diagnose leave it out. "
-                    f"If it is on a bone, add {prefix}_bone (innominate_right, "
-                    f"innominate_left or sacrum) to the steps or use the catalogue's name "
-                    f"for the point; {prefix}_bone = '' says it is off-bone on purpose")
-    return lines
+    return [f"{prefix} point {name!r} is not in the landmark catalogue "
+            f"(protocols/landmarks.toml) and its steps give no {prefix}_bone: written "
+            f"as on no modelled bone (''), so identify and gap diagnose leave it out. "
+            f"If it is on a bone, add {prefix}_bone (innominate_right, "
+            f"innominate_left or sacrum) to the steps or use the catalogue's name "
+            f"for the point; {prefix}_bone = '' says it is off-bone on purpose"
+            for prefix, name in bone_unstated_points(frf, unstated)]
 
 
 def reprocess_session(source: Path | str, target: Path | str, tracking_options: Any = None,

@@ -449,8 +449,8 @@ class ReplayView(QtWidgets.QWidget):
             text += "; outputs NOT CONFIRMED OFF at the end of a run"
         if reader.damaged:
             text += f"; {len(reader.damaged)} damaged step(s) skipped"
-        unstated = sorted(getattr(reader, "bone_unstated", ()))
-        if unstated and reader.frf_layout() is None:
+        unstated = self._bone_unstated(reader, steps)
+        if unstated:
             # a session written from design 4.2 alone: reprocess would write these points
             # on no modelled bone, and identify and gap leave such points out (reprocess
             # said so; the replay did not: session 41's note)
@@ -471,6 +471,24 @@ class ReplayView(QtWidgets.QWidget):
             self.step_list.setCurrentRow(0)
         else:
             self.tabs.setCurrentWidget(self.frf)
+
+    @staticmethod
+    def _bone_unstated(reader: Any, steps: list[Any]) -> list[tuple[str, str]]:
+        """The points reprocess would write on no modelled bone because nothing gave their
+        bone (its note's points: the complete steps' FRF layout), none when the file
+        stores /frf (its bones are the file's word) or is FRF-only."""
+        if not getattr(reader, "bone_unstated", None) or reader.frf_layout() is not None:
+            return []
+        from pelvislab.acquisition.runner import bone_unstated_points
+        from pelvislab.acquisition.session import frf_from_steps
+
+        done = [s for s in steps if s.status == "complete"]
+        if not done:
+            return []
+        try:
+            return bone_unstated_points(frf_from_steps(done), reader.bone_unstated)
+        except Exception:  # the label is a courtesy: a file reprocess would refuse says so there
+            return []
 
     def _clear_results(self) -> None:
         """Empty the identification, gap and modes panes."""
