@@ -149,12 +149,12 @@ def test_modal_updating_refuses_version_b(tmp_path: Path, capsys) -> None:
     assert not out.exists()
 
 
-@pytest.mark.parametrize("options", [["--residual", "log"], ["--a-b", "0.5"],
-                                     ["--starts", "3", "--seed", "0"]])
+@pytest.mark.parametrize("options", [["--residual", "log"], ["--residual", "auto"],
+                                     ["--a-b", "0.5"], ["--starts", "3", "--seed", "0"]])
 def test_modal_updating_refuses_the_frf_fit_options(tmp_path: Path, capsys, options) -> None:
     """--residual, --a-b, --starts and --seed shape the FRF fit only; with --method modal
-    they were ignored without a word (exit 0; session 41's note). An explicit --seed 0 is
-    refused too: it is not the default any more but an option the user gave."""
+    they were ignored without a word (exit 0; session 41's note). An explicit --seed 0 or
+    --residual auto is refused too: an option the user gave, not the default."""
     data = Path(__file__).parent / "data" / "demo_sim_seed1.h5"
     out = tmp_path / "m.json"
     assert main(["identify", str(data), "--method", "modal", *options,

@@ -308,3 +308,15 @@ def test_peak_picked_std_cover_the_picking_bias(damping: float, seed: int) -> No
     z = (res.values - truth[k]) / res.std
     assert res.converged, res.message
     assert np.all(np.abs(z) < 3), (res.values / truth[k] - 1, z)
+
+
+def test_picked_modes_keep_their_peak_lines() -> None:
+    """Dropping a spurious peak while keeping the picking crashed the fit with "zip()
+    argument 2 is longer than argument 1" (review): refused where the modes are made."""
+    p = chain_problem(3, seed=1, damping=1.0)
+    f = np.arange(1.0, 80.0, 0.5)
+    data = modes_from_frf(f, synth(p, p.nominal, f))
+    assert data.picking is not None and data.picking.peak_line.size == data.frequency_hz.size
+    with pytest.raises(ValueError, match="picking names 3 peak line"):
+        ModalData(data.frequency_hz[:2], data.shapes[:, :2], data.frequency_tol_hz[:2],
+                  picking=data.picking)

@@ -47,9 +47,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--version-b", action="store_true",
                    help="also identify the eq. 7.2-7.3 factors f_k and f_c (ch. 7 version B; "
                    "--method frf)")
-    p.add_argument("--residual", choices=("auto", "log", "std", "eq610"), default="auto",
-                   help="misfit: auto = std, weighted by the file's H_std or, without it, "
-                   "by the noise estimated from the data (third differences along "
+    p.add_argument("--residual", choices=("auto", "log", "std", "eq610"), default=None,
+                   help="misfit (default auto): auto = std, weighted by the file's H_std "
+                   "or, without it, by the noise estimated from the data (third differences along "
                    "frequency; JSON 'noise' says which); log = relative misfit")
     p.add_argument("--a-b", type=float, default=None, metavar="RATIO",
                    help="ratio a/b of real to imaginary weights (eq. 6.10: default 0.1, the "
@@ -101,7 +101,8 @@ class IdentificationReport:
 def identify_file(path: str | Path, method: str = "frf", params: list[str] | None = None,
                   model_path: str | Path | None = None,
                   progress: Callable[[str], None] | None = None, *, symmetric: bool = False,
-                  version_b: bool = False, residual: str = "auto", a_b: float | None = None,
+                  version_b: bool = False, residual: str | None = None,
+                  a_b: float | None = None,
                   starts: int | None = None, seed: int | None = None,
                   gain_std: float | None = None,
                   calibration_std: float | None = None) -> IdentificationReport:
@@ -112,7 +113,8 @@ def identify_file(path: str | Path, method: str = "frf", params: list[str] | Non
     ``gain_std``: each FRF's gain uncertainty (``identify_frf(gain_std=)``); None: the
     measurement chain's :data:`DEFAULT_GAIN_STD` for the FRF fit, 0 for modal updating.
     ``residual``, ``a_b``, ``starts``, ``seed`` shape the FRF fit only: given with modal
-    updating they are refused (they were ignored without a word). ``seed`` None: 0.
+    updating they are refused (they were ignored without a word). None: ``residual``
+    auto, ``seed`` 0.
     ``calibration_std``: relative standard uncertainty of the drive chain's calibration,
     one gain common to every FRF (``identify_frf(chain_gain_std=)``); None: the session's
     recorded one (:func:`recorded_calibration_std`), else 0.
@@ -173,7 +175,7 @@ def identify_file(path: str | Path, method: str = "frf", params: list[str] | Non
         # options of the FRF fit's misfit and multi-start: modal updating has neither, and
         # they were dropped without a word (exit 0; session 41's note)
         fit_only = [flag for flag, given in (
-            ("--residual", residual != "auto"), ("--a-b", a_b is not None),
+            ("--residual", residual is not None), ("--a-b", a_b is not None),
             ("--starts", starts is not None), ("--seed", seed is not None)) if given]
         if fit_only:
             raise ValueError(f"{', '.join(fit_only)} appl{'ies' if len(fit_only) == 1 else 'y'}"
@@ -183,16 +185,23 @@ def identify_file(path: str | Path, method: str = "frf", params: list[str] | Non
         if calibration_source == "option" and calibration_std:
             raise ValueError("--calibration-std applies to --method frf (the FRF fit)")
         calibration_note = None
+        # the FRFs' noise enters the picked shapes' uncertainty: the file's H_std, else
+        # the noise the data show (as the FRF fit's)
+        noise_source = "H_std"
+        if H_std is None:
+            from pelvislab.model.gap import estimate_noise
+
+            H_std, noise_source = estimate_noise(frf.H, frf.frequency_hz), "estimated"
         try:
-            data = modes_from_frf(frf.frequency_hz, frf.H)
+            data = modes_from_frf(frf.frequency_hz, frf.H, H_std=H_std)
         except ValueError as exc:
             raise ValueError(f"{path}: {exc}") from None
         noise_note = _dropped_lines_note(frf, picking_lines(frf.H), picking_frfs(frf.H))
         result = identify_modal(problem, data, free=free, progress=progress)
-        extra: dict[str, Any] = {"method": "modal", "noise": None,
+        extra: dict[str, Any] = {"method": "modal", "noise": noise_source,
                                  "modes_hz": [float(f) for f in data.frequency_hz]}
     elif method == "frf":
-        kind = residual
+        kind = residual or "auto"
         noise_source = "H_std" if H_std is not None else None
         noise_note = None
         if kind == "auto":
