@@ -273,6 +273,7 @@ def identify_modal(
 
     sol = fit(x0)
     absolute = False
+    shape_std = None
     if data.picking is not None:
         # Peak-picked modes are biased where modes are damped or close: a shape read off a
         # peak carries its neighbours' response, and the fit matched such shapes exactly
@@ -291,7 +292,6 @@ def identify_modal(
         tol = data.frequency_range_hz()
         tol_rel = (tol[:, 1] - tol[:, 0]) / 2 / data.frequency_hz
         weight_f[:] = 1.0 / (2 * tol_rel / 2.0)  # w^2 ratio: twice the f ratio
-        shape_std = None
         for _ in range(PICKING_PASSES):
             estimate = _picking_shape_std(problem, paired(sol.x), data.picking, O)
             if shape_std is not None:
@@ -320,6 +320,12 @@ def identify_modal(
     # each measured mode needs a model mode of its own, of the same shape and within the
     # frequency's uncertainty, and the modes must determine the parameters.
     pairs_report = _mode_pairs(paired(sol.x), O, data)
+    half_width_hz = np.diff(data.frequency_range_hz(), axis=1)[:, 0] / 2
+    for i, pair in enumerate(pairs_report):
+        # the uncertainties a picked mode was weighed with (null: given without picking)
+        picked = shape_std is not None
+        pair["shape_std"] = float(shape_std[i]) if picked else None
+        pair["frequency_std_hz"] = float(half_width_hz[i] / 2) if picked else None
     unmatched = [p for p in pairs_report if not p["matched"]]
     with np.errstate(invalid="ignore"):
         undetermined = [n for n, v, s in zip(free, values[idx], std, strict=True)

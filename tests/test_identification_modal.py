@@ -308,6 +308,11 @@ def test_peak_picked_std_cover_the_picking_bias(damping: float, seed: int) -> No
     z = (res.values - truth[k]) / res.std
     assert res.converged, res.message
     assert np.all(np.abs(z) < 3), (res.values / truth[k] - 1, z)
+    # the weights are reported per pair: the frequency's 2-sigma interval, the shape's std
+    for pair in res.extra["mode_pairs"]:
+        lo, hi = pair["frequency_range_hz"]
+        assert pair["frequency_std_hz"] == pytest.approx((hi - lo) / 4)
+        assert pair["shape_std"] >= 0.005
 
 
 def test_picked_modes_keep_their_peak_lines() -> None:
