@@ -69,6 +69,9 @@ class BaseStructure:
     # ``fixed_gram`` of the places asked for so far
     _grams: dict[tuple[str, bytes, bytes], np.ndarray] = field(
         init=False, default_factory=dict, repr=False)
+    # ``line_spring_rows`` of the latest points (a bounded memo, oldest dropped first)
+    _line_rows: dict[tuple[str, str, bytes], np.ndarray] = field(
+        init=False, default_factory=dict, repr=False)
     # the atoms sorted by parameter, and where each parameter's atoms start
     grouped_vectors: np.ndarray = field(init=False)
     grouped_weights: np.ndarray = field(init=False)
@@ -906,12 +909,28 @@ def line_spring_rows(base: BaseStructure, place: LineSpringPlace, point_m: np.nd
     """(3, n_dof) rows of the relative x, y, z displacement of ``bone_a`` with respect to
     ``bone_b`` (or ground) at ``point_m``: a spring of stiffness k along the unit vector n
     through that point adds ``k g gᵀ`` with ``g = nᵀ G`` (eq. 4.12-4.13, zero rest
-    elongation)."""
-    p = np.tile(np.asarray(point_m, float), (3, 1))
-    G = base.rows([place.bone_a] * 3, p, np.eye(3))
-    if place.bone_b:
-        G = G - base.rows([place.bone_b] * 3, p, np.eye(3))
+    elongation).
+
+    Read-only, and kept for the latest points: a line spring's Jacobian builds its ΔZ at
+    the fitted point once per parameter, the direction's three at the same point (the
+    same rows, computed once)."""
+    point = np.asarray(point_m, float)
+    key = (place.bone_a, place.bone_b, point.tobytes() + bytes(point.shape))
+    memo = base._line_rows
+    G = memo.get(key)
+    if G is None:
+        p = np.tile(point, (3, 1))
+        G = base.rows([place.bone_a] * 3, p, np.eye(3))
+        if place.bone_b:
+            G = G - base.rows([place.bone_b] * 3, p, np.eye(3))
+        G.flags.writeable = False
+        if len(memo) >= _LINE_ROWS_KEPT:
+            del memo[next(iter(memo))]
+        memo[key] = G
     return G
+
+
+_LINE_ROWS_KEPT = 64  # points of line_spring_rows kept per base structure
 
 
 def line_spring_basis(base: BaseStructure, place: LineSpringPlace) -> np.ndarray:
