@@ -599,7 +599,11 @@ class _Lines:
         return np.concatenate([d.real, d.imag])
 
     def jac(self, dH: np.ndarray) -> np.ndarray:
-        d = dH.reshape(-1, dH.shape[-1]).take(self._flat, axis=0) * self.w[:, None]
+        return self.jac_rows(dH.reshape(-1, dH.shape[-1]).take(self._flat, axis=0))
+
+    def jac_rows(self, dH_rows: np.ndarray) -> np.ndarray:
+        """:meth:`jac` of the rows of ``dH`` at the masked elements (``_flat``) only."""
+        d = dH_rows * self.w[:, None]
         return np.concatenate([d.real, d.imag])
 
     def gap(self, H_model: np.ndarray) -> float:
@@ -742,7 +746,7 @@ class _Model:
         else:
             via_dZ = [k for k in self.cand.dZ_params if k < u.size]
         dirs = self._dZ_directions(s, u, via_dZ) if via_dZ else None
-        J = (self.lines.jac(model_jacobian(ctx, s, dirs))
+        J = (self.lines.jac_rows(model_jacobian(ctx, s, dirs, rows=self.lines._flat))
              if self.fixed_theta is None or dirs is not None else None)
         n_th = s.theta.size
         blocks = [] if self.fixed_theta is not None else [J[:, :n_th]]

@@ -448,8 +448,8 @@ def effect_jacobian(ctx: Context, solved: Solved, changed: Sequence[EffectTerms]
     return dH
 
 
-def model_jacobian(ctx: Context, solved: Solved, dZ_directions: np.ndarray | None = None
-                   ) -> np.ndarray:
+def model_jacobian(ctx: Context, solved: Solved, dZ_directions: np.ndarray | None = None,
+                   rows: np.ndarray | None = None) -> np.ndarray:
     """∂H/∂log θ (n_f, n_out, n_in, n_p) at a :func:`solve` of ``ctx``, from its solves.
 
     The atoms give ``∂H/∂θ_p = −(Z⁻¹Oᵀ)ᵀ ∂Z/∂θ_p (Z⁻¹Iᵀ)`` (Z complex symmetric). With
@@ -457,7 +457,14 @@ def model_jacobian(ctx: Context, solved: Solved, dZ_directions: np.ndarray | Non
     derivative of H along changes D_k of the common ΔZ (effect parameters that enter only
     through ``dZ``), without a solve per direction. ``dZ_directions`` is (n_f, k, n, n):
     each line's k directions together.
+
+    With ``rows`` (flat indices into (n_f, n_out, n_in)), only those rows of
+    ``dH.reshape(-1, n_p [+ k])`` are computed and returned, (rows.size, n_p [+ k]): the
+    same products and sums of the same values, without the unmeasured pairs (a fit's
+    Jacobian needs only the measured FRFs' lines).
     """
+    if rows is not None:
+        return _model_jacobian_rows(ctx, solved, dZ_directions, np.asarray(rows))
     base = ctx.base
     n_f = ctx.frequency_hz.size
     n_out, n_in = solved.H.shape[1:]
@@ -489,6 +496,57 @@ def model_jacobian(ctx: Context, solved: Solved, dZ_directions: np.ndarray | Non
             dH[:, :, cols, base.n_params:] = -ext.reshape(n_f, n_out, n_extra, n_c
                                                           ).transpose(0, 1, 3, 2)
     return dH if solved.gain is None else dH * solved.gain[..., None]
+
+
+def _model_jacobian_rows(ctx: Context, solved: Solved, dZ_directions: np.ndarray | None,
+                         rows: np.ndarray) -> np.ndarray:
+    """:func:`model_jacobian` at the flat indices ``rows`` only: each value is the same
+    product ``(c_a a_o) b_i`` of the same factors, summed over a parameter's atoms in the
+    same order (``reduceat`` along the atoms), as in the full array."""
+    base = ctx.base
+    n_f = ctx.frequency_hz.size
+    n_out, n_in = solved.H.shape[1:]
+    n_p = base.n_params
+    n_extra = 0 if dZ_directions is None else dZ_directions.shape[1]
+    out = np.empty((rows.size, n_p + n_extra), complex)
+    line_out, col_in = np.divmod(rows, n_in)  # (line, output) flat, input
+    a_kind = np.stack([_factor(p, n_f) for p in solved.factors], axis=1)  # (n_f, 3)
+    c_atoms = (base.grouped_weights[:, None] * a_kind[:, base.grouped_kinds].T
+               * solved.theta[base.grouped_params][:, None])
+    for cols, X in solved.groups:
+        n_c, n = len(cols), X.shape[1]
+        local = np.full(n_in, -1)
+        local[cols] = np.arange(n_c)
+        sel = np.flatnonzero(local[col_in] >= 0)
+        if not sel.size:
+            continue
+        lo_sel = line_out[sel]  # line * n_out + output
+        c_sel = local[col_in[sel]]
+        ab = np.tensordot(base.grouped_vectors, X.view(float), axes=([1], [1])).view(complex)
+        ca = (c_atoms[:, :, None] * ab[:, :, :n_out]).reshape(ab.shape[0], -1)
+        b_in = ab[:, :, n_out:].reshape(ab.shape[0], -1)
+        b_idx = (lo_sel // n_out) * n_c + c_sel  # line * n_c + input of the group
+        # in blocks of rows that stay in a core's cache (each value as in one block)
+        block = max(1, 2**18 // (16 * ab.shape[0]))
+        every = sel.size == rows.size  # one group: its rows are all, in order
+        for e0 in range(0, sel.size, block):
+            e = slice(e0, e0 + block)
+            outer = ca.take(lo_sel[e], axis=1) * b_in.take(b_idx[e], axis=1)  # (n_a, rows)
+            per_param = np.add.reduceat(outer, base.param_starts, axis=0)  # (n_p, rows)
+            if every:
+                np.negative(per_param.T, out=out[e, :n_p])
+            else:
+                out[sel[e], :n_p] = -per_param.T
+        if n_extra:
+            A, B = X[..., :n_out], X[..., n_out:]
+            DB = dZ_directions.reshape(n_f, n_extra * n, n) @ B  # (n_f, k n, n_c)
+            DB = DB.reshape(n_f, n_extra, n, n_c).transpose(0, 2, 1, 3)
+            ext = A.transpose(0, 2, 1) @ DB.reshape(n_f, n, n_extra * n_c)
+            ext = ext.reshape(n_f * n_out, n_extra, n_c)
+            out[sel, n_p:] = -ext[lo_sel, :, c_sel]
+    if solved.gain is not None:
+        out *= solved.gain.reshape(-1)[rows][:, None]
+    return out
 
 
 def evaluate(ctx: Context, theta: np.ndarray, terms: EffectTerms | None = None,
