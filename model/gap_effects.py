@@ -228,6 +228,10 @@ class Context:
     in_position_m: np.ndarray | None = None
     # the band's highest measured frequency (Hz); None: that of ``frequency_hz``
     band_max_hz: float | None = None
+    # :func:`solve`'s latest base dynamic stiffnesses and their solves (see there)
+    _base_Z: dict[bytes, tuple] = field(init=False, default_factory=dict, repr=False)
+    _base_solves: dict[tuple[bytes, tuple[int, ...]], np.ndarray] = field(
+        init=False, default_factory=dict, repr=False)
 
     @property
     def omega(self) -> np.ndarray:
@@ -332,34 +336,73 @@ def solve(ctx: Context, theta: np.ndarray, terms: EffectTerms | None = None) -> 
     terms = terms or EffectTerms()
     w = ctx.omega
     n_f = w.size
-    M, K, C = base.matrices(theta)
-    # the plain viscous factors (eq. 4.54): a_m = −ω², a_k = 1, a_c = iω
-    factors = _plain_factors(terms, w)
-    Z = _dynamic_stiffness(factors, (M, K, C), n_f)
-    if terms.dZ is not None:
-        Z += terms.dZ  # Z is this call's own array
     o = ctx.out_rows if terms.out_rows is None else terms.out_rows
     i = ctx.in_rows
     n_out, n_in = o.shape[0], i.shape[0]
+    plain = (list(range(n_in)) if terms.dZ_input is None
+             else [j for j in range(n_in) if terms.dZ_input[j] is None])
+    # A fit with the base frozen builds the same base Z(θ) at every evaluation, and an
+    # effect that leaves Z and the output rows alone (gains, a ΔZ per input) also solves
+    # it for the plain inputs every time: both are kept per context (the last few θ) and
+    # reused, the same arrays (read-only). Z(θ) + ΔZ is then a new array, the same sums.
+    base_factors = terms.a_m is None and terms.a_k is None and terms.a_c is None
+    theta_key = np.asarray(theta, float).tobytes() if base_factors else None
+    kept = None if theta_key is None else ctx._base_Z.get(theta_key)
+    if kept is not None:
+        (M, K, C), factors, Z = kept
+    else:
+        M, K, C = base.matrices(theta)
+        # the plain viscous factors (eq. 4.54): a_m = −ω², a_k = 1, a_c = iω
+        factors = _plain_factors(terms, w)
+        Z = _dynamic_stiffness(factors, (M, K, C), n_f)
+        if theta_key is not None:
+            _keep(ctx._base_Z, theta_key, ((M, K, C), factors, _read_only(M, K, C, Z)[-1]))
+    if terms.dZ is not None:
+        if theta_key is None:
+            Z += terms.dZ  # Z is this call's own array
+        else:
+            Z = Z + terms.dZ
+    solve_key = (None if theta_key is None or terms.dZ is not None
+                 or terms.out_rows is not None else (theta_key, tuple(plain)))
+    X_plain = None if solve_key is None else ctx._base_solves.get(solve_key)
     # (dynamic stiffness, input columns) solved together
     to_solve: list[tuple[np.ndarray, list[int]]] = []
-    if terms.dZ_input is None:
-        to_solve.append((Z, list(range(n_in))))
-    else:
-        plain = [j for j in range(n_in) if terms.dZ_input[j] is None]
-        if plain:
-            to_solve.append((Z, plain))
+    if plain:
+        to_solve.append((Z, plain))
+    if terms.dZ_input is not None:
         to_solve.extend((Z + d, [j]) for j, d in enumerate(terms.dZ_input) if d is not None)
     H = np.empty((n_f, n_out, n_in), complex)
     groups = []
     for Zg, cols in to_solve:
-        rhs = np.concatenate([o, i[cols]]).T.astype(complex)
-        X = np.linalg.solve(Zg, np.broadcast_to(rhs, (n_f, *rhs.shape)))
+        if Zg is Z and X_plain is not None:
+            X = X_plain
+        else:
+            rhs = np.concatenate([o, i[cols]]).T.astype(complex)
+            X = np.linalg.solve(Zg, np.broadcast_to(rhs, (n_f, *rhs.shape)))
+            if Zg is Z and solve_key is not None:
+                _keep(ctx._base_solves, solve_key, _read_only(X)[0])
         H[:, :, cols] = o @ X[..., n_out:]
         groups.append((cols, X))
     gain = _gain(terms, H.shape)
     return Solved(np.asarray(theta, float), terms, factors, tuple(groups),
                   H if gain is None else H * gain, gain, (M, K, C), H)
+
+
+_BASE_SOLVES_KEPT = 4  # base Z(θ) and solves kept per context (see solve)
+
+
+def _keep(memo: dict, key: object, value: object) -> None:
+    """``memo[key] = value``, the oldest entry dropped beyond ``_BASE_SOLVES_KEPT``."""
+    if len(memo) >= _BASE_SOLVES_KEPT:
+        del memo[next(iter(memo))]
+    memo[key] = value
+
+
+def _read_only(*arrays: np.ndarray) -> tuple[np.ndarray, ...]:
+    """``arrays``, marked read-only (kept arrays that callers share)."""
+    for a in arrays:
+        a.flags.writeable = False
+    return arrays
 
 
 def _gain(terms: EffectTerms, shape: tuple[int, ...]) -> np.ndarray | None:
