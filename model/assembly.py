@@ -32,11 +32,14 @@ def skew(v: np.ndarray) -> np.ndarray:
 
 
 def point_transform(rho_m: np.ndarray) -> np.ndarray:
-    """3x6 map from a body's (u, θ) to the small displacement of a point at ``ρ`` (eq. 4.9)."""
-    t = np.zeros((3, 6))
-    t[:, :3] = np.eye(3)
-    t[:, 3:] = -skew(np.asarray(rho_m, dtype=float))
-    return t
+    """3x6 map from a body's (u, θ) to the small displacement of a point at ``ρ`` (eq. 4.9).
+
+    ``[I₃, −skew(ρ)]`` written out in one array (the effect fits build it for every trial
+    point): the same values, the negated zeros of ``−skew`` included."""
+    x, y, z = np.asarray(rho_m, dtype=float)
+    return np.array([[1.0, 0.0, 0.0, -0.0, z, -y],
+                     [0.0, 1.0, 0.0, -z, -0.0, x],
+                     [0.0, 0.0, 1.0, y, -x, -0.0]])
 
 
 def point_rows(model: PelvisModel, bones: list[str] | tuple[str, ...], position_m: np.ndarray,
@@ -53,11 +56,14 @@ def point_rows(model: PelvisModel, bones: list[str] | tuple[str, ...], position_
     if not (len(bones) == pos.shape[0] == dirs.shape[0]):
         raise ValueError(f"points disagree: {len(bones)} bones, {pos.shape[0]} positions, "
                          f"{dirs.shape[0]} directions")
-    norms = np.linalg.norm(dirs, axis=1)
+    # np.linalg.norm's sum of squares, without its per-call overhead (the same values)
+    norms = np.sqrt(np.add.reduce(dirs * dirs, axis=1))
     if np.any(norms == 0) or not np.all(np.isfinite(pos)):
         raise ValueError("point directions must be non-zero and positions finite")
     dirs = dirs / norms[:, None]
     rows = np.zeros((len(bones), model.n_dof))
+    # the transform of a point asked for along several directions is built once
+    transforms: dict[tuple[int, bytes], np.ndarray] = {}
     for i, bone in enumerate(bones):
         if bone == GROUND:
             continue
@@ -65,8 +71,11 @@ def point_rows(model: PelvisModel, bones: list[str] | tuple[str, ...], position_
             rows[i] = np.nan
             continue
         b = model.body_index(bone)
-        body = model.bodies[b]
-        rows[i, 6 * b:6 * b + 6] = dirs[i] @ point_transform(pos[i] - body.com_m)
+        key = (b, pos[i].tobytes())
+        t = transforms.get(key)
+        if t is None:
+            t = transforms[key] = point_transform(pos[i] - model.bodies[b].com_m)
+        rows[i, 6 * b:6 * b + 6] = dirs[i] @ t
     return rows
 
 
