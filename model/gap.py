@@ -746,13 +746,16 @@ class _Model:
         else:
             via_dZ = [k for k in self.cand.dZ_params if k < u.size]
         dirs = self._dZ_directions(s, u, via_dZ) if via_dZ else None
-        J = (self.lines.jac_rows(model_jacobian(ctx, s, dirs, rows=self.lines._flat))
-             if self.fixed_theta is None or dirs is not None else None)
-        n_th = s.theta.size
-        blocks = [] if self.fixed_theta is not None else [J[:, :n_th]]
+        fixed = self.fixed_theta is not None
+        # with the base frozen only the ΔZ directions' columns are formed (not the base's)
+        J = (self.lines.jac_rows(model_jacobian(ctx, s, dirs, rows=self.lines._flat,
+                                                base_columns=not fixed))
+             if not fixed or dirs is not None else None)
+        n_th = 0 if fixed else s.theta.size  # J's first ΔZ-direction column
+        blocks = [] if fixed else [J[:, :n_th]]
         if len(via_dZ) == u.size:
-            if u.size:
-                blocks.append(J[:, n_th:])
+            if J is not None:
+                return J  # already [base columns unless frozen, the effect's], a new array
             return np.concatenate(blocks, axis=1)
         others = [k for k in range(u.size) if k not in via_dZ]
         steps = [1e-6 * max(1.0, abs(u[k])) for k in others]

@@ -492,7 +492,7 @@ def effect_jacobian(ctx: Context, solved: Solved, changed: Sequence[EffectTerms]
 
 
 def model_jacobian(ctx: Context, solved: Solved, dZ_directions: np.ndarray | None = None,
-                   rows: np.ndarray | None = None) -> np.ndarray:
+                   rows: np.ndarray | None = None, base_columns: bool = True) -> np.ndarray:
     """∂H/∂log θ (n_f, n_out, n_in, n_p) at a :func:`solve` of ``ctx``, from its solves.
 
     The atoms give ``∂H/∂θ_p = −(Z⁻¹Oᵀ)ᵀ ∂Z/∂θ_p (Z⁻¹Iᵀ)`` (Z complex symmetric). With
@@ -504,10 +504,14 @@ def model_jacobian(ctx: Context, solved: Solved, dZ_directions: np.ndarray | Non
     With ``rows`` (flat indices into (n_f, n_out, n_in)), only those rows of
     ``dH.reshape(-1, n_p [+ k])`` are computed and returned, (rows.size, n_p [+ k]): the
     same products and sums of the same values, without the unmeasured pairs (a fit's
-    Jacobian needs only the measured FRFs' lines).
+    Jacobian needs only the measured FRFs' lines). ``base_columns=False`` (with ``rows``)
+    leaves out the n_p columns of θ: a fit with the base frozen needs only the k others.
     """
     if rows is not None:
-        return _model_jacobian_rows(ctx, solved, dZ_directions, np.asarray(rows))
+        return _model_jacobian_rows(ctx, solved, dZ_directions, np.asarray(rows),
+                                    base_columns)
+    if not base_columns:
+        raise ValueError("base_columns=False needs rows")
     base = ctx.base
     n_f = ctx.frequency_hz.size
     n_out, n_in = solved.H.shape[1:]
@@ -542,20 +546,22 @@ def model_jacobian(ctx: Context, solved: Solved, dZ_directions: np.ndarray | Non
 
 
 def _model_jacobian_rows(ctx: Context, solved: Solved, dZ_directions: np.ndarray | None,
-                         rows: np.ndarray) -> np.ndarray:
+                         rows: np.ndarray, base_columns: bool = True) -> np.ndarray:
     """:func:`model_jacobian` at the flat indices ``rows`` only: each value is the same
     product ``(c_a a_o) b_i`` of the same factors, summed over a parameter's atoms in the
-    same order (``reduceat`` along the atoms), as in the full array."""
+    same order (``reduceat`` along the atoms), as in the full array. Without
+    ``base_columns``, only the ΔZ directions' columns."""
     base = ctx.base
     n_f = ctx.frequency_hz.size
     n_out, n_in = solved.H.shape[1:]
-    n_p = base.n_params
+    n_p = base.n_params if base_columns else 0
     n_extra = 0 if dZ_directions is None else dZ_directions.shape[1]
     out = np.empty((rows.size, n_p + n_extra), complex)
     line_out, col_in = np.divmod(rows, n_in)  # (line, output) flat, input
-    a_kind = np.stack([_factor(p, n_f) for p in solved.factors], axis=1)  # (n_f, 3)
-    c_atoms = (base.grouped_weights[:, None] * a_kind[:, base.grouped_kinds].T
-               * solved.theta[base.grouped_params][:, None])
+    if base_columns:
+        a_kind = np.stack([_factor(p, n_f) for p in solved.factors], axis=1)  # (n_f, 3)
+        c_atoms = (base.grouped_weights[:, None] * a_kind[:, base.grouped_kinds].T
+                   * solved.theta[base.grouped_params][:, None])
     for cols, X in solved.groups:
         n_c, n = len(cols), X.shape[1]
         local = np.full(n_in, -1)
@@ -565,6 +571,15 @@ def _model_jacobian_rows(ctx: Context, solved: Solved, dZ_directions: np.ndarray
             continue
         lo_sel = line_out[sel]  # line * n_out + output
         c_sel = local[col_in[sel]]
+        if n_extra:
+            A, B = X[..., :n_out], X[..., n_out:]
+            DB = dZ_directions.reshape(n_f, n_extra * n, n) @ B  # (n_f, k n, n_c)
+            DB = DB.reshape(n_f, n_extra, n, n_c).transpose(0, 2, 1, 3)
+            ext = A.transpose(0, 2, 1) @ DB.reshape(n_f, n, n_extra * n_c)
+            ext = ext.reshape(n_f * n_out, n_extra, n_c)
+            out[sel, n_p:] = -ext[lo_sel, :, c_sel]
+        if not base_columns:
+            continue
         ab = np.tensordot(base.grouped_vectors, X.view(float), axes=([1], [1])).view(complex)
         ca = (c_atoms[:, :, None] * ab[:, :, :n_out]).reshape(ab.shape[0], -1)
         b_in = ab[:, :, n_out:].reshape(ab.shape[0], -1)
@@ -580,13 +595,6 @@ def _model_jacobian_rows(ctx: Context, solved: Solved, dZ_directions: np.ndarray
                 np.negative(per_param.T, out=out[e, :n_p])
             else:
                 out[sel[e], :n_p] = -per_param.T
-        if n_extra:
-            A, B = X[..., :n_out], X[..., n_out:]
-            DB = dZ_directions.reshape(n_f, n_extra * n, n) @ B  # (n_f, k n, n_c)
-            DB = DB.reshape(n_f, n_extra, n, n_c).transpose(0, 2, 1, 3)
-            ext = A.transpose(0, 2, 1) @ DB.reshape(n_f, n, n_extra * n_c)
-            ext = ext.reshape(n_f * n_out, n_extra, n_c)
-            out[sel, n_p:] = -ext[lo_sel, :, c_sel]
     if solved.gain is not None:
         out *= solved.gain.reshape(-1)[rows][:, None]
     return out
