@@ -10,6 +10,7 @@ import pytest
 
 from pelvislab.model.gap import _context, _Lines, _Model, prepare_data
 from pelvislab.model.gap_effects import (
+    ARMATURE_VARIANT,
     PER_DASHPOT_DAMPING,
     candidate_library,
     evaluate,
@@ -140,3 +141,48 @@ def test_effect_columns_need_no_solve_and_match_differences(lines, effect, varia
     # a step of 1e-5: with 1e-4 the reference itself missed k_io_R's column by 0.36 %
     # on the f_k draw (a sharp resonance), against 4e-5 with 1e-5
     assert_columns_close(J, residual_differences(model, x, step=1e-5))
+
+
+@pytest.mark.parametrize("effect, variant", [
+    ("added_mass", None),                          # ΔZ only: ΔZ-direction columns
+    ("support_resonance", ARMATURE_VARIANT),       # a ΔZ per input (two solve groups), gain
+])
+def test_measured_rows_and_frozen_base_columns_are_the_full_jacobians_bits(lines, effect,
+                                                                          variant):
+    """model_jacobian(rows=...) forms only the measured FRFs' rows, and without the base's
+    columns for a fit with the base frozen: the same values, bit for bit, as the rows and
+    columns of the full array (the fits' results must not depend on it)."""
+    ctx = lines.ctx
+    cand = candidate(ctx, effect, variant)
+    u, x = random_point(ctx, cand, seed=3)
+    s = solve(ctx, np.exp(x[:ctx.base.n_params]), cand.build(u, ctx))
+    dirs = None
+    if effect == "added_mass":
+        dirs = _Model(lines, cand, None, ctx.base.n_params)._dZ_directions(
+            s, u, range(u.size))
+    full = model_jacobian(ctx, s, dirs)
+    full = full.reshape(-1, full.shape[-1])
+    # every other measured value: rows of both inputs, not in one block
+    rows = np.flatnonzero(lines.mask)[::2]
+    got = model_jacobian(ctx, s, dirs, rows=rows)
+    assert got.tobytes() == full[rows].tobytes()
+    if dirs is not None:
+        frozen = model_jacobian(ctx, s, dirs, rows=rows, base_columns=False)
+        assert frozen.tobytes() == full[rows, ctx.base.n_params:].tobytes()
+
+
+def test_a_kept_base_solve_is_the_fresh_solves_bits(lines):
+    """solve keeps the base Z(θ) and its solve per context: a second call with the same θ
+    (an effect that changes only a gain, or a ΔZ) gives what a fresh context gives."""
+    ctx = lines.ctx
+    theta = ctx.base.nominal * 1.05
+    for cand in (candidate(ctx, "support_resonance", ARMATURE_VARIANT),
+                 candidate(ctx, "added_mass")):
+        u = cand.starts[0]
+        first, again = (solve(ctx, theta, cand.build(u, ctx)) for _ in range(2))
+        fresh_ctx = ctx.subset(np.arange(ctx.frequency_hz.size))
+        fresh = solve(fresh_ctx, theta, cand.build(u, fresh_ctx))
+        for s in (first, again):
+            assert s.H.tobytes() == fresh.H.tobytes()
+            for (cols, X), (cols_f, X_f) in zip(s.groups, fresh.groups, strict=True):
+                assert cols == cols_f and X.tobytes() == X_f.tobytes()
