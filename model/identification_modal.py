@@ -58,8 +58,8 @@ PAIR_MIN_MAC = 0.9
 DEFAULT_FREQUENCY_TOL = 0.01
 
 
-#: Most times the picked shapes' standard uncertainty is estimated at a refit
-#: (:func:`identify_modal`): the bias estimate settles within 10 % in two or three.
+#: Most times the picked shapes' standard uncertainty is estimated, each at the latest
+#: refit (:func:`identify_modal`), before it is taken as settled.
 PICKING_PASSES = 4
 
 #: Standard uncertainty of each entry of a unit-normalised picked shape below which the
@@ -278,20 +278,21 @@ def identify_modal(
         # Peak-picked modes are biased where modes are damped or close: a shape read off a
         # peak carries its neighbours' response, and the fit matched such shapes exactly
         # with std scaled by a near-zero misfit (a damped chain: converged 20-30 % off at
-        # |z| up to 100; session 42). Each datum gets a standard uncertainty instead: the
-        # frequency its tolerance (uniform over it), the shape the difference picking makes
-        # on the model's own FRFs at the fit (its damping) between the read shape and the
-        # undamped mode's, at least SHAPE_STD_FLOOR. The fit is redone with those weights
-        # and its std are absolute, scaled up by the misfit when it exceeds them.
-        # The tolerance is read as a 2-sigma interval, as `matched` holds the model's
+        # |z| up to 100; session 42). Each datum gets a standard uncertainty instead, the
+        # fit is redone with those weights and its std are absolute, scaled up by the
+        # misfit when it exceeds them.
+        # The frequency's tolerance is a 2-sigma interval, as `matched` holds the model's
         # frequency within it (tolerance/sqrt(3), a uniform's std, let the weighted fit
-        # drift to its edge and out of the pair: review). The shape std is estimated at
-        # the fit, which absorbs part of the bias it should measure (a first fit's 0.041
-        # for 0.19 at the truth: review): estimated again at each refit, at most
-        # PICKING_PASSES times, until it settles within 10 %.
+        # drift to its edge and out of the pair: review).
+        # The shape's is the difference picking makes on the model's own FRFs at the fit
+        # (its damping) between the read shape and the undamped mode's, with the FRFs'
+        # noise, at least SHAPE_STD_FLOOR. The fit absorbs part of the bias it should
+        # measure (a first fit's 0.041 for 0.19 at the truth: review): estimated again at
+        # each refit, at most PICKING_PASSES times, until it settles within 10 %.
         tol = data.frequency_range_hz()
         tol_rel = (tol[:, 1] - tol[:, 0]) / 2 / data.frequency_hz
-        weight_f[:] = 1.0 / (2 * tol_rel / 2.0)  # w^2 ratio: twice the f ratio
+        # sigma of the w^2 ratio: twice sigma_f / f = twice tol_rel / 2
+        weight_f[:] = 1.0 / tol_rel
         for _ in range(PICKING_PASSES):
             estimate = _picking_shape_std(problem, paired(sol.x), data.picking, O)
             if shape_std is not None:
@@ -321,9 +322,9 @@ def identify_modal(
     # frequency's uncertainty, and the modes must determine the parameters.
     pairs_report = _mode_pairs(paired(sol.x), O, data)
     half_width_hz = np.diff(data.frequency_range_hz(), axis=1)[:, 0] / 2
+    picked = shape_std is not None
     for i, pair in enumerate(pairs_report):
         # the uncertainties a picked mode was weighed with (null: given without picking)
-        picked = shape_std is not None
         pair["shape_std"] = float(shape_std[i]) if picked else None
         pair["frequency_std_hz"] = float(half_width_hz[i] / 2) if picked else None
     unmatched = [p for p in pairs_report if not p["matched"]]
@@ -534,7 +535,8 @@ def _picking_shape_std(problem: FrfProblem, state: tuple, picking: PeakPicking,
     """(n_m,) standard uncertainty of each entry of each picked unit shape: the difference
     between the shape peak picking reads off the model's FRFs at ``state`` (the fit's
     values, the model's damping; same lines, entries and peak lines as the data) and the
-    paired undamped mode's shape, rms over the outputs, at least :data:`SHAPE_STD_FLOOR`.
+    paired undamped mode's shape, rms over the outputs, combined with the FRFs' noise
+    (``picking.shape_noise_std``) and at least :data:`SHAPE_STD_FLOOR`.
 
     A model estimate of the picking's bias: right to the extent the model's damping and
     neighbouring modes are the subject's."""
