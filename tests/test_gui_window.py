@@ -366,17 +366,11 @@ def test_replay_names_a_point_whose_bone_nothing_gives(operator_window, tmp_path
     import h5py
 
     from pelvislab.tests.test_resume_finished import _finished
-    from pelvislab.tests.test_session_design_only import _design_only_copy
+    from pelvislab.tests.test_session_design_only import bed_frame_copy
 
     _, original = _finished(tmp_path)
     path = tmp_path / "bed.h5"
-    _design_only_copy(original, path, rename={"sacrum_x": "bed_frame_z"})
-    with h5py.File(path, "a") as handle:
-        for step in handle["steps"].values():
-            for ds in step["echoes"].values():
-                if ds.attrs.get("output") == "bed_frame_z":
-                    ds.attrs["output_position_m"] = [0.0, 0.0, -0.3]
-                    ds.attrs["output_direction"] = [0.0, 0.0, 1.0]
+    bed_frame_copy(original, path)
     window = operator_window()
     assert window.open_replay(path) is True
     text = window.replay.file_label.text()

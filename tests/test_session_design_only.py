@@ -101,6 +101,21 @@ def test_points_the_catalogue_does_not_know_and_unknown_statuses_are_named(tmp_p
     assert not (tmp_path / "u.h5").exists() and not (tmp_path / "q.h5").exists()
 
 
+def bed_frame_copy(original, path, bone=None):
+    """``original`` as a design-only session (:func:`_design_only_copy`) whose sacrum_x is
+    renamed bed_frame_z, a point the catalogue does not know, with its position and
+    direction in the steps and ``output_bone`` only when ``bone`` is not None."""
+    _design_only_copy(original, path, rename={"sacrum_x": "bed_frame_z"})
+    with h5py.File(path, "a") as handle:
+        for step in handle["steps"].values():
+            for ds in step["echoes"].values():
+                if ds.attrs.get("output") == "bed_frame_z":
+                    ds.attrs["output_position_m"] = [0.0, 0.0, -0.3]
+                    ds.attrs["output_direction"] = [0.0, 0.0, 1.0]
+                    if bone is not None:
+                        ds.attrs["output_bone"] = bone
+
+
 def test_a_point_nothing_gives_a_bone_is_named_not_taken_as_off_bone(tmp_path):
     """A point outside the catalogue whose steps give its position and direction but no
     ``output_bone`` was written on no modelled bone without a word (identify and gap then
@@ -111,15 +126,7 @@ def test_a_point_nothing_gives_a_bone_is_named_not_taken_as_off_bone(tmp_path):
     _, original = _finished(tmp_path)
     for bone in (None, ""):
         path = tmp_path / f"bed_{bone is None}.h5"
-        _design_only_copy(original, path, rename={"sacrum_x": "bed_frame_z"})
-        with h5py.File(path, "a") as handle:
-            for step in handle["steps"].values():
-                for ds in step["echoes"].values():
-                    if ds.attrs.get("output") == "bed_frame_z":
-                        ds.attrs["output_position_m"] = [0.0, 0.0, -0.3]
-                        ds.attrs["output_direction"] = [0.0, 0.0, 1.0]
-                        if bone is not None:
-                            ds.attrs["output_bone"] = bone
+        bed_frame_copy(original, path, bone)
         notes: list[str] = []
         out = tmp_path / f"re_{bone is None}.h5"
         reprocess_session(path, out, notes=notes)
