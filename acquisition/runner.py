@@ -533,6 +533,7 @@ class Runner:
         self._pause_lock = threading.Lock()
         self._resumes = 0  # resume() calls: each ends the pause under way
         self._live_in_pause = threading.Event()
+        self._live_requests = 0  # "on" requests of live_echoes_in_pause so far
         self._confirm = threading.Event()
         self._wake = threading.Event()
         self._lock = threading.RLock()  # generator commands vs. abort from another thread
@@ -604,6 +605,10 @@ class Runner:
         (:meth:`set_gate`) before the next step. Off again at :meth:`resume`; a request
         outside a pause is kept for the next pause of this run."""
         if on:
+            # counted: an "on" asked again after live echoes failed retries them, even when
+            # the pause loop never saw the "off" between (a GUI unchecks and the operator
+            # presses again within one of its waits: the retry was lost; seen under load)
+            self._live_requests += 1
             self._live_in_pause.set()
         else:
             self._live_in_pause.clear()
@@ -963,16 +968,20 @@ class Runner:
         self._log("paused; outputs off")
         t_wait = self._clock()
         live = "off"  # "on": configured and pulsing; "failed": said, until asked again
+        started_under = -1  # the "on" request the live echoes last started under
         reconfigure = False
         next_aim = self._clock()
         while self._pause.is_set() and self._resumes == resumes:
             self._check()
             wanted = self._live_in_pause.is_set() and self.aim_pulses > 0
+            if live == "failed" and self._live_requests != started_under:
+                live = "off"  # asked again since they failed: try anew
             if not wanted and live != "off":
                 if live == "on":
                     self._log("live echoes off; outputs off")
                 live = "off"
             elif wanted and live == "off":
+                started_under = self._live_requests
                 live = "on" if self._aim_configure(setup, step, drive=False) else "failed"
                 reconfigure = True
                 if live == "on":

@@ -528,6 +528,49 @@ def test_live_echoes_in_a_pause_let_the_operator_gate_the_bone_before_the_next_s
     assert pulses == {40.0: 1000, 100.0: 1000, 160.0: 1000}
 
 
+def test_live_echoes_asked_again_after_they_failed_are_tried_anew(tmp_path):
+    """Live echoes that fail (a timeout) stop; asked for again they are tried anew, also
+    when the pause loop never saw them switched off in between: the GUI unchecks the
+    button on the warning and the operator presses it again, and under load both can fall
+    within one of the loop's waits (a GUI test saw no live echoes for 30 s in a full run).
+    Here the second request comes with no "off" at all."""
+    from pelvislab.drivers.interfaces import InstrumentTimeoutError
+
+    seen = {"paused": 0, "aims_in_pause": 0, "failed": 0}
+    real_acquire, guard = [], []
+
+    def timing_out(*args, **kwargs):
+        raise InstrumentTimeoutError("no trigger within 0.53 s")
+
+    def on_event(runner, bench, event):
+        if isinstance(event, r.AimingEchoes) and runner.state != "paused":
+            runner.confirm()
+        elif isinstance(event, r.StepFinished) and seen["paused"] == 0:
+            runner.pause()
+        elif isinstance(event, r.Paused):
+            seen["paused"] += 1
+            real_acquire.append(bench.digitizer.acquire)
+            bench.digitizer.acquire = timing_out
+            runner.live_echoes_in_pause(True)
+            # a guard: without the retry the pause would last for ever
+            guard.append(threading.Timer(20.0, runner.resume))
+            guard[0].start()
+        elif (isinstance(event, r.LogMessage) and event.level == "WARNING"
+              and event.text.startswith(r.NO_LIVE_ECHOES)):
+            seen["failed"] += 1
+            bench.digitizer.acquire = real_acquire[0]
+            runner.live_echoes_in_pause(True)
+        elif isinstance(event, r.AimingEchoes):
+            seen["aims_in_pause"] += 1
+            runner.resume()
+
+    final, _, _, _ = run(tmp_path, on_event, clutter=False)
+    for timer in guard:
+        timer.cancel()
+    assert final.status == "completed"
+    assert seen == {"paused": 1, "aims_in_pause": 1, "failed": 1}, seen
+
+
 def test_a_pause_without_live_echoes_keeps_the_trigger_off(tmp_path):
     trigger_on = []
 
