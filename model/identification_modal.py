@@ -25,7 +25,7 @@ picking: between the lines next to the peak), and the modes must determine every
 
 Peak-picked modes (``ModalData.picking``) are weighted by a standard uncertainty per datum
 (the frequency's tolerance; the shape's picking bias on the model's own FRFs at the fit,
-:func:`_picking_shape_std`) and their std are absolute; modes given otherwise are fitted
+:func:`_picking_bias`) and their std are absolute; modes given otherwise are fitted
 unweighted with std scaled by the misfit.
 """
 
@@ -66,6 +66,11 @@ PICKING_PASSES = 4
 #: picking-bias estimate is not trusted (FRF noise, the real direction of a complex column):
 #: 0.5 % of the shape's norm, the measurement chain's gain tolerance.
 SHAPE_STD_FLOOR = 0.005
+
+#: The model's own picked peak (:func:`_picking_bias`) is sought within x/÷ BIAS_WINDOW of
+#: its undamped frequency, on BIAS_GRID_LINES lines (0.2 % of the frequency apart at most).
+BIAS_WINDOW = 1.25
+BIAS_GRID_LINES = 225
 
 
 @dataclass(frozen=True)
@@ -289,19 +294,26 @@ def identify_modal(
         # noise, at least SHAPE_STD_FLOOR. The fit absorbs part of the bias it should
         # measure (a first fit's 0.041 for 0.19 at the truth: review): estimated again at
         # each refit, at most PICKING_PASSES times, until it settles within 10 %.
-        tol = data.frequency_range_hz()
-        tol_rel = (tol[:, 1] - tol[:, 0]) / 2 / data.frequency_hz
-        # sigma of the w^2 ratio: twice sigma_f / f = twice tol_rel / 2
-        weight_f[:] = 1.0 / tol_rel
+        # The frequency's picking bias is estimated the same way (the peak the model's own
+        # FRFs show against its undamped frequency) and combined with the tolerance: a
+        # damped chain's picked peak 2 Hz below the undamped 31 Hz was held to +-0.5 Hz,
+        # k2 17 % off at z -5 (session 43).
+        grid_std_hz = np.diff(data.frequency_range_hz(), axis=1)[:, 0] / 4
+        frequency_std_hz = grid_std_hz
         for _ in range(PICKING_PASSES):
-            estimate = _picking_shape_std(problem, paired(sol.x), data.picking, O)
+            estimate, bias_hz = _picking_bias(problem, paired(sol.x), data.picking, O)
+            estimate_f = np.hypot(grid_std_hz, bias_hz)
             if shape_std is not None:
                 # never below an earlier estimate: a fit that absorbed the bias shows less
                 estimate = np.maximum(estimate, shape_std)
-                if np.all(estimate <= 1.1 * shape_std):
+                estimate_f = np.maximum(estimate_f, frequency_std_hz)
+                if (np.all(estimate <= 1.1 * shape_std)
+                        and np.all(estimate_f <= 1.1 * frequency_std_hz)):
                     break  # settled: the weights of the last fit stand
-            shape_std = estimate
+            shape_std, frequency_std_hz = estimate, estimate_f
             weight_s[:] = 1.0 / shape_std
+            # sigma of the w^2 ratio: twice sigma_f / f
+            weight_f[:] = data.frequency_hz / (2 * frequency_std_hz)
             sol = fit(sol.x)
         absolute = True
     r, J = get(sol.x)
@@ -320,13 +332,21 @@ def identify_modal(
     # model modes 2-3x their frequency or at MAC 0.47, std 4-40x the values):
     # each measured mode needs a model mode of its own, of the same shape and within the
     # frequency's uncertainty, and the modes must determine the parameters.
-    pairs_report = _mode_pairs(paired(sol.x), O, data)
-    half_width_hz = np.diff(data.frequency_range_hz(), axis=1)[:, 0] / 2
     picked = shape_std is not None
+    ranges = data.frequency_range_hz()
+    if picked:
+        # the 2-sigma interval of the weights the fit used: the grid's interval widened by
+        # twice the picking bias (in quadrature, on each side)
+        sides = np.abs(ranges - data.frequency_hz[:, None])
+        widen = 2 * np.sqrt(np.maximum(frequency_std_hz**2 - grid_std_hz**2, 0.0))
+        sides = np.hypot(sides, widen[:, None])
+        ranges = np.stack([data.frequency_hz - sides[:, 0], data.frequency_hz + sides[:, 1]],
+                          axis=1)
+    pairs_report = _mode_pairs(paired(sol.x), O, data, ranges)
     for i, pair in enumerate(pairs_report):
         # the uncertainties a picked mode was weighed with (null: given without picking)
         pair["shape_std"] = float(shape_std[i]) if picked else None
-        pair["frequency_std_hz"] = float(half_width_hz[i] / 2) if picked else None
+        pair["frequency_std_hz"] = float(frequency_std_hz[i]) if picked else None
     unmatched = [p for p in pairs_report if not p["matched"]]
     with np.errstate(invalid="ignore"):
         undetermined = [n for n, v, s in zip(free, values[idx], std, strict=True)
@@ -365,15 +385,16 @@ def identify_modal(
     )
 
 
-def _mode_pairs(state: tuple, O: np.ndarray, data: ModalData) -> list[dict[str, object]]:
+def _mode_pairs(state: tuple, O: np.ndarray, data: ModalData, ranges: np.ndarray
+                ) -> list[dict[str, object]]:
     """Each measured mode's model partner at the fit: frequencies, MAC, the interval the
-    measured frequency allows, and whether the pair holds (MAC >= PAIR_MIN_MAC, the model's
-    frequency in the interval, no other measured mode paired with the same model mode)."""
+    measured frequency allows (``ranges``, (n_m, 2) Hz), and whether the pair holds
+    (MAC >= PAIR_MIN_MAC, the model's frequency in the interval, no other measured mode
+    paired with the same model mode)."""
     _, _, lam, Z, pairs = state
     f_model = np.sqrt(np.clip(lam[pairs], 0.0, None)) / (2 * np.pi)
     macs = np.array([mac(O @ Z[:, [s]], data.shapes[:, [i]])[0, 0]
                      for i, s in enumerate(pairs)])
-    ranges = data.frequency_range_hz()
     shared = np.array([np.count_nonzero(pairs == s) > 1 for s in pairs])
     report = []
     for i in range(pairs.size):
@@ -530,23 +551,35 @@ def _picked_shape(Hk: np.ndarray, measured: np.ndarray) -> np.ndarray:
     return u[:, 0]
 
 
-def _picking_shape_std(problem: FrfProblem, state: tuple, picking: PeakPicking,
-                       O: np.ndarray) -> np.ndarray:
-    """(n_m,) standard uncertainty of each entry of each picked unit shape: the difference
-    between the shape peak picking reads off the model's FRFs at ``state`` (the fit's
-    values, the model's damping; same lines, entries and peak lines as the data) and the
-    paired undamped mode's shape, rms over the outputs, combined with the FRFs' noise
-    (``picking.shape_noise_std``) and at least :data:`SHAPE_STD_FLOOR`.
+def _picking_bias(problem: FrfProblem, state: tuple, picking: PeakPicking, O: np.ndarray
+                  ) -> tuple[np.ndarray, np.ndarray]:
+    """What peak picking makes of the model's own FRFs at ``state`` (the fit's values, the
+    model's damping), against the paired undamped modes:
 
-    A model estimate of the picking's bias: right to the extent the model's damping and
-    neighbouring modes are the subject's."""
+    - (n_m,) standard uncertainty of each entry of each picked unit shape: the difference
+      between the shape read at the data's peak line (same lines and entries as the data)
+      and the undamped mode's, rms over the outputs, combined with the FRFs' noise
+      (``picking.shape_noise_std``) and at least :data:`SHAPE_STD_FLOOR`;
+    - (n_m,) frequency bias, Hz: where the model's mean log|H| over the same entries peaks
+      (the local maximum nearest the undamped frequency, on a grid of
+      :data:`BIAS_GRID_LINES` lines within x/÷ :data:`BIAS_WINDOW` of it and short of
+      halfway to the neighbouring modes, refined by a parabola) minus the undamped
+      frequency; 0 when the model shows no peak there in the band.
+
+    A model estimate of the picking's bias (a damped mode's peak lies below its undamped
+    frequency, neighbouring modes move it either way): right to the extent the model's
+    damping and neighbouring modes are the subject's."""
     from pelvislab.model.identification import frf_with_jacobian
 
-    _, mats, _, Z, pairs = state
+    _, mats, lam, Z, pairs = state
     lines = picking.frequency_hz[picking.peak_line]
     H, _ = frf_with_jacobian(mats, problem.outputs, problem.inputs, lines,
                              omega_max_rad_s=problem.omega_max_rad_s, jacobian=False)
+    f_undamped = np.sqrt(np.clip(lam[pairs], 0.0, None)) / (2 * np.pi)
+    f_all = np.sqrt(lam[lam > 1e-6 * lam.max()]) / (2 * np.pi)
+    band = picking.frequency_hz[[0, -1]]
     std = np.empty(pairs.size)
+    bias_hz = np.empty(pairs.size)
     for i, (s, k) in enumerate(zip(pairs, picking.peak_line, strict=True)):
         # the entries the data lack read 0 there when the column is chosen: here too
         read = _picked_shape(np.where(picking.measured[k], H[i], 0.0), picking.measured[k])
@@ -554,6 +587,44 @@ def _picking_shape_std(problem: FrfProblem, state: tuple, picking: PeakPicking,
         mode = mode / np.linalg.norm(mode)
         read = read * (np.sign(read @ mode) or 1.0)
         std[i] = np.sqrt(np.mean((read - mode) ** 2))
+        # the mode's own stretch: up to halfway (geometrically) to its neighbours, whose
+        # peaks are not its bias (the pelvis' 313 Hz mode took a 267 Hz peak for its own)
+        others = f_all[np.abs(f_all - f_undamped[i]) > 1e-9 * f_undamped[i]]
+        below, above = others[others < f_undamped[i]], others[others > f_undamped[i]]
+        lo = max(band[0], f_undamped[i] / BIAS_WINDOW,
+                 np.sqrt(below.max() * f_undamped[i]) if below.size else 0.0)
+        hi = min(band[1], f_undamped[i] * BIAS_WINDOW,
+                 np.sqrt(above.min() * f_undamped[i]) if above.size else np.inf)
+        fine = np.linspace(lo, hi, BIAS_GRID_LINES)
+        peak = _model_peak_hz(problem, mats, fine, picking.measured[k], f_undamped[i]) \
+            if fine[-1] > fine[0] else None
+        # no peak of the model's there (heavily damped, or beyond the band): no estimate,
+        # the grid's tolerance stands (the data's own miss made a mismatched datum weightless)
+        bias_hz[i] = 0.0 if peak is None else peak - f_undamped[i]
     if picking.shape_noise_std is not None:
         std = np.hypot(std, picking.shape_noise_std)
-    return np.maximum(std, SHAPE_STD_FLOOR)
+    return np.maximum(std, SHAPE_STD_FLOOR), bias_hz
+
+
+def _model_peak_hz(problem: FrfProblem, mats: object, frequency_hz: np.ndarray,
+                   entries: np.ndarray, near_hz: float) -> float | None:
+    """The local maximum of the model's mean log|H| over ``entries`` ((n_out, n_in) bool)
+    on the lines ``frequency_hz`` nearest ``near_hz``, refined by a parabola through it and
+    its neighbours; None when the lines' interior has no local maximum."""
+    from pelvislab.model.identification import frf_with_jacobian
+
+    H, _ = frf_with_jacobian(mats, problem.outputs, problem.inputs, frequency_hz,
+                             omega_max_rad_s=problem.omega_max_rad_s, jacobian=False)
+    mag = np.abs(H[:, entries])
+    mag = mag[:, np.all(mag > 0, axis=0)]
+    if mag.shape[1] == 0:
+        return None
+    total = np.mean(np.log(mag), axis=1)
+    inner = np.flatnonzero((total[1:-1] > total[:-2]) & (total[1:-1] >= total[2:])) + 1
+    if inner.size == 0:
+        return None
+    j = inner[np.argmin(np.abs(frequency_hz[inner] - near_hz))]
+    y0, y1, y2 = total[j - 1:j + 2]
+    curvature = y0 - 2 * y1 + y2
+    offset = 0.5 * (y0 - y2) / curvature if curvature < 0 else 0.0
+    return float(frequency_hz[j] + offset * (frequency_hz[j + 1] - frequency_hz[j]))
