@@ -150,7 +150,9 @@ class Sweep:
 
 @dataclass(frozen=True)
 class Ultrasound:
-    """Pulse-echo acquisition settings (thesis ch. 8 defaults)."""
+    """Pulse-echo acquisition settings. Thesis ch. 8.3 gives ``prf_hz``, ``pulses``,
+    ``sample_rate_hz`` and ``samples``; the other defaults are ours (the thesis names no
+    speed of sound, only "soft tissue", ch. 8.2)."""
 
     prf_hz: float = 5000.0
     pulses: int = 2000

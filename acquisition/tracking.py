@@ -53,7 +53,9 @@ MAX_OFFSET_SPREAD_SAMPLES = 8.0
 
 @dataclass(frozen=True)
 class TrackingOptions:
-    """Settings of :func:`track_echoes`; every default follows the thesis set-up (ch. 8.3).
+    """Settings of :func:`track_echoes`; defaults sized for the thesis set-up (ch. 8.3: 5 MHz
+    transducers, 500 MS/s), the method itself is ours (the thesis correlated each echo with
+    the first one and interpolated the peak).
 
     gate: (start, stop) sample indices of the bone echo window; None = automatic (strongest
         envelope, extended down to ``gate_threshold`` of its peak plus ``gate_margin_samples``).

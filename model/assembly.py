@@ -106,7 +106,8 @@ def connector_vector(model: PelvisModel, element: Spring | Dashpot) -> np.ndarra
 
 def _reads_own_points(model: PelvisModel, element: Spring | Dashpot) -> bool:
     """Whether each body of ``element`` is evaluated at its own attachment point: dashpots
-    of a model read with ``dashpot_lever = "points"`` (eq. 4.16 literally)."""
+    of a model read with ``dashpot_lever = "points"`` (eq. 4.16's attachment points with
+    fig. 5.6's projection on the normal)."""
     return isinstance(element, Dashpot) and model.dashpot_lever == "points"
 
 

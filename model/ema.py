@@ -1,7 +1,7 @@
 """Experimental modal analysis: poles, damping, complex shapes and residues from measured FRFs.
 
-What the thesis did with ME'scope and SDT (ch. 10-11, tables 10.1 and 11.1), done here with
-two standard frequency-domain steps:
+What the thesis did with commercial tools (ch. 10: STAR System, table 10.1; ch. 11: ME'scope,
+then SDT, table 11.1), done here with two standard frequency-domain steps:
 
 1. **Poles**: poly-reference least-squares complex frequency (p-LSCF, "PolyMAX"; Guillaume et
    al., IMAC XXI 2003; Peeters et al., Shock Vib. 11, 2004). A right matrix-fraction model

@@ -248,8 +248,9 @@ class PelvisModel:
     """Where a dashpot reads its bodies' velocities (thesis ch. 5.4, fig. 5.6):
     ``"midpoint"``, both bodies at the midpoint of the two attachment points (blind to
     rigid motion of the whole model); ``"points"``, each body at its own attachment point
-    (eq. 4.16 read literally). The two agree when the points are offset along the axis;
-    appendix E's printed S1 pair is 0.71 mm off the joint normal (see
+    (eq. 4.16's attachment points, projected on the normal as in fig. 5.6; eq. 4.16 alone
+    would take the whole velocity difference). The two agree when the points are offset
+    along the axis; appendix E's printed S1 pair is 0.71 mm off the joint normal (see
     :attr:`dashpot_lever_matters`)."""
 
     def __post_init__(self) -> None:

@@ -49,7 +49,7 @@ def test_base_fit_converges_to_the_noise_on_precise_data():
 
 @pytest.mark.parametrize("lever", ["midpoint", "points"])
 def test_diagnosis_reads_the_dashpots_as_the_data_were_made(lever):
-    # seed 1 made with each body of S1 at its own point (eq. 4.16 literally): with the
+    # seed 1 made with each body of S1 at its own point (eq. 4.16's points, fig. 5.6): with the
     # model's midpoint reading the base fit leaves a fitted-line chi2 of 6.1e5 over ~2200
     # lines (a false effect); read the same way it is at the noise
     data = _precise_set(1, lever)

@@ -15,8 +15,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     sub = p.add_subparsers(dest="model_command", metavar="ACTION")
     sub.required = True
     m = sub.add_parser("modes", help="elastic modes of the model (default: thesis appendix E)",
-                       description="Natural frequencies (Hz), damping ratios and mode shapes of "
-                       "the pelvis model's elastic modes (eq. 4.55).")
+                       description="Damped and natural frequencies (Hz), damping ratios and mode "
+                       "shapes of the pelvis model's elastic modes (state-space eigenproblem, "
+                       "thesis ch. 4.3, eq. 4.39-4.48 and app. B; app. D with f_k, f_c).")
     m.add_argument("--model", metavar="M.toml", help="model file; default: thesis appendix E")
     m.add_argument("--json", action="store_true", help="print JSON to stdout")
     m.add_argument("--f-k", type=float, default=None, metavar="F",
