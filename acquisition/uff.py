@@ -578,9 +578,21 @@ def read_uff(path: str | Path, points: dict[int, PointInfo] | None = None
     # (a repeated abscissa, as pelvislab writes one-line records, lands on the same line)
     grid = np.unique(np.concatenate([e[2] for e in entries]))
     H = np.full((grid.size, len(out_keys), len(in_keys)), np.nan + 0j)
+    replaced: dict[tuple[str, str], int] = {}  # pair -> lines given another value again
     for ko, ki, x, values in entries:
         idx = np.searchsorted(grid, x)
-        H[idx, out_keys.index(ko), in_keys.index(ki)] = values
+        o, i = out_keys.index(ko), in_keys.index(ki)
+        for k, v in zip(idx, values, strict=True):
+            # two records of one FRF (a repeat, or bands that overlap): the later one's
+            # values replaced the earlier's without a word (review of the EMA path)
+            old = H[k, o, i]
+            if np.isfinite(old) and old != v:
+                pair = (outputs[ko][0], inputs[ki][0])
+                replaced[pair] = replaced.get(pair, 0) + 1
+            H[k, o, i] = v
+    for (out_name, in_name), n in replaced.items():
+        notes.append(f"FRF {out_name}/{in_name} is given more than once with different "
+                     f"values at {n} line(s): the values of the record read last are kept")
 
     def channels(table: dict) -> Channels:
         rows = list(table.values())
