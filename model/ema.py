@@ -1141,11 +1141,15 @@ def _ema(
             top_order = int(diagram.orders[-1]) if len(diagram.orders) else 0
             if top_order < 2 * crit.min_count:
                 # the selection needs min_count fully stable orders: with few lines the
-                # diagram stops at n/3 and cannot show them, whatever the grid resolves
-                notes.append(f"no stable pole found in the band: {f.size} lines give a "
-                             f"stabilisation diagram up to order {top_order} only; a mode "
-                             f"needs {crit.min_count} stable orders (try --max-order "
-                             f"{2 * crit.min_count}, or measure more lines)")
+                # diagram stops at n/3 and cannot show them, whatever the grid resolves;
+                # an order above 2n - 2 is refused (4 lines were told to try 8)
+                allowed = 2 * f.size - 2
+                advice = (f"try --max-order {min(2 * crit.min_count, allowed)}, or measure "
+                          "more lines" if allowed > top_order else
+                          f"{f.size} lines allow no higher order: measure more lines")
+                notes.append(f"no stable pole found in the band: the stabilisation diagram "
+                             f"goes up to order {top_order} only; a mode needs "
+                             f"{crit.min_count} stable orders ({advice})")
             else:
                 notes.append("no stable pole found in the band" + _spacing_hint(f))
     edges = edge_poles(diagram, crit) if residual_poles else np.zeros(0, dtype=complex)

@@ -343,3 +343,18 @@ def test_manual_pick_refuses_a_frequency_twice_and_names_the_empty_one(system):
     else:
         assert result.frequency_hz[0] == pytest.approx(fn[1], rel=1e-4)
         assert np.unique(result.poles).size == 2
+
+
+def test_no_mode_note_suggests_only_an_order_the_lines_allow():
+    # 4 lines allow orders up to 6; the note said "try --max-order 8", which ema refuses
+    # (review of the EMA path)
+    import re
+
+    f = np.array([30.0, 40.0, 50.0, 60.0])
+    H = (1.0 / (1e4 - (2 * np.pi * f) ** 2 + 50j * f)).reshape(-1, 1, 1)
+    for given in (None, 6):
+        notes = " ".join(ema(f, H, max_order=given).notes)
+        assert "up to order" in notes, notes
+        for suggested in re.findall(r"try --max-order (\d+)", notes):
+            ema(f, H, max_order=int(suggested))  # an order the lines allow
+    assert "4 lines allow no higher order" in " ".join(ema(f, H, max_order=6).notes)
