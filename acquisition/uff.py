@@ -6,11 +6,12 @@ a direction off the axes gets a node of its own), one dataset 58 per measured FR
 type 4, receptance: ordinate displacement over force), and optionally identified modes as
 dataset 55 (complex modes, one per mode, node vectors in the global frame).
 
-Import (:func:`read_uff`): every dataset 58 of FRF type (function type 4; also 0 "general"
-with complex data), whatever its response quantity: displacement (receptance), velocity
-(mobility) or acceleration (accelerance) over force; mobility and accelerance are converted to
-receptance (``X = V / (i w) = -A / w^2``; the 0 Hz line becomes NaN). Records on different
-abscissae are merged on the union grid, NaN where a record has no line. Node coordinates from
+Import (:func:`read_uff`): every dataset 58 of FRF type (function type 4 or 0 "general",
+with complex data: a record of real values, a magnitude, is skipped with a note), whatever
+its response quantity: displacement (receptance), velocity (mobility) or acceleration
+(accelerance) over force; mobility and accelerance are converted to receptance
+(``X = V / (i w) = -A / w^2``; the 0 Hz line becomes NaN). Records on different abscissae
+are merged on the union grid, NaN where a record has no line. Node coordinates from
 2411 or 15 (converted to metres with dataset 164's length factor); nodes are named and mapped to
 bones by an optional points file (:func:`read_points_file`), else ``node<N>`` with bone ``""``.
 
@@ -428,6 +429,7 @@ def read_uff(path: str | Path, points: dict[int, PointInfo] | None = None
     records = []
     header: tuple[int, int] | None = None
     n_mode_sets = 0
+    real_frf = 0  # FRF records with real values, skipped
     for dset in sets:
         kind = int(dset.get("type", -1))
         if kind == 151:
@@ -449,8 +451,16 @@ def read_uff(path: str | Path, points: dict[int, PointInfo] | None = None
         elif kind == 58:
             func = int(dset.get("func_type", -1))
             data = np.asarray(dset.get("data", []))
-            if func == FUNC_FRF or (func == FUNC_GENERAL and np.iscomplexobj(data)):
+            if func in (FUNC_FRF, FUNC_GENERAL) and np.iscomplexobj(data):
                 records.append(dset)
+            elif func == FUNC_FRF:
+                # real ordinates (data type 2 or 4): a magnitude, or one part of the FRF;
+                # read as complex they were an FRF of zero phase, silently (review of the
+                # EMA path)
+                real_frf += 1
+                notes.append(f"skipped a dataset 58 FRF with real values (node "
+                             f"{dset.get('rsp_node')} / {dset.get('ref_node')}): an FRF "
+                             "is complex; a magnitude or one part of it cannot be used")
             else:
                 notes.append(f"skipped a dataset 58 of function type {func} (not an FRF)")
     if header is not None and (len(records) < header[0] or n_mode_sets < header[1]):
@@ -466,11 +476,13 @@ def read_uff(path: str | Path, points: dict[int, PointInfo] | None = None
         # the function types say why: a file of time responses read "set types: [58]"
         # (first-day review, session 39)
         skipped = sorted({int(d.get("func_type", -1)) for d in sets
-                          if int(d.get("type", -1)) == 58})
+                          if int(d.get("type", -1)) == 58} - {FUNC_FRF})
         raise ValueError(f"{path} holds no dataset 58 FRF (set types: "
                          f"{sorted({int(t) for t in types})}"
                          + (f"; its datasets 58 are of function type "
                             f"{', '.join(map(str, skipped))}, not 4 (FRF)" if skipped else "")
+                         + (f"; {real_frf} FRF record(s) hold real values, not complex ones "
+                            "(a magnitude?)" if real_frf else "")
                          + ")")
     for n in coords:
         coords[n] = coords[n] / length_factor
@@ -566,9 +578,21 @@ def read_uff(path: str | Path, points: dict[int, PointInfo] | None = None
     # (a repeated abscissa, as pelvislab writes one-line records, lands on the same line)
     grid = np.unique(np.concatenate([e[2] for e in entries]))
     H = np.full((grid.size, len(out_keys), len(in_keys)), np.nan + 0j)
+    replaced: dict[tuple[str, str], int] = {}  # pair -> lines given another value again
     for ko, ki, x, values in entries:
         idx = np.searchsorted(grid, x)
-        H[idx, out_keys.index(ko), in_keys.index(ki)] = values
+        o, i = out_keys.index(ko), in_keys.index(ki)
+        for k, v in zip(idx, values, strict=True):
+            # two records of one FRF (a repeat, or bands that overlap): the later one's
+            # values replaced the earlier's without a word (review of the EMA path)
+            old = H[k, o, i]
+            if np.isfinite(old) and old != v:
+                pair = (outputs[ko][0], inputs[ki][0])
+                replaced[pair] = replaced.get(pair, 0) + 1
+            H[k, o, i] = v
+    for (out_name, in_name), n in replaced.items():
+        notes.append(f"FRF {out_name}/{in_name} is given more than once with different "
+                     f"values at {n} line(s): the values of the record read last are kept")
 
     def channels(table: dict) -> Channels:
         rows = list(table.values())

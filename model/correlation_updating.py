@@ -108,7 +108,8 @@ class MacUpdateResult:
     mac: np.ndarray  # (n_measured,) MAC with the partner, NaN when unpaired
     frequency_error: np.ndarray  # (n_measured,) f_model/f_meas - 1, NaN when unpaired
     damping_error: np.ndarray  # (n_measured,) zeta_model - zeta_meas, NaN when unpaired
-    unpaired: list[int]  # measured modes left out (no model mode above min_mac)
+    unpaired: list[int]  # measured modes left out (no model mode above min_mac, or
+    # unknown shape entries on the channels correlated)
     model_frequency_hz: np.ndarray  # elastic natural frequencies of the updated model
     starts: int
     start_costs: list[float]
@@ -317,7 +318,17 @@ def update_by_mac(
     rows = rows_for(space.model, measured.points)
     G = P[ok] @ np.nan_to_num(rows)  # (n_ok, n_dof): model DOFs -> correlation shapes
     a_corr = (P[ok] @ measured.shapes).astype(complex)
+    # a mode whose shape lacks entries the correlation uses (null in `ema`'s JSON: no FRF
+    # measured around it, e.g. a run stopped below it) cannot be correlated; it was left
+    # out as having "no model partner with MAC >= 0.5" (review of the EMA path)
+    unknown = [int(i) for i in np.flatnonzero(~np.all(np.isfinite(a_corr), axis=0))]
+    a_corr[:, unknown] = 0.0
+    if len(unknown) == n_m:
+        raise ValueError(f"measured mode(s) {unknown} have unknown shape entries (not "
+                         "measured around them) on channels the correlation uses: no mode "
+                         "to update on")
     a_norm = np.linalg.norm(a_corr, axis=0)
+    a_norm[unknown] = 1.0
     if np.any(a_norm == 0):
         raise ValueError(f"measured mode(s) {list(np.flatnonzero(a_norm == 0))} vanish after "
                          "the rigid-body filtering")
@@ -340,8 +351,10 @@ def update_by_mac(
     # which measured modes can be paired at all (nominal start); the rest are reported
     _, modes0 = modes_at(space.values())
     m0 = mac(a_hat, G @ modes0.shapes)
-    unpaired = [i for i in range(n_m) if m0.shape[1] == 0 or m0[i].max() < min_mac]
-    active = np.array([i for i in range(n_m) if i not in unpaired], dtype=int)
+    unpaired = [i for i in range(n_m) if i not in unknown
+                and (m0.shape[1] == 0 or m0[i].max() < min_mac)]
+    active = np.array([i for i in range(n_m) if i not in unpaired and i not in unknown],
+                      dtype=int)
     state = {"active": active}
     if active.size == 0:
         raise ValueError(f"no measured mode pairs with a model mode at MAC >= {min_mac}")
@@ -462,8 +475,9 @@ def update_by_mac(
         ferr[i] = f_model[j] / measured.frequency_hz[i] - 1.0
         if zeta_meas is not None:
             zerr[i] = modes.damping_ratios[j] - zeta_meas[i]
-    unpaired = sorted({*unpaired, *(int(i) for i in state["active"]
-                                    if int(i) not in info["partner"])})
+    no_partner = sorted({*unpaired, *(int(i) for i in state["active"]
+                                      if int(i) not in info["partner"])})
+    unpaired = sorted({*no_partner, *unknown})
     cost = mac_cost(a_hat, y_all, final_pairs)
     low = [i for i, _ in final_pairs if macs[i] < min_mac]
     at_bound = np.flatnonzero(np.isclose(best.x, lo, atol=1e-6 * (hi - lo))
@@ -471,9 +485,12 @@ def update_by_mac(
     msgs = [str(best.message)]
     if at_bound.size:
         msgs.append("on bound: " + ", ".join(names[k] for k in at_bound))
-    if unpaired:
-        msgs.append(f"measured mode(s) {unpaired} have no model partner with MAC >= {min_mac} "
-                    "and were left out")
+    if no_partner:
+        msgs.append(f"measured mode(s) {no_partner} have no model partner with MAC >= "
+                    f"{min_mac} and were left out")
+    if unknown:
+        msgs.append(f"measured mode(s) {unknown} have unknown shape entries (not measured "
+                    "around them) on channels the correlation uses and were left out")
     if low:
         msgs.append(f"measured mode(s) {low} ended paired below MAC {min_mac}")
     # pairing is by MAC alone; a pair this far apart in frequency after the fit is more

@@ -325,7 +325,13 @@ def stabilisation_diagram(
         w = w[:, have][:, :, None]
         n_in = 1
     if max_order is None:
-        max_order = max(2, min(int(math.ceil(64 / n_in)), f.size // 3))
+        # n/3 keeps short records from over-fitting their noise, but at least 12 orders
+        # (what the lines allow): a 25-line zoom window over the 174.9 Hz mode stopped at
+        # order 8, where the mode was fully stable at 3 orders of the 4 the selection
+        # needs ("no stable pole"; 43 of 60 pelvis zoom windows of 13-31 lines found their
+        # mode, 60 of 60 with the floor, no spurious mode either way)
+        max_order = max(min(12, 2 * f.size - 2), min(int(math.ceil(64 / n_in)), f.size // 3))
+        max_order = max(max_order, 1)
     if not 1 <= max_order < 2 * f.size - 1:
         raise ValueError(
             f"max_order must be between 1 and {2 * f.size - 2} for {f.size} lines, got {max_order}"
@@ -503,16 +509,31 @@ def edge_poles(
 
 def pick_poles(
     diagram: StabilisationDiagram, frequencies_hz: list[float] | np.ndarray,
-    tolerance: float = 0.05,
+    tolerance: float = 0.05, near: float = 0.01,
 ) -> np.ndarray:
     """Manual override: for each requested frequency, the diagram's pole nearest to it.
 
-    Candidates are the poles stable at least in frequency (status >= ``STABLE_FREQUENCY``);
-    fully stable poles are preferred, then the highest order, then the nearest. A frequency
-    with no candidate within ``tolerance`` (relative) raises ``ValueError`` naming it.
+    Candidates are the poles stable at least in frequency (status >= ``STABLE_FREQUENCY``)
+    within ``tolerance`` (relative) of the requested frequency and nearer to it than to any
+    other requested frequency (on a log scale), so that two requests get two different
+    poles: closely spaced modes, whose manual pick docs/ema.md recommends, otherwise both
+    took the pole of the one seen fully stable at the higher order (two modes 0.7-1.7 %
+    apart picked at their true frequencies: the same pole twice in 3 of 12 draws, the other
+    mode lost). Among them, those within ``near`` (relative) of the requested frequency
+    come first (a weak mode's column, fully stable at order 54, lost to a noise pole 4 %
+    away fully stable at order 57), then fully stable poles, then the highest order, then
+    the nearest. A frequency with no candidate raises ``ValueError`` naming it, and so does
+    a frequency given twice.
     """
+    targets = np.asarray(frequencies_hz, dtype=float).reshape(-1)
+    if not np.all(np.isfinite(targets) & (targets > 0)):
+        raise ValueError(f"frequencies must be positive (Hz), got {targets.tolist()}")
+    if np.unique(targets).size < targets.size:
+        raise ValueError(f"a frequency is given twice in {[float(t) for t in targets]}: "
+                         "give one frequency per mode")
     out = []
-    for target in np.asarray(frequencies_hz, dtype=float).reshape(-1):
+    for n, target in enumerate(targets):
+        others = np.delete(targets, n)
         best: tuple[float, ...] | None = None
         pole = 0j
         for k, order in enumerate(diagram.orders):
@@ -521,12 +542,17 @@ def pick_poles(
                 rel = abs(fk[i] - target) / target
                 if rel > tolerance or diagram.status[k][i] < STABLE_FREQUENCY:
                     continue
-                key = (-int(diagram.status[k][i] == STABLE_ALL), -int(order), rel)
+                if others.size and np.min(np.abs(np.log(fk[i] / others))) < \
+                        abs(math.log(fk[i] / target)):
+                    continue  # nearer another requested frequency: that one's pole
+                key = (int(rel > near), -int(diagram.status[k][i] == STABLE_ALL),
+                       -int(order), rel)
                 if best is None or key < best:
                     best, pole = key, diagram.poles[k][i]
         if best is None:
             raise ValueError(
                 f"no pole stable in frequency within {tolerance:.0%} of {target:g} Hz"
+                + (" nearer to it than to the other frequencies given" if others.size else "")
             )
         out.append(pole)
     poles = np.array(out, dtype=complex)
@@ -1120,12 +1146,16 @@ def _ema(
         if poles.size == 0:
             top_order = int(diagram.orders[-1]) if len(diagram.orders) else 0
             if top_order < 2 * crit.min_count:
-                # the selection needs min_count fully stable orders: with few lines the
-                # diagram stops at n/3 and cannot show them, whatever the grid resolves
-                notes.append(f"no stable pole found in the band: {f.size} lines give a "
-                             f"stabilisation diagram up to order {top_order} only; a mode "
-                             f"needs {crit.min_count} stable orders (try --max-order "
-                             f"{2 * crit.min_count}, or measure more lines)")
+                # the selection needs min_count fully stable orders: a diagram this short
+                # (a small --max-order, or so few lines that 2n - 2 is the highest order
+                # they allow) cannot show them, whatever the grid resolves
+                allowed = 2 * f.size - 2
+                advice = (f"try --max-order {min(12, allowed)}, or measure more lines"
+                          if allowed > top_order else
+                          f"{f.size} lines allow no higher order: measure more lines")
+                notes.append(f"no stable pole found in the band: the stabilisation diagram "
+                             f"goes up to order {top_order} only; a mode needs "
+                             f"{crit.min_count} stable orders ({advice})")
             else:
                 notes.append("no stable pole found in the band" + _spacing_hint(f))
     edges = edge_poles(diagram, crit) if residual_poles else np.zeros(0, dtype=complex)

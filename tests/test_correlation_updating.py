@@ -230,3 +230,24 @@ def test_pair_far_apart_in_frequency_is_named_and_not_converged() -> None:
         res.message
     assert not res.converged
     assert update_by_mac(model, meas, ["c_sij"], n_starts=1).converged
+
+
+def test_mode_with_unknown_shape_entries_is_left_out_for_that_reason() -> None:
+    # `ema` writes null (NaN) for shape entries with no FRF measured around the mode (a run
+    # stopped below it); such a mode was left out as having "no model partner with MAC >=
+    # 0.5" (review of the EMA path)
+    _, space, true, meas = _synthetic(n_modes=5, change={"k_io": 1.3, "k_asa": 0.8})
+    shapes = meas.shapes.copy()
+    shapes[:3, 4] = np.nan
+    meas2 = MeasuredModes(meas.frequency_hz, shapes, meas.bones, meas.position_m,
+                          meas.direction, meas.damping_ratio)
+    res = update_by_mac(load_model(), meas2, ["k_io", "k_asa"], n_starts=1)
+    assert res.unpaired == [4] and np.isnan(res.mac[4])
+    assert "[4] have unknown shape entries" in res.message
+    assert "no model partner" not in res.message
+    assert np.all(res.mac[:4] > 0.99)
+    everything = shapes.copy()
+    everything[0] = np.nan
+    with pytest.raises(ValueError, match="no mode to update on"):
+        update_by_mac(load_model(), MeasuredModes(meas.frequency_hz, everything, meas.bones,
+                                                  meas.position_m, meas.direction), ["k_io"])

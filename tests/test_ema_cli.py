@@ -185,3 +185,31 @@ def test_update_names_checked_before_any_fit(session, tmp_path, capsys):
     assert main(["ema", str(tmp / "s.h5"), "--json", str(out), "--model", "m.toml"]) == 1
     assert "go with --update" in capsys.readouterr().err
     assert not out.exists()
+
+
+def test_rigid_content_of_a_mode_with_unknown_entries_uses_the_known_channels(tmp_path):
+    # a run stopped at 150 Hz for the sacrum's channels: the 174.9 and 231.9 Hz modes have
+    # null entries there, and their global content and every bone's rigidity were null too
+    # (review of the EMA path); the innominates are still fully measured
+    from pelvislab.model.frf import Points, frf
+    from pelvislab.model.pelvis import load_model
+    from pelvislab.tests.test_ema_rigid_body import triaxial_geometry
+
+    bones, pos, dirs = triaxial_geometry()
+    f = np.arange(5.0, 300.01, 2.5)
+    drive = Points(("innominate_left",), pos[[15]], [[0.0, 1.0, 0.0]])
+    H = add_noise(frf(load_model(), f, Points(tuple(bones), pos, dirs), drive), 0.01, seed=3)
+    sacrum = np.array([b == "sacrum" for b in bones])
+    H[np.ix_(f > 150, sacrum, [0])] = np.nan
+    outputs = Channels([f"c{k}" for k in range(len(bones))], bones, pos, dirs)
+    inputs = Channels(["drive"], ["innominate_left"], pos[[15]], [[0.0, 1.0, 0.0]])
+    write_frf(tmp_path / "p.h5", FrfSet(f, H, outputs, inputs))
+    assert main(["ema", str(tmp_path / "p.h5"), "--json", str(tmp_path / "p.json")]) == 0
+    modes = json.loads((tmp_path / "p.json").read_text())["modes"]
+    high = [m for m in modes if m["frequency_hz"] > 150]
+    assert high and all(None in m["shape"]["re"] for m in high)
+    for m in high:
+        rb = m["rigid_body"]
+        assert 0 <= rb["global_content"] <= 1
+        assert set(rb["bone_rigidity"]) == {"innominate_right", "innominate_left"}
+        assert all(0.9 < v <= 1 for v in rb["bone_rigidity"].values())

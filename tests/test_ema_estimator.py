@@ -308,3 +308,53 @@ def test_a_single_line_does_not_crash():
     from pelvislab.model.ema import low_lines_dominate
 
     low_lines_dominate(np.array([5.0]), np.array([[[1.0 + 0j]]]))  # IndexError: f[1]
+
+
+@pytest.mark.parametrize("seed", [2, 5, 8])
+def test_manual_pick_of_two_close_modes_gives_each_its_own_pole(seed):
+    # docs/ema.md says to pick closely spaced modes by hand; the rule "fully stable, then
+    # highest order" over +/-5 % gave both frequencies the pole of one mode (the other
+    # lost, a duplicate reported) in these 3 of 12 draws (review of the EMA path)
+    rng = np.random.default_rng(seed)
+    fr = np.array([100.0, 100.0 + rng.uniform(0.3, 2.0)])
+    zr = rng.uniform(0.001, 0.01, 2)
+    phi = rng.normal(size=(3, 2))
+    phi[:, 1] *= rng.uniform(0.1, 1)
+    f = np.arange(80, 120, 0.05)
+    H = add_noise(modal_receptance(f, poles_from_modal(fr, zr), phi, rng.normal(size=(1, 2))),
+                  0.02, seed)
+    result = ema(f, H, frequencies_hz=fr)
+    np.testing.assert_allclose(result.frequency_hz, fr, rtol=0.003)
+
+
+def test_manual_pick_refuses_a_frequency_twice_and_names_the_empty_one(system):
+    M, K, C, lam, _ = system
+    f = np.arange(5.0, 300.01, 2.5)
+    H = receptance(M, K, C, f, list(range(6)), [0])
+    fn, _ = pole_frequency_damping(lam)
+    with pytest.raises(ValueError, match="given twice"):
+        ema(f, H, frequencies_hz=[fn[1], fn[1]])
+    # a second frequency beside a single mode no longer reports that mode twice (it got
+    # the same pole: two identical modes of significance 1.0)
+    try:
+        result = ema(f, H, frequencies_hz=[fn[1], fn[1] * 1.004])
+    except ValueError as exc:
+        assert "nearer to it than to the other" in str(exc)
+    else:
+        assert result.frequency_hz[0] == pytest.approx(fn[1], rel=1e-4)
+        assert np.unique(result.poles).size == 2
+
+
+def test_no_mode_note_suggests_only_an_order_the_lines_allow():
+    # 4 lines allow orders up to 6; the note said "try --max-order 8", which ema refuses
+    # (review of the EMA path)
+    import re
+
+    f = np.array([30.0, 40.0, 50.0, 60.0])
+    H = (1.0 / (1e4 - (2 * np.pi * f) ** 2 + 50j * f)).reshape(-1, 1, 1)
+    for given in (None, 6):
+        notes = " ".join(ema(f, H, max_order=given).notes)
+        assert "up to order" in notes, notes
+        for suggested in re.findall(r"try --max-order (\d+)", notes):
+            ema(f, H, max_order=int(suggested))  # an order the lines allow
+    assert "4 lines allow no higher order" in " ".join(ema(f, H, max_order=6).notes)

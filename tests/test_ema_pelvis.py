@@ -114,3 +114,31 @@ def test_demo_protocol_grid_resolves_its_two_zoomed_modes():
         assert abs(result.damping_ratio[j] / modes.damping_ratios[r] - 1) <= 0.15
     coarse = np.isclose(f % 10.0, 0.0)
     assert ema(f[coarse], H[coarse]).frequency_hz.size == 0
+
+
+@pytest.mark.parametrize("seed", [7, 10, 21, 30])
+def test_a_zoom_window_alone_finds_its_mode(seed):
+    """A 25-line zoom window (0.25 Hz) across the 174.9 Hz mode, analysed alone (`--band
+    172 178` on `make demo`'s session): the default diagram stopped at order n/3 = 8, where
+    the mode was fully stable at 3 orders of the 4 the selection needs, and gave "no stable
+    pole" with a hint that lighter modes fall between the lines (this one spans 3 lines);
+    on these model FRFs in 4 of 40 draws (these seeds). Pelvis zoom windows of 13-31 lines,
+    1 % noise: 43 of 60 found their mode before the floor of 12 orders, 60 of 60 after
+    (review of the EMA path)."""
+    cat = load_landmarks()
+    names = ["sacrum_x", "SIAS_R_x", "SIAS_L_x", "SIPS_R_x", "SIPS_L_x"]
+    outputs = Points(tuple(cat[n].bone for n in names), [cat[n].position_m for n in names],
+                     [cat[n].direction for n in names])
+    inputs = Points((cat["SIAS_R_x"].bone,), [cat["SIAS_R_x"].position_m],
+                    [-cat["SIAS_R_x"].direction])
+    model = load_model()
+    modes = model_modes(model)
+    r = int(np.argmin(np.abs(modes.natural_frequencies_hz - 174.9)))
+    f = np.arange(172.0, 178.01, 0.25)
+    H = frf(model, f, outputs, inputs)
+    rng = np.random.default_rng(seed)
+    H = H * (1 + 0.01 * (rng.normal(size=H.shape) + 1j * rng.normal(size=H.shape)) / np.sqrt(2))
+    result = ema(f, H, H_std=0.01 * np.abs(H))
+    assert result.frequency_hz.size == 1, result.notes
+    assert result.frequency_hz[0] == pytest.approx(modes.natural_frequencies_hz[r], rel=5e-4)
+    assert result.damping_ratio[0] == pytest.approx(modes.damping_ratios[r], rel=0.1)

@@ -191,8 +191,8 @@ def test_a_mode_in_a_gap_of_a_random_grid_is_kept_and_a_pulled_pole_is_flagged()
 
 def test_cli_ignores_an_all_zero_h_std_and_says_why_few_lines_find_no_mode(tmp_path, capsys):
     """H_std written as zeros (another tool): weighed as absent with a note, not a hard
-    error. Nine lines: the note names the diagram's order limit and --max-order, not the
-    grid's resolution (both found by session 32's user review)."""
+    error. A diagram too short to show a mode: the note names its order limit and
+    --max-order, not the grid's resolution (both found by session 32's user review)."""
     from pelvislab.tests.test_ema_properties import _frf
 
     f, H, _ = _frf(np.array([40.0]), np.array([0.05]), 2, 1, 3, "uniform")
@@ -209,9 +209,15 @@ def test_cli_ignores_an_all_zero_h_std_and_says_why_few_lines_find_no_mode(tmp_p
                                                                                      None],
                                            Channels(["a"], [""], np.zeros((1, 3)),
                                                     [[0.0, 0.0, 1.0]]), in_ch))
+    # nine lines reach order 12 since the default's floor (review of the EMA path), which
+    # finds the mode; a diagram cut at order 5 says why it finds none
     assert main(["ema", str(tmp_path / "few.h5"), "--json", str(tmp_path / "few.json")]) == 0
-    notes = json.loads((tmp_path / "few.json").read_text())["notes"]
-    assert any("--max-order" in n for n in notes), notes
+    modes = json.loads((tmp_path / "few.json").read_text())["modes"]
+    assert len(modes) == 1 and abs(modes[0]["frequency_hz"] / 40.0 - 1) < 0.01
+    assert main(["ema", str(tmp_path / "few.h5"), "--max-order", "5",
+                 "--json", str(tmp_path / "few5.json")]) == 0
+    notes = json.loads((tmp_path / "few5.json").read_text())["notes"]
+    assert any("up to order 5 only" in n and "try --max-order 12" in n for n in notes), notes
 
 
 def test_every_automatically_selected_mode_passes_the_significance_check():

@@ -405,3 +405,45 @@ def test_import_uff_reads_the_landmark_catalogue_once(tmp_path, monkeypatch):
                         lambda *a, **k: calls.append(1) or original(*a, **k))
     read_uff(tmp_path / "n.uff", read_points_file(tmp_path / "p.toml"))
     assert len(calls) <= 1, f"the catalogue was parsed {len(calls)} times for 6 records"
+
+
+def test_an_frf_record_of_real_values_is_skipped_not_read_as_zero_phase(tmp_path):
+    # a magnitude written as function type 4 was imported as an FRF of zero phase, silently
+    # (review of the EMA path): every EMA of it was wrong
+    f = np.arange(1.0, 50.0)
+    X = 1.0 / (1e4 - (2 * np.pi * f) ** 2 + 10j * 2 * np.pi * f)
+
+    def frf_record(data: np.ndarray, node: int) -> dict:
+        return pyuff.prepare_58(binary=1, func_type=4, rsp_node=node, rsp_dir=3, ref_node=1,
+                                ref_dir=3, abscissa_spacing=0, abscissa_spec_data_type=18,
+                                ordinate_spec_data_type=8, orddenom_spec_data_type=13,
+                                x=f, data=data)
+
+    only_real = pyuff.UFF(str(tmp_path / "r.uff"))
+    only_real.write_sets(frf_record(np.abs(X), 2), mode="add")
+    with pytest.raises(ValueError, match=r"1 FRF record\(s\) hold real values"):
+        read_uff(tmp_path / "r.uff")
+    mixed = pyuff.UFF(str(tmp_path / "m.uff"))
+    mixed.write_sets(frf_record(X, 1), mode="add")
+    mixed.write_sets(frf_record(np.abs(X), 2), mode="add")
+    frf, notes = read_uff(tmp_path / "m.uff")
+    assert frf.outputs.name == ["node1+Z"]
+    np.testing.assert_array_equal(frf.H[:, 0, 0], X)
+    assert any("FRF with real values (node 2 / 1)" in n for n in notes), notes
+
+
+def test_two_records_of_one_frf_with_other_values_are_named(tmp_path):
+    # a repeated measurement (or overlapping bands) of one FRF: the later record replaced
+    # the earlier's values without a word (review of the EMA path)
+    f = np.arange(1.0, 50.0)
+    X = 1.0 / (1e4 - (2 * np.pi * f) ** 2 + 10j * 2 * np.pi * f)
+    uff = pyuff.UFF(str(tmp_path / "d.uff"))
+    for data, x in ((X, f), (2 * X[10:], f[10:]), (X[:5], f[:5])):
+        uff.write_sets(pyuff.prepare_58(
+            binary=1, func_type=4, rsp_node=1, rsp_dir=3, ref_node=1, ref_dir=3,
+            abscissa_spacing=0, abscissa_spec_data_type=18, ordinate_spec_data_type=8,
+            orddenom_spec_data_type=13, x=x, data=data), mode="add")
+    frf, notes = read_uff(tmp_path / "d.uff")
+    np.testing.assert_array_equal(frf.H[10:, 0, 0], 2 * X[10:])  # the last record read
+    hits = [n for n in notes if "given more than once" in n]
+    assert len(hits) == 1 and "node1+Z/node1+Z" in hits[0] and "at 39 line(s)" in hits[0]

@@ -101,14 +101,17 @@ def result_to_json(frf: object, result: object, diagram: bool = True) -> dict:
     outputs = frf.outputs
     shapes = result.shapes
     rigid: list[dict | None] = [None] * result.frequency_hz.size
-    if shapes.size:
-        g = filter_global(shapes, outputs.position_m, outputs.direction)
+    for r in range(shapes.shape[1]):
+        # on the channels whose entry is known: an entry left out (null, no FRF measured
+        # around the mode) made every number of the mode null (review of the EMA path)
+        known = np.flatnonzero(np.isfinite(shapes[:, r]))
+        pos, dirs = outputs.position_m[known], outputs.direction[known]
+        g = filter_global(shapes[known, r], pos, dirs)
         if g.rank == 6:
-            b = filter_bones(g.x_el, outputs.bone, outputs.position_m, outputs.direction)
-            rigid = [{"global_content": float(g.rigid_content[r]),
-                      "bone_rigidity": {bone: float(b.rigidity[bone][r]) for bone in b.bones
-                                        if b.rank[bone] == 6}}
-                     for r in range(shapes.shape[1])]
+            b = filter_bones(g.x_el, [outputs.bone[k] for k in known], pos, dirs)
+            rigid[r] = {"global_content": float(g.rigid_content[0]),
+                        "bone_rigidity": {bone: float(b.rigidity[bone][0]) for bone in b.bones
+                                          if b.rank[bone] == 6}}
     checks = _channel_check(frf, result)
     modes = []
     for r in range(result.frequency_hz.size):
