@@ -71,6 +71,28 @@ def test_every_subcommand_has_help(argv, capsys):
     assert "usage: pelvislab" in capsys.readouterr().out
 
 
+def test_every_command_says_what_it_does_in_its_help():
+    """Each command's --help starts with a description after the usage (`gap diagnose` and
+    `gap benchmark` had a one-line help in the list and none on their own page)."""
+    import argparse
+
+    from pelvislab.app.cli import build_parser
+
+    missing = []
+
+    def walk(parser: argparse.ArgumentParser, path: list[str]) -> None:
+        for action in parser._actions:
+            if isinstance(action, argparse._SubParsersAction):
+                for name, sub in action.choices.items():
+                    if not any(isinstance(a, argparse._SubParsersAction)
+                               for a in sub._actions) and not sub.description:
+                        missing.append(" ".join([*path, name]))
+                    walk(sub, [*path, name])
+
+    walk(build_parser(), ["pelvislab"])
+    assert not missing, missing
+
+
 def test_version(capsys):
     with pytest.raises(SystemExit) as exc:
         main(["--version"])

@@ -49,7 +49,13 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p = subparsers.add_parser("gap", help="sim-to-real gap diagnosis")
     sub = p.add_subparsers(dest="gap_command", metavar="ACTION")
     sub.required = True
-    d = sub.add_parser("diagnose", help="where the model misses the data, and which effect")
+    d = sub.add_parser(
+        "diagnose", help="where the model misses the data, and which effect",
+        description="Fit the model's parameters to /frf, map where the model and the data "
+        "still disagree (by band, output and bone), try each candidate unmodelled effect "
+        "fitted with the parameters and judged on held-out lines, and say which one closes "
+        "the gap and by how much: 'none' when updating alone explains the data to the "
+        "noise, 'unexplained' when no candidate does.")
     d.add_argument("session", metavar="S.h5", help="session or FRF-only file")
     d.add_argument("--model", metavar="M.toml", help="base model; default: thesis appendix E")
     d.add_argument("--json", required=True, metavar="OUT",
@@ -72,7 +78,11 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     d.add_argument("--jobs", type=int, default=0, metavar="N",
                    help=_JOBS_HELP)
     d.set_defaults(handler=_diagnose)
-    b = sub.add_parser("benchmark", help="diagnose data sets with a withheld effect each")
+    b = sub.add_parser(
+        "benchmark", help="diagnose data sets with a withheld effect each",
+        description="Generate data sets with one hidden effect each (random kind, size and "
+        "place) and some with none, diagnose them without telling, and report the verdicts' "
+        "confusion matrix, the place found for local effects and the shrink.")
     b.add_argument("--json", required=True, metavar="OUT", help="write the benchmark JSON here")
     b.add_argument("--cases", type=int, default=2, metavar="N",
                    help="data sets per effect kind (plus N without effect); default 2")
