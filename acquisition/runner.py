@@ -655,8 +655,9 @@ class Runner:
         Any thread. When a setup starts (its transducers are placed anew) the gates are
         the setup's own from the protocol (``Setup.gates``; usually none); set one at the
         prompt, where the live echoes (:class:`AimingEchoes`) show the record.
-        Raises ValueError for a channel the protocol does not record, or a gate that does
-        not fit the record with the tracking's lag range (nothing is changed then)."""
+        Raises ValueError for a channel the protocol does not record, a gate that does
+        not fit the record with the tracking's lag range, or a call before the run's first
+        setup has started (nothing is changed then)."""
         if channel not in self.protocol.channels:
             raise ValueError(f"channel {channel} is not recorded by this protocol "
                              f"(channels {list(self.protocol.channels)})")
@@ -671,6 +672,12 @@ class Runner:
                                    int(self.protocol.ultrasound.samples))
             if problem:
                 raise ValueError(f"gate {gate} for ch{channel}: {problem}")
+        if setup is None:
+            # accepted before, and replaced by the first setup's own gates when it started:
+            # every step tracked automatically (docs audit, session 43)
+            raise ValueError(f"no setup is under way to gate ch{channel} in: a gate is for "
+                             "the transducers as placed; set it at a setup's prompt, or give "
+                             "the setup `gates` in the protocol")
         with self._gates_lock:
             self._protocol_gated.discard(channel)
             if gate is None:
