@@ -14,7 +14,9 @@ from pelvislab.app.commands import (
     model_cmd,
     protocol,
     run,
+    session,
     uff,
 )
 
-COMMAND_MODULES = (run, protocol, bench, gui, model_cmd, identify, ema, gap, uff, demo)
+COMMAND_MODULES = (run, protocol, bench, session, gui, model_cmd, identify, ema, gap, uff,
+                   demo)

@@ -1,0 +1,243 @@
+"""What a session or FRF-only file holds, at a glance (``pelvislab session info``).
+
+An analyst handed an HDF5 file wants to know, before any analysis, whose it is, how each
+run ended (and whether the outputs were confirmed off), how much of the protocol's plan it
+holds, how good the tracking was per channel, and what ``/frf`` offers (lines, points,
+``H_std``). :func:`session_info` reads that without the raw echoes; the CLI prints it as
+text or JSON (docs/session-format.md, "At a glance").
+"""
+
+from __future__ import annotations
+
+from collections import Counter
+from pathlib import Path
+from typing import Any
+
+import h5py
+import numpy as np
+
+from pelvislab.acquisition.frfset import FRF_SCHEMA, FrfSet, read_frf
+from pelvislab.acquisition.session import SESSION_SCHEMA, SessionReader
+
+#: Session log lines kept in the summary (the latest warnings and errors).
+LOG_LINES_KEPT = 5
+
+
+def _text(value: Any) -> str:
+    if isinstance(value, bytes):
+        return value.decode("utf-8", "replace").rstrip("\x00").strip()
+    if isinstance(value, np.ndarray) and value.size == 1:
+        return _text(value.reshape(-1)[0])
+    return str(value)
+
+
+def _number(value: Any) -> float | None:
+    try:
+        x = float(np.asarray(value).reshape(-1)[0])
+    except (TypeError, ValueError, IndexError):
+        return None
+    return x if np.isfinite(x) else None
+
+
+def frf_info(frf: FrfSet, planned_pairs: set[tuple[str, str]] | None = None) -> dict[str, Any]:
+    """The FRF set at a glance: lines (count, range, spacing), points with their bones,
+    which (output, input) pairs hold data and on how many lines, whether ``H_std`` is
+    given. ``planned_pairs``: the (output, input) names the protocol measures, if known."""
+    f = frf.frequency_hz
+    measured = np.isfinite(frf.H) & (np.abs(np.nan_to_num(frf.H)) > 0)
+    lines_held = measured.sum(axis=0)  # (n_out, n_in)
+    spacing = np.diff(f)
+    pairs = []
+    for o, out_name in enumerate(frf.outputs.name):
+        for i, in_name in enumerate(frf.inputs.name):
+            if planned_pairs is not None and (out_name, in_name) not in planned_pairs \
+                    and not lines_held[o, i]:
+                continue  # a cell of the layout the protocol never measures
+            pairs.append({"output": out_name, "input": in_name,
+                          "lines_measured": int(lines_held[o, i])})
+    std_given = frf.H_std is not None and bool(
+        np.any(np.isfinite(frf.H_std[measured]) & (frf.H_std[measured] > 0)))
+    return {
+        "lines": int(f.size),
+        "frequency_hz": [float(f[0]), float(f[-1])] if f.size else None,
+        "spacing_hz": [float(spacing.min()), float(spacing.max())] if spacing.size else None,
+        "lines_with_data": int(measured.any(axis=(1, 2)).sum()),
+        "outputs": [{"name": n, "bone": b} for n, b in zip(frf.outputs.name,
+                                                            frf.outputs.bone, strict=True)],
+        "inputs": [{"name": n, "bone": b} for n, b in zip(frf.inputs.name,
+                                                           frf.inputs.bone, strict=True)],
+        "pairs": pairs,
+        "pairs_measured": int(sum(1 for p in pairs if p["lines_measured"])),
+        "pairs_planned": len(planned_pairs) if planned_pairs is not None else None,
+        "h_std": std_given,
+    }
+
+
+def session_info(path: str | Path) -> dict[str, Any]:
+    """A summary of the session (schema ``pelvislab-session``) or FRF-only file
+    (``pelvislab-frf``) at ``path``: a JSON-ready dict (keys in docs/session-format.md).
+
+    Raises the readers' one-line errors (FileNotFoundError, SessionFileError,
+    FrfFileError) for anything else. Damaged or unfinished steps are counted, not
+    raised."""
+    path = Path(path)
+    if path.is_dir():
+        raise IsADirectoryError(f"{path} is a folder, not a session or FRF file")
+    if not path.is_file():
+        raise FileNotFoundError(f"no such file: {path}")
+    try:
+        with h5py.File(path, "r") as handle:
+            schema = _text(handle.attrs.get("schema", ""))
+    except OSError:
+        schema = ""  # the session reader says why (in use, damaged) in one line
+    if schema != SESSION_SCHEMA and (schema == FRF_SCHEMA or _is_frf_only(path)):
+        frf = read_frf(path)
+        return {"file": str(path), "kind": "frf-only", "schema": FRF_SCHEMA,
+                "frf": frf_info(frf), "notes": []}
+    with SessionReader(path) as reader:
+        return _session(reader, path)
+
+
+def _is_frf_only(path: Path) -> bool:
+    try:
+        with h5py.File(path, "r") as handle:
+            return "frf" in handle and "steps" not in handle
+    except OSError:
+        return False
+
+
+def _session(reader: SessionReader, path: Path) -> dict[str, Any]:
+    from pelvislab.acquisition.protocol import parse_protocol
+
+    attrs = reader.attrs
+    notes: list[str] = []
+    protocol = None
+    try:
+        protocol = parse_protocol(reader.protocol_text, source=f"{path}:/protocol")
+    except Exception as exc:  # a record, not an input: summarise the rest
+        notes.append(f"the stored protocol does not parse ({' '.join(str(exc).split())[:160]}):"
+                     " the plan is unknown")
+    h5 = reader.handle
+    runs = []
+    for name in sorted(h5.get("runs", {})):
+        a = h5["runs"][name].attrs
+        bench = h5["runs"][name].get("bench")
+        confirmed = a.get("outputs_confirmed_off")
+        runs.append({
+            "index": int(name) if name.isdigit() else name,
+            "started_utc": _text(a.get("started_utc", "")),
+            "ended_utc": _text(a.get("ended_utc", "")) or None,
+            "status": _text(a.get("status", "unknown")),
+            "reason": _text(a.get("reason", "")),
+            "outputs_confirmed_off": None if confirmed is None else bool(confirmed),
+            "simulated": None if bench is None or "simulated" not in bench.attrs
+            else bool(bench.attrs["simulated"]),
+            "software_version": _text(a.get("software_version", "")),
+        })
+    status, reason = reader.status
+    steps = list(reader.steps(include_incomplete=True, with_echoes=False))
+    complete = [s for s in steps if s.status == "complete"]
+    planned = protocol.steps() if protocol is not None else None
+    done_keys = {s.key for s in complete}
+    by_setup: list[dict[str, Any]] = []
+    if protocol is not None:
+        for si, setup in enumerate(protocol.setups):
+            plan = [p for p in planned if p.setup_index == si]
+            mine = [s for s in complete if s.setup == setup.name]
+            by_setup.append({
+                "setup": setup.name, "excitation": setup.excitation,
+                "transducers": {f"ch{c}": p for c, p in sorted(setup.transducers.items())},
+                "planned": len(plan),
+                "acquired": sum(1 for p in plan if p.key in done_keys),
+                "quality_not_ok": sum(1 for s in mine if not _quality_ok(s)),
+            })
+    channels: dict[str, dict[str, Any]] = {}
+    for name in sorted({c.name for s in complete for c in s.channels}):
+        records = [c for s in complete for c in s.channels if c.name == name]
+        lost = np.array([_number(c.quality.get("lost_fraction")) for c in records
+                         if _number(c.quality.get("lost_fraction")) is not None])
+        snr = np.array([_number(c.quality.get("snr_db_median")) for c in records
+                        if _number(c.quality.get("snr_db_median")) is not None])
+        gates = Counter(_text(c.quality.get("gate_source", "auto")) for c in records)
+        channels[name] = {
+            "records": len(records),
+            "quality_not_ok": sum(1 for c in records if not bool(c.quality.get("ok", True))),
+            "lost_fraction_median": float(np.median(lost)) if lost.size else None,
+            "lost_fraction_max": float(lost.max()) if lost.size else None,
+            "snr_db_median": float(np.median(snr)) if snr.size else None,
+            "gate_sources": dict(sorted(gates.items())),
+            "tracker_notes": sum(1 for c in records
+                                 if _text(c.quality.get("tracking_warnings", ""))),
+        }
+    planned_pairs = None
+    if protocol is not None:
+        planned_pairs = {(point, setup.excitation) for setup in protocol.setups
+                         for point in setup.transducers.values()}
+    frf = None
+    try:
+        frf = frf_info(reader.frf(), planned_pairs)
+    except Exception as exc:
+        notes.append(f"/frf unreadable: {' '.join(str(exc).split())[:160]}")
+    log = reader.log_lines()
+    flagged = [line.strip() for line in log
+               if " WARNING " in f" {line} " or " ERROR " in f" {line} "]
+    bench = reader.bench()
+    if reader.damaged:
+        notes.append(f"{len(reader.damaged)} step group(s) unreadable (a kill while writing?)")
+    source = attrs.get("reprocessed_from")
+    return {
+        "file": str(path),
+        "kind": "reprocessed" if source is not None else "session",
+        "schema": SESSION_SCHEMA,
+        "schema_version": int(attrs.get("schema_version", 0)),
+        "created_utc": _text(attrs.get("created_utc", "")),
+        "software_version": _text(attrs.get("software_version", "")),
+        "protocol_name": _text(attrs.get("protocol_name", ""))
+        or (protocol.name if protocol is not None else ""),
+        "subject_id": _text(attrs.get("subject_id", "")) or None,
+        "subject_position": _text(attrs.get("subject_position", "")) or None,
+        "reprocessed_from": _text(source) if source is not None else None,
+        "protocol_source": _text(h5["protocol"].attrs.get("source", "")) or None,
+        "status": status, "reason": reason,
+        "outputs_confirmed_off": reader.outputs_confirmed_off,
+        "runs": runs,
+        "bench": {
+            "simulated": None if "simulated" not in bench else bool(bench["simulated"]),
+            "name": _text(bench.get("name", "")),
+            "drive_newton_per_volt": _complex_text(bench.get("drive_newton_per_volt")),
+            "drive_calibration_rows": int(np.size(bench["drive_calibration_frequency_hz"]))
+            if "drive_calibration_frequency_hz" in bench else None,
+            "speed_of_sound_m_s": _number(bench.get("speed_of_sound_m_s")),
+        },
+        "steps": {
+            "planned": len(planned) if planned is not None else None,
+            "acquired": len(done_keys),
+            "groups": len(steps) + len(reader.damaged),
+            "incomplete": len(steps) - len(complete),
+            "damaged": len(reader.damaged),
+            "quality_not_ok": sum(1 for s in complete if not _quality_ok(s)),
+            "by_setup": by_setup,
+        },
+        "channels": channels,
+        "frf": frf,
+        "log": {"lines": len(log), "warnings": sum(1 for x in flagged if " WARNING " in
+                                                    f" {x} "),
+                "errors": sum(1 for x in flagged if " ERROR " in f" {x} "),
+                "latest_flagged": flagged[-LOG_LINES_KEPT:]},
+        "notes": notes,
+    }
+
+
+def _quality_ok(step: Any) -> bool:
+    ok = step.extra.get("quality_ok")
+    if ok is None:
+        return all(bool(c.quality.get("ok", True)) for c in step.channels)
+    return bool(ok)
+
+
+def _complex_text(value: Any) -> list[float] | None:
+    """A complex constant as [re, im] (JSON has no complex), None when absent or NaN."""
+    if value is None:
+        return None
+    z = complex(np.asarray(value).reshape(-1)[0])
+    return None if not np.isfinite(z) else [z.real, z.imag]

@@ -1,0 +1,144 @@
+"""``pelvislab session info``: what a session or FRF-only file holds, at a glance."""
+
+from __future__ import annotations
+
+import argparse
+from typing import Any
+
+
+def register(subparsers: argparse._SubParsersAction) -> None:
+    """Add ``session info`` to the CLI."""
+    p = subparsers.add_parser("session", help="session file tools")
+    sub = p.add_subparsers(dest="session_command", metavar="ACTION")
+    sub.required = True
+    i = sub.add_parser(
+        "info", help="what a session or FRF-only file holds, at a glance",
+        description="Summarise a session file (or an FRF-only file): subject and protocol, "
+        "how each run ended and whether its outputs were confirmed off, the steps acquired "
+        "against the protocol's plan per setup, tracking quality per channel, the /frf "
+        "lines and points (H_std or not), and the log's warnings. Reads no raw echoes.")
+    i.add_argument("session", metavar="S.h5", help="session or FRF-only file")
+    i.add_argument("--json", metavar="OUT",
+                   help="also write the summary as JSON to this file; '-': print the JSON "
+                   "alone on stdout instead of the text")
+    i.set_defaults(handler=info_command)
+
+
+def info_command(args: argparse.Namespace) -> int:
+    """Print the summary (text, or JSON with ``--json -``); ``--json FILE`` also writes it."""
+    from pelvislab.acquisition.session_info import session_info
+    from pelvislab.app.commands._common import check_new_output, print_json, write_json
+
+    if args.json not in (None, "-"):
+        check_new_output(args.json)
+    info = session_info(args.session)
+    if args.json == "-":
+        print_json(info)
+        return 0
+    print(info_text(info))
+    if args.json:
+        print(f"JSON: {write_json(args.json, info)}")
+    return 0
+
+
+def info_text(info: dict[str, Any]) -> str:
+    """The summary of :func:`~pelvislab.acquisition.session_info.session_info` as text."""
+    lines = [f"{info['file']}: {info['kind']} ({info['schema']})"]
+    if info["kind"] != "frf-only":
+        who = ", ".join(x for x in (
+            f"subject {info['subject_id']}" if info["subject_id"] else "no subject id",
+            f"position {info['subject_position']}" if info["subject_position"] else "")
+            if x)
+        lines.append(f"protocol {info['protocol_name']!r}; {who}; created "
+                     f"{info['created_utc']} (pelvislab {info['software_version']})")
+        if info["reprocessed_from"]:
+            lines.append(f"reprocessed from {info['reprocessed_from']}")
+        lines.append(_status_line(info))
+        if info["status"] != "completed" and info["steps"]["planned"] != \
+                info["steps"]["acquired"]:
+            if info["reprocessed_from"]:
+                lines.append(f"  to complete it: resume its source session "
+                             f"{info['reprocessed_from']} and reprocess that (a reprocessed "
+                             "file is not resumed)")
+            else:
+                lines.append(f"  to complete it: pelvislab run "
+                             f"{info['protocol_source'] or 'PROTOCOL.toml'} --out "
+                             f"{info['file']} --resume")
+        for run in info["runs"]:
+            bench = {True: "simulated bench", False: "real bench", None: "bench ?"}[
+                run["simulated"]]
+            off = {True: "outputs off", False: "OUTPUTS NOT CONFIRMED OFF",
+                   None: "outputs off not recorded"}[run["outputs_confirmed_off"]]
+            reason = f" ({run['reason']})" if run["reason"] else ""
+            lines.append(f"  run {run['index']}: {run['started_utc']} -> "
+                         f"{run['ended_utc'] or '?'}: {run['status']}{reason}; {bench}; {off}")
+        steps = info["steps"]
+        planned = f" of {steps['planned']} planned" if steps["planned"] is not None else ""
+        extra = [f"{steps[k]} {k.replace('_', ' ')}" for k in
+                 ("incomplete", "damaged", "quality_not_ok") if steps[k]]
+        lines.append(f"steps: {steps['acquired']} acquired{planned}"
+                     + (f" ({', '.join(extra)})" if extra else ""))
+        for s in steps["by_setup"]:
+            chans = ", ".join(f"{c} {p}" for c, p in s["transducers"].items())
+            bad = f", {s['quality_not_ok']} not ok" if s["quality_not_ok"] else ""
+            lines.append(f"  {s['setup']}: drive at {s['excitation']}; {chans}: "
+                         f"{s['acquired']}/{s['planned']}{bad}")
+        for name, c in info["channels"].items():
+            lost = ("lost echoes median "
+                    f"{100 * c['lost_fraction_median']:.2g} %, max "
+                    f"{100 * c['lost_fraction_max']:.2g} %"
+                    if c["lost_fraction_median"] is not None else "lost echoes ?")
+            snr = (f"SNR median {c['snr_db_median']:.1f} dB"
+                   if c["snr_db_median"] is not None else "SNR ?")
+            gates = ", ".join(f"{k} {v}" for k, v in c["gate_sources"].items())
+            notes = f"; tracker notes on {c['tracker_notes']}" if c["tracker_notes"] else ""
+            lines.append(f"  {name}: {c['records']} records, {c['quality_not_ok']} not ok; "
+                         f"{lost}; {snr}; gates: {gates}{notes}")
+    frf = info.get("frf")
+    if frf:
+        span = (f"{frf['frequency_hz'][0]:g}-{frf['frequency_hz'][1]:g} Hz"
+                if frf["frequency_hz"] else "no lines")
+        step = ""
+        if frf["spacing_hz"]:
+            lo, hi = frf["spacing_hz"]
+            step = f", spacing {lo:g} Hz" if np_isclose(lo, hi) else \
+                f", spacing {lo:g}-{hi:g} Hz"
+        planned = (f" of {frf['pairs_planned']} planned" if frf["pairs_planned"] is not None
+                   else f" of {len(frf['outputs']) * len(frf['inputs'])} (output, input) cells")
+        lines.append(f"/frf: {frf['lines']} lines {span}{step} ({frf['lines_with_data']} "
+                     f"with data); {len(frf['outputs'])} outputs x {len(frf['inputs'])} "
+                     f"inputs, {frf['pairs_measured']} pairs measured{planned}; H_std "
+                     + ("given" if frf["h_std"] else "absent (analyses estimate the noise)"))
+        bones = {p["name"]: p["bone"] or "no modelled bone" for p in frf["outputs"]}
+        lines.append("  outputs: " + ", ".join(f"{n} ({b})" for n, b in bones.items()))
+        bones = {p["name"]: p["bone"] or "no modelled bone" for p in frf["inputs"]}
+        lines.append("  inputs: " + ", ".join(f"{n} ({b})" for n, b in bones.items()))
+        # pairs short of lines; with a plan, also those planned and never measured (an
+        # FRF-only file's empty cells are its layout, not a shortfall)
+        planned_known = frf["pairs_planned"] is not None
+        for p in frf["pairs"]:
+            if 0 < p["lines_measured"] < frf["lines_with_data"] or (
+                    planned_known and p["lines_measured"] == 0):
+                lines.append(f"  {p['output']}/{p['input']}: {p['lines_measured']} of "
+                             f"{frf['lines_with_data']} lines")
+    log = info.get("log")
+    if log:
+        lines.append(f"log: {log['lines']} lines, {log['warnings']} warning(s), "
+                     f"{log['errors']} error(s)")
+        lines.extend(f"  {line}" for line in log["latest_flagged"])
+    lines.extend(f"note: {n}" for n in info["notes"])
+    return "\n".join(lines)
+
+
+def _status_line(info: dict[str, Any]) -> str:
+    reason = f" ({info['reason']})" if info["reason"] else ""
+    off = info["outputs_confirmed_off"]
+    said = {True: "every run's outputs confirmed off",
+            False: "OUTPUTS NOT CONFIRMED OFF in a run (see the runs below)",
+            None: "outputs off not recorded"}[off]
+    return f"status: {info['status']}{reason}; {said}"
+
+
+def np_isclose(a: float, b: float) -> bool:
+    """Whether two line spacings are the same grid step (to 1e-6 relative)."""
+    return abs(a - b) <= 1e-6 * max(abs(a), abs(b))

@@ -1,0 +1,140 @@
+"""``pelvislab session info``: a session's or FRF-only file's content at a glance, read from
+files the simulated bench writes (a complete run, a run aborted in its second setup, a run
+whose outputs could not be confirmed off) and from an FRF-only file."""
+
+from __future__ import annotations
+
+import json
+import shutil
+from pathlib import Path
+
+import h5py
+import pytest
+
+from pelvislab.acquisition.runner import SetupStarted, prepare_session
+from pelvislab.acquisition.session_info import session_info
+from pelvislab.app.cli import main
+
+sim_bench = pytest.importorskip("pelvislab.sim_instruments.bench")
+
+DATA = Path(__file__).parent / "data"
+
+PROTOCOL = """
+schema = "pelvislab-protocol"
+schema_version = 1
+name = "info-test"
+[subject]
+id = "S017"
+[sweep]
+frequencies_hz = [60.0, 120.0, 180.0]
+drive_vpp = 0.2
+settle_s = 0.02
+[ultrasound]
+pulses = 300
+samples = 500
+[[setups]]
+name = "a"
+excitation = "SIAS_R_x"
+transducers = { ch1 = "SIAS_R_x", ch2 = "sacrum_x" }
+[[setups]]
+name = "b"
+excitation = "SIAS_L_x"
+transducers = { ch1 = "SIPS_R_x", ch2 = "SIPS_L_x" }
+"""
+
+
+def _run(folder: Path, abort_in_setup: int | None = None) -> Path:
+    protocol = folder / "p.toml"
+    protocol.write_text(PROTOCOL)
+    out = folder / "s.h5"
+    bench = sim_bench.open_simulated_bench(generators="python")
+    with prepare_session(protocol, out, bench=bench) as session:
+        runner = session.runner
+
+        def listen(event: object) -> None:
+            if isinstance(event, SetupStarted) and event.setup_index == abort_in_setup:
+                runner.abort("test: stopped in the second setup")
+
+        runner.subscribe(listen)
+        session.run()
+    return out
+
+
+@pytest.fixture(scope="module")
+def complete_session(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    return _run(tmp_path_factory.mktemp("complete"))
+
+
+def test_a_complete_session_is_summarised_against_its_plan(complete_session: Path) -> None:
+    info = session_info(complete_session)
+    assert info["kind"] == "session" and info["status"] == "completed"
+    assert info["subject_id"] == "S017" and info["protocol_name"] == "info-test"
+    assert info["outputs_confirmed_off"] is True
+    assert [r["status"] for r in info["runs"]] == ["completed"]
+    assert info["runs"][0]["simulated"] is True
+    steps = info["steps"]
+    assert (steps["planned"], steps["acquired"], steps["incomplete"], steps["damaged"]) == \
+        (6, 6, 0, 0)
+    assert [(s["setup"], s["acquired"], s["planned"]) for s in steps["by_setup"]] == \
+        [("a", 3, 3), ("b", 3, 3)]
+    assert set(info["channels"]) == {"ch1", "ch2"}
+    assert info["channels"]["ch1"]["records"] == 6
+    assert info["channels"]["ch1"]["gate_sources"] == {"auto": 6}
+    frf = info["frf"]
+    assert frf["lines"] == 3 and frf["frequency_hz"] == [60.0, 180.0]
+    assert frf["pairs_planned"] == 4 and frf["pairs_measured"] == 4 and frf["h_std"]
+    assert {p["name"]: p["bone"] for p in frf["outputs"]}["sacrum_x"] == "sacrum"
+    json.dumps(info, allow_nan=False)  # JSON-ready as it is
+
+
+def test_an_aborted_run_shows_what_the_plan_lacks(tmp_path: Path, capsys) -> None:
+    info = session_info(_run(tmp_path, abort_in_setup=1))
+    assert info["status"] == "aborted" and "second setup" in info["reason"]
+    assert info["steps"]["planned"] == 6 and info["steps"]["acquired"] == 3
+    assert [s["acquired"] for s in info["steps"]["by_setup"]] == [3, 0]
+    frf = info["frf"]
+    assert frf["pairs_measured"] == 2 and frf["pairs_planned"] == 4
+    never = {(p["output"], p["input"]) for p in frf["pairs"] if not p["lines_measured"]}
+    assert never == {("SIPS_R_x", "SIAS_L_x"), ("SIPS_L_x", "SIAS_L_x")}
+    assert info["log"]["errors"] >= 1
+    assert main(["session", "info", str(tmp_path / "s.h5")]) == 0
+    text = capsys.readouterr().out
+    assert "steps: 3 acquired of 6 planned" in text
+    assert f"to complete it: pelvislab run {tmp_path / 'p.toml'} --out " \
+        f"{tmp_path / 's.h5'} --resume" in text
+    assert "SIPS_R_x/SIAS_L_x: 0 of 3 lines" in text  # planned, never measured
+
+
+def test_cli_text_names_outputs_not_confirmed_off_and_the_json_is_the_same(
+        complete_session: Path, tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
+    unsafe = tmp_path / "unsafe.h5"
+    shutil.copy(complete_session, unsafe)
+    with h5py.File(unsafe, "r+") as handle:
+        handle["runs/000"].attrs["outputs_confirmed_off"] = False
+    assert main(["session", "info", str(unsafe), "--json", str(tmp_path / "i.json")]) == 0
+    text = capsys.readouterr().out
+    assert "OUTPUTS NOT CONFIRMED OFF" in text
+    assert "steps: 6 acquired of 6 planned" in text
+    assert "a: drive at SIAS_R_x; ch1 SIAS_R_x, ch2 sacrum_x: 3/3" in text
+    written = json.loads((tmp_path / "i.json").read_text())
+    assert written["outputs_confirmed_off"] is False
+    assert main(["session", "info", str(unsafe), "--json", "-"]) == 0
+    assert json.loads(capsys.readouterr().out) == written
+
+
+def test_an_frf_only_file_and_a_foreign_file(tmp_path: Path, capsys) -> None:
+    info = session_info(DATA / "chain_fk_seed3.h5")
+    assert info["kind"] == "frf-only"
+    assert info["frf"]["lines"] == 60 and info["frf"]["pairs_measured"] == 15
+    assert main(["session", "info", str(DATA / "chain_fk_seed3.h5")]) == 0
+    text = capsys.readouterr().out
+    assert "15 pairs measured of 21 (output, input) cells" in text
+    assert "0 of 60 lines" not in text  # an FRF-only file's empty cells are its layout
+    foreign = tmp_path / "other.h5"
+    with h5py.File(foreign, "w") as handle:
+        handle["x"] = [1, 2, 3]
+    assert main(["session", "info", str(foreign)]) == 1
+    err = capsys.readouterr().err
+    assert "not a pelvislab session" in err and "Traceback" not in err
+    assert main(["session", "info", str(tmp_path)]) == 1
+    assert "is a folder" in capsys.readouterr().err
