@@ -120,6 +120,15 @@ def test_cli_text_names_outputs_not_confirmed_off_and_the_json_is_the_same(
     assert written["outputs_confirmed_off"] is False
     assert main(["session", "info", str(unsafe), "--json", "-"]) == 0
     assert json.loads(capsys.readouterr().out) == written
+    killed = tmp_path / "killed.h5"  # what a kill -9 leaves: no end, nothing confirmed
+    shutil.copy(complete_session, killed)
+    with h5py.File(killed, "r+") as handle:
+        handle["runs/000"].attrs["status"] = "running"
+        del handle["runs/000"].attrs["outputs_confirmed_off"]
+    assert main(["session", "info", str(killed)]) == 0
+    text = capsys.readouterr().out
+    assert "status: running (no end recorded" in text and "killed?" in text
+    assert "may have left an output on: check the bench" in text
 
 
 def test_an_frf_only_file_and_a_foreign_file(tmp_path: Path, capsys) -> None:

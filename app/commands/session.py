@@ -70,6 +70,8 @@ def info_text(info: dict[str, Any]) -> str:
             off = {True: "outputs off", False: "OUTPUTS NOT CONFIRMED OFF",
                    None: "outputs off not recorded"}[run["outputs_confirmed_off"]]
             reason = f" ({run['reason']})" if run["reason"] else ""
+            if run["status"] == "running":
+                reason = " (no end recorded)"
             lines.append(f"  run {run['index']}: {run['started_utc']} -> "
                          f"{run['ended_utc'] or '?'}: {run['status']}{reason}; {bench}; {off}")
         steps = info["steps"]
@@ -130,12 +132,20 @@ def info_text(info: dict[str, Any]) -> str:
     return "\n".join(lines)
 
 
+#: What a "running" status means in a file that opens: no process holds it for writing.
+KILLED = "no end recorded: the run's process ended without closing the file (killed?)"
+
+
 def _status_line(info: dict[str, Any]) -> str:
     reason = f" ({info['reason']})" if info["reason"] else ""
+    if info["status"] == "running":
+        reason = f" ({KILLED})"
     off = info["outputs_confirmed_off"]
     said = {True: "every run's outputs confirmed off",
             False: "OUTPUTS NOT CONFIRMED OFF in a run (see the runs below)",
             None: "outputs off not recorded"}[off]
+    if info["status"] == "running" and off is not False:
+        said += " (a killed run may have left an output on: check the bench)"
     return f"status: {info['status']}{reason}; {said}"
 
 
