@@ -59,6 +59,7 @@ SPEC_NAMES = {0: "unknown", 1: "general", 2: "stress", 3: "strain", 5: "temperat
 FREQUENCY_ABSCISSAE = (0, 1, SPEC_FREQUENCY)
 # ordinates that are responses (0 "unknown" is taken as displacement, as before)
 RESPONSE_ORDINATES = (0, SPEC_DISPLACEMENT, SPEC_VELOCITY, SPEC_ACCELERATION)
+STANDARD_GRAVITY_M_S2 = 9.80665  # m/s^2 per g (3rd CGPM, 1901; ISO 80000-3)
 AXES = np.eye(3)
 
 
@@ -385,7 +386,8 @@ def record_problem(dset: dict) -> str:
     "unknown"/"general"): an rpm (19) or order (20) axis is not one, and was read as Hz.
     Its ordinate (record 9) must be a response: displacement, velocity, acceleration (or 0,
     taken as displacement); a force over force (a force-transmissibility or a reference
-    channel) made the whole import fail."""
+    channel) made the whole import fail. An ordinate units label in g must be that of an
+    acceleration (:func:`ordinate_g_factor`)."""
     abscissa = int(dset.get("abscissa_spec_data_type", 0))
     if abscissa not in FREQUENCY_ABSCISSAE:
         return (f"its abscissa is {_spec_name(abscissa)}, not frequency in Hz (an rpm or "
@@ -394,7 +396,28 @@ def record_problem(dset: dict) -> str:
     if ordinate not in RESPONSE_ORDINATES:
         return (f"its ordinate is {_spec_name(ordinate)}, not a response (displacement, "
                 "velocity or acceleration) over force")
-    return ""
+    return ordinate_g_factor(dset)[1]
+
+
+def ordinate_g_factor(dset: dict) -> tuple[float, str]:
+    """(m/s^2 per ordinate unit, problem) from the ordinate units label (record 9 field 6).
+
+    A label ``g`` or ``g/N`` (any case) on an acceleration ordinate means accelerance in g
+    per force unit: ``STANDARD_GRAVITY_M_S2`` (9.80665 m/s^2 per g). The label takes
+    precedence over the units of dataset 164 for the numerator (UFF 58: "if fields 5 and 6
+    are supplied, they take precedence over program generated labels and units"), so the
+    length factor of 164 does not apply to it. Other labels naming g as a unit (``g/lbf``,
+    ``g^2/Hz``, g on a displacement or velocity ordinate) cannot be read reliably: a
+    problem is returned (the record is skipped). Otherwise (1.0, "")."""
+    label = str(dset.get("ordinate_axis_units_lab", "") or "").strip()
+    if not re.search(r"(?<![A-Za-z])[gG](?![A-Za-z])", label):
+        return 1.0, ""
+    ordinate = int(dset.get("ordinate_spec_data_type", 0))
+    if label.lower() in ("g", "g/n") and ordinate == SPEC_ACCELERATION:
+        return STANDARD_GRAVITY_M_S2, ""
+    return 1.0, (f"its ordinate units label {label!r} on an ordinate of "
+                 f"{_spec_name(ordinate)} cannot be read reliably (read: 'g' or 'g/N' on "
+                 "acceleration, 9.80665 m/s^2 per g)")
 
 
 def _delimiter_count(path: Path) -> int:
@@ -591,6 +614,7 @@ def read_uff(path: str | Path, points: dict[int, PointInfo] | None = None
         return key, (name, bone, np.asarray(position, dtype=float), direction)
 
     converted: dict[int, int] = {}  # records per ordinate quantity converted
+    in_g = 0  # accelerance records in g per force unit
     for dset in records:
         ko, out = channel(dset, "out")
         ki, inp = channel(dset, "in")
@@ -604,7 +628,13 @@ def read_uff(path: str | Path, points: dict[int, PointInfo] | None = None
         denom = int(dset.get("orddenom_spec_data_type", SPEC_FORCE))
         if denom not in (0, SPEC_FORCE):
             notes.append(f"record {out[0]}/{inp[0]} has denominator type {denom}, taken as force")
-        values = to_receptance(x, values, quantity) * (force_factor / length_factor)
+        g_m_s2, _ = ordinate_g_factor(dset)  # record_problem refused what it cannot read
+        if g_m_s2 != 1.0:
+            # the label sets the numerator's unit: m/s^2 from g, not 164's length factor
+            values = to_receptance(x, values, quantity) * (g_m_s2 * force_factor)
+            in_g += 1
+        else:
+            values = to_receptance(x, values, quantity) * (force_factor / length_factor)
         entries.append((ko, ki, x, values))
         converted[quantity] = converted.get(quantity, 0) + 1
 
@@ -617,6 +647,9 @@ def read_uff(path: str | Path, points: dict[int, PointInfo] | None = None
                          f"(divided by {by}): the lowest lines' noise grows with it; "
                          "`pelvislab ema` says when they dominate")
 
+    if in_g:
+        notes.append(f"{in_g} record(s) in g per force unit (ordinate units label 'g'): "
+                     f"converted with {STANDARD_GRAVITY_M_S2} m/s^2 per g")
     out_keys = list(outputs)
     in_keys = list(inputs)
     # (a repeated abscissa, as pelvislab writes one-line records, lands on the same line)

@@ -1,5 +1,6 @@
 """import-uff: dataset 58 records that are no response over force in Hz (review of the EMA
-path): an rpm abscissa was read as Hz, and a force ordinate failed the whole import."""
+path): an rpm abscissa was read as Hz, a force ordinate failed the whole import, and an
+ordinate in g (accelerance in g/N) was read as m/s^2."""
 
 from __future__ import annotations
 
@@ -48,3 +49,25 @@ def test_a_force_ordinate_is_skipped_with_a_note_and_the_rest_imported(tmp_path,
     assert frf.outputs.name == ["node1+Z", "node3+Z"]
     assert any("node 2 / 9" in n and "force (specific data type" in n
                and "not a response" in n for n in notes), notes
+
+
+def test_accelerance_in_g_is_converted_with_standard_gravity(tmp_path):
+    si = _write(tmp_path / "si.uff", [{"ordinate_axis_units_lab": "m/s^2"}])
+    in_g = _write(tmp_path / "g.uff", [{"ordinate_axis_units_lab": "g"},
+                                       {"ordinate_axis_units_lab": "G/N"}])
+    H_si, _ = read_uff(si)
+    H_g, notes = read_uff(in_g)
+    np.testing.assert_allclose(H_g.H[:, 0, 0], H_si.H[:, 0, 0] * 9.80665,
+                               rtol=1e-12)
+    np.testing.assert_allclose(H_g.H[:, 1, 0], H_g.H[:, 0, 0], rtol=1e-12)
+    assert any("2 record(s) in g" in n and "9.80665 m/s^2 per g" in n for n in notes), notes
+
+
+@pytest.mark.parametrize("label, ordinate", [("g/lbf", 12), ("g", 8), ("g^2/Hz", 12)])
+def test_a_g_label_that_cannot_be_read_reliably_is_skipped(tmp_path, label, ordinate):
+    path = _write(tmp_path / "u.uff", [{}, {"ordinate_axis_units_lab": label,
+                                           "ordinate_spec_data_type": ordinate}])
+    frf, notes = read_uff(path)
+    assert frf.outputs.name == ["node1+Z"]
+    assert any("node 2 / 9" in n and repr(label) in n and "cannot be read reliably" in n
+               for n in notes), notes
