@@ -893,9 +893,10 @@ def polish_wide_poles(
     (p-LSCF minimises an equation error, not the FRF error; Peeters et al., Shock Vib. 11,
     2004). Left so, the misfit it leaves is taken up by noise poles that then pass the
     significance check (:func:`mode_significance`): a 35 %-damped mode at 150 Hz on a 1 Hz
-    grid with 1 % noise came out at 145-148 Hz, local chi^2 per value ~7, with 1-2 light
-    noise poles kept beside it in 8 of 20 draws; with its pole fitted here, chi^2 ~1 and
-    every such pole's significance 1.0-1.2 (docs/ema.md). The fit is that of
+    grid with 1 % noise came out at 144-148 Hz (chi^2 per value ~4 with ``H_std``), and
+    light noise poles were kept beside it (4 in 20 draws with the bandwidth tolerance of
+    the selection alone); with its pole fitted here, 150.0 Hz, chi^2 ~1 and every such
+    pole's significance 1.0-1.2 (docs/ema.md). The fit is that of
     :func:`refine_poles` (variable projection, residues and residuals by LSFD, weights
     1/RMS per FRF or 1/``H_std`` per line) for the loose poles alone, every other pole of
     ``poles`` and ``fixed`` held, each loose pole within a quarter of its half-power
