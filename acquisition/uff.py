@@ -50,6 +50,16 @@ SPEC_DISPLACEMENT = 8
 SPEC_VELOCITY = 11
 SPEC_ACCELERATION = 12
 SPEC_FORCE = 13
+# what the other codes of UFF 58 record 8 (specific data type) are, for the notes
+SPEC_NAMES = {0: "unknown", 1: "general", 2: "stress", 3: "strain", 5: "temperature",
+              6: "heat flux", 8: "displacement", 9: "reaction force", 11: "velocity",
+              12: "acceleration", 13: "excitation force", 15: "pressure", 16: "mass",
+              17: "time", 18: "frequency", 19: "rpm", 20: "order"}
+# abscissae read as frequencies in Hz: frequency, or a type the file leaves open
+FREQUENCY_ABSCISSAE = (0, 1, SPEC_FREQUENCY)
+# ordinates that are responses (0 "unknown" is taken as displacement, as before)
+RESPONSE_ORDINATES = (0, SPEC_DISPLACEMENT, SPEC_VELOCITY, SPEC_ACCELERATION)
+STANDARD_GRAVITY_M_S2 = 9.80665  # m/s^2 per g (3rd CGPM, 1901; ISO 80000-3)
 AXES = np.eye(3)
 
 
@@ -365,6 +375,51 @@ def to_receptance(frequency_hz: np.ndarray, values: np.ndarray, quantity: int) -
     return np.where(w > 0, out, np.nan + 0j)
 
 
+def _spec_name(code: int) -> str:
+    return f"{SPEC_NAMES.get(code, 'unlisted')} (specific data type {code})"
+
+
+def record_problem(dset: dict) -> str:
+    """Why a dataset 58 FRF record cannot be read as a response over force ("" if it can).
+
+    Its abscissa must be a frequency (UFF 58 record 8, specific data type 18, or 0/1
+    "unknown"/"general"): an rpm (19) or order (20) axis is not one, and was read as Hz.
+    Its ordinate (record 9) must be a response: displacement, velocity, acceleration (or 0,
+    taken as displacement); a force over force (a force-transmissibility or a reference
+    channel) made the whole import fail. An ordinate units label in g must be that of an
+    acceleration (:func:`ordinate_g_factor`)."""
+    abscissa = int(dset.get("abscissa_spec_data_type", 0))
+    if abscissa not in FREQUENCY_ABSCISSAE:
+        return (f"its abscissa is {_spec_name(abscissa)}, not frequency in Hz (an rpm or "
+                "order axis is not a frequency)")
+    ordinate = int(dset.get("ordinate_spec_data_type", 0))
+    if ordinate not in RESPONSE_ORDINATES:
+        return (f"its ordinate is {_spec_name(ordinate)}, not a response (displacement, "
+                "velocity or acceleration) over force")
+    return ordinate_g_factor(dset)[1]
+
+
+def ordinate_g_factor(dset: dict) -> tuple[float, str]:
+    """(m/s^2 per ordinate unit, problem) from the ordinate units label (record 9 field 6).
+
+    A label ``g`` or ``g/N`` (any case) on an acceleration ordinate means accelerance in g
+    per force unit: ``STANDARD_GRAVITY_M_S2`` (9.80665 m/s^2 per g). The label takes
+    precedence over the units of dataset 164 for the numerator (UFF 58: "if fields 5 and 6
+    are supplied, they take precedence over program generated labels and units"), so the
+    length factor of 164 does not apply to it. Other labels naming g as a unit (``g/lbf``,
+    ``g^2/Hz``, g on a displacement or velocity ordinate) cannot be read reliably: a
+    problem is returned (the record is skipped). Otherwise (1.0, "")."""
+    label = str(dset.get("ordinate_axis_units_lab", "") or "").strip()
+    if not re.search(r"(?<![A-Za-z])[gG](?![A-Za-z])", label):
+        return 1.0, ""
+    ordinate = int(dset.get("ordinate_spec_data_type", 0))
+    if label.lower() in ("g", "g/n") and ordinate == SPEC_ACCELERATION:
+        return STANDARD_GRAVITY_M_S2, ""
+    return 1.0, (f"its ordinate units label {label!r} on an ordinate of "
+                 f"{_spec_name(ordinate)} cannot be read reliably (read: 'g' or 'g/N' on "
+                 "acceleration, 9.80665 m/s^2 per g)")
+
+
 def _delimiter_count(path: Path) -> int:
     """Number of dataset delimiter lines ``    -1`` in the file, found as pyuff finds them.
 
@@ -430,6 +485,7 @@ def read_uff(path: str | Path, points: dict[int, PointInfo] | None = None
     header: tuple[int, int] | None = None
     n_mode_sets = 0
     real_frf = 0  # FRF records with real values, skipped
+    unusable = 0  # FRF records that are no response over force in Hz (record_problem)
     for dset in sets:
         kind = int(dset.get("type", -1))
         if kind == 151:
@@ -452,7 +508,13 @@ def read_uff(path: str | Path, points: dict[int, PointInfo] | None = None
             func = int(dset.get("func_type", -1))
             data = np.asarray(dset.get("data", []))
             if func in (FUNC_FRF, FUNC_GENERAL) and np.iscomplexobj(data):
-                records.append(dset)
+                problem = record_problem(dset)
+                if problem:
+                    unusable += 1
+                    notes.append(f"skipped a dataset 58 record (node {dset.get('rsp_node')} "
+                                 f"/ {dset.get('ref_node')}): {problem}")
+                else:
+                    records.append(dset)
             elif func == FUNC_FRF:
                 # real ordinates (data type 2 or 4): a magnitude, or one part of the FRF;
                 # read as complex they were an FRF of zero phase, silently (review of the
@@ -463,13 +525,14 @@ def read_uff(path: str | Path, points: dict[int, PointInfo] | None = None
                              "is complex; a magnitude or one part of it cannot be used")
             else:
                 notes.append(f"skipped a dataset 58 of function type {func} (not an FRF)")
-    if header is not None and (len(records) < header[0] or n_mode_sets < header[1]):
+    n_frf = len(records) + unusable + real_frf  # what the header of our export counts
+    if header is not None and (n_frf < header[0] or n_mode_sets < header[1]):
         raise ValueError(
-            f"{path} holds {len(records)} FRF records and {n_mode_sets} modes, but its "
+            f"{path} holds {n_frf} FRF records and {n_mode_sets} modes, but its "
             f"pelvislab header says {header[0]} and {header[1]}: truncated? Not importing "
             "part of it")
-    if header is not None and (len(records), n_mode_sets) != header:
-        notes.append(f"{len(records)} FRF records and {n_mode_sets} modes, more than the "
+    if header is not None and (n_frf, n_mode_sets) != header:
+        notes.append(f"{n_frf} FRF records and {n_mode_sets} modes, more than the "
                      f"pelvislab header's {header[0]} and {header[1]}: datasets were added "
                      "after the export (all imported)")
     if not records:
@@ -483,6 +546,10 @@ def read_uff(path: str | Path, points: dict[int, PointInfo] | None = None
                             f"{', '.join(map(str, skipped))}, not 4 (FRF)" if skipped else "")
                          + (f"; {real_frf} FRF record(s) hold real values, not complex ones "
                             "(a magnitude?)" if real_frf else "")
+                         + (f"; {unusable} record(s) skipped as the notes say: "
+                            + "; ".join(n.split(": ", 1)[1] for n in notes
+                                        if n.startswith("skipped a dataset 58 record"))
+                            if unusable else "")
                          + ")")
     for n in coords:
         coords[n] = coords[n] / length_factor
@@ -547,6 +614,7 @@ def read_uff(path: str | Path, points: dict[int, PointInfo] | None = None
         return key, (name, bone, np.asarray(position, dtype=float), direction)
 
     converted: dict[int, int] = {}  # records per ordinate quantity converted
+    in_g = 0  # accelerance records in g per force unit
     for dset in records:
         ko, out = channel(dset, "out")
         ki, inp = channel(dset, "in")
@@ -560,7 +628,13 @@ def read_uff(path: str | Path, points: dict[int, PointInfo] | None = None
         denom = int(dset.get("orddenom_spec_data_type", SPEC_FORCE))
         if denom not in (0, SPEC_FORCE):
             notes.append(f"record {out[0]}/{inp[0]} has denominator type {denom}, taken as force")
-        values = to_receptance(x, values, quantity) * (force_factor / length_factor)
+        g_m_s2, _ = ordinate_g_factor(dset)  # record_problem refused what it cannot read
+        if g_m_s2 != 1.0:
+            # the label sets the numerator's unit: m/s^2 from g, not 164's length factor
+            values = to_receptance(x, values, quantity) * (g_m_s2 * force_factor)
+            in_g += 1
+        else:
+            values = to_receptance(x, values, quantity) * (force_factor / length_factor)
         entries.append((ko, ki, x, values))
         converted[quantity] = converted.get(quantity, 0) + 1
 
@@ -573,6 +647,9 @@ def read_uff(path: str | Path, points: dict[int, PointInfo] | None = None
                          f"(divided by {by}): the lowest lines' noise grows with it; "
                          "`pelvislab ema` says when they dominate")
 
+    if in_g:
+        notes.append(f"{in_g} record(s) in g per force unit (ordinate units label 'g'): "
+                     f"converted with {STANDARD_GRAVITY_M_S2} m/s^2 per g")
     out_keys = list(outputs)
     in_keys = list(inputs)
     # (a repeated abscissa, as pelvislab writes one-line records, lands on the same line)

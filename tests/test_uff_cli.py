@@ -94,3 +94,15 @@ def test_export_with_unknown_shape_entries_counts_the_modes_written(tmp_path, ca
     sets = [s for s in pyuff.UFF(str(tmp_path / "m.uff")).read_sets()
             if s["type"] == 55]
     assert len(sets) == 1 and len(sets[0]["node_nums"]) == 2
+
+
+def test_export_note_on_h_std_says_what_ema_does_without_it(tmp_path, capsys):
+    # review of the EMA path: the note said "an analysis of the imported file estimates the
+    # noise instead"; `ema` does not (it weights each FRF by 1/RMS of its values)
+    frf = sample_frfset(5)
+    frf.H_std = 0.01 * np.abs(frf.H)
+    write_frf(tmp_path / "s.h5", frf)
+    assert main(["export-uff", str(tmp_path / "s.h5"), str(tmp_path / "s.uff")]) == 0
+    note = next(line for line in capsys.readouterr().err.splitlines() if "H_std" in line)
+    assert "`ema` weights each FRF by 1/RMS of its values" in note
+    assert "`gap diagnose` estimate the noise" in note

@@ -103,8 +103,12 @@ def run_export(args: argparse.Namespace) -> int:
         modes = UffModes(result.frequency_hz, result.damping_ratio, result.shapes)
     n = write_uff(out, frf, modes, binary=not args.ascii, geometry=args.geometry)
     if frf.H_std is not None:
-        print("note: H_std is not in the UFF file (dataset 58 has no place for it): an "
-              "analysis of the imported file estimates the noise instead", file=sys.stderr)
+        # what each analysis of the imported file does without it (`identify` and `gap
+        # diagnose` estimate the noise from the data; `ema` does not: docs/ema.md)
+        print("note: H_std is not in the UFF file (dataset 58 has no place for it): on the "
+              "imported file `identify` (by default) and `gap diagnose` estimate the noise from "
+              "the data, and `ema` weights each FRF by 1/RMS of its values, with no per-line "
+              "weights and no note of a missing mode (which needs H_std)", file=sys.stderr)
     n_modes = 0
     if modes is not None:
         # a mode without any shape entry (no FRF measured around it) gets no dataset 55
