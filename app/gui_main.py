@@ -825,6 +825,9 @@ class OperatorWindow(QtWidgets.QMainWindow):
                         "waiting for the operator: place the transducers, then "
                         "Placed — continue")
             elif isinstance(event, r.SetupStarted):
+                # the previous setup's last step, drained in the same tick, is not drawn
+                # under this setup's landmarks (its FRF lines are kept above)
+                latest_step = None
                 self._channel_labels = [
                     f"ch{c} → {p}" for c, p in sorted(event.transducers.items())]
                 self._setup_channels = sorted(event.transducers)

@@ -389,3 +389,47 @@ def test_replay_names_a_point_whose_bone_nothing_gives(operator_window, tmp_path
                 ds.attrs["output_bone"] = "sacrum"
     assert window.open_replay(path) is True
     assert "bone unknown" not in window.replay.file_label.text()
+
+
+def _fake_control(window):
+    """A control whose events the test puts (no runner thread: refresh() draws them)."""
+    import queue
+    import threading
+    from types import SimpleNamespace
+
+    window.control = SimpleNamespace(
+        finished=threading.Event(), events=queue.Queue(), stop=lambda *a: None,
+        runner=SimpleNamespace(unsafe=(), aborted=False, gates={}, confirm=lambda: None))
+    return window.control
+
+
+def test_the_next_setups_prompt_does_not_show_the_last_setups_step(operator_window):
+    # GUI review, session 43: the last step of a setup and the next setup's start reach the
+    # window in one refresh (nothing waits between them); the step was drawn after the
+    # panels were cleared for the new setup, so at its prompt the displacement trace and
+    # the quality rows of the previous landmarks stood under the new landmarks' names
+    import numpy as np
+
+    from pelvislab.acquisition import runner as r
+    from pelvislab.acquisition.protocol import PlannedStep, parse_protocol
+    from pelvislab.tests.test_session_format import POINTS, TEXT, make_step
+
+    protocol = parse_protocol(TEXT, "t.toml", None, POINTS)
+    window = operator_window()
+    control = _fake_control(window)
+    planned = PlannedStep(2, 0, "s1", 280.0, 400, 0.05)
+    data = make_step(protocol, 0, 280.0, np.random.default_rng(0))
+    for event in (r.SetupStarted(0.0, 0, "s1", "a", {1: "a", 2: "b"}, 2),
+                  r.StepFinished(1.0, planned, data, 0.5), r.SetupFinished(1.1, 0, "s1"),
+                  r.SetupStarted(1.2, 1, "s2", "c", {1: "b"}, 2),
+                  r.OperatorPrompt(1.3, 1, "s2", "place ch1 -> b", False)):
+        control.events.put(event)
+    try:
+        window.refresh()
+        assert window.confirm_button.isVisible()
+        x, _ = window.displacement._curves[0].getData()
+        assert x is None or len(x) == 0  # not setup s1's trace under "ch1 → b"
+        assert window.quality.rowCount() == 0  # not s1's "a" and "b" rows
+        assert window._frf_lines  # its FRF lines are kept (they build up over the setups)
+    finally:
+        control.finished.set()  # closing the window does not wait for a run
