@@ -497,6 +497,12 @@ class OperatorWindow(QtWidgets.QMainWindow):
     def _say(self, text: str) -> None:
         stamp = time.strftime("%H:%M:%S")
         self.message_log.appendPlainText(f"{stamp}  {text}")
+        # the newest line in view: appendPlainText follows the end only from the bottom,
+        # and the log, resized when a prompt hides and shows the bench list, was left at
+        # its first lines, every later one (STOP, QUALITY, FAULT, the run's end) out of
+        # sight (GUI review, session 43)
+        bar = self.message_log.verticalScrollBar()
+        bar.setValue(bar.maximum())
 
     def start_run(self) -> None:
         """Validate the set-up, open the session and start the runner thread."""

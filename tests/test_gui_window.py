@@ -433,3 +433,23 @@ def test_the_next_setups_prompt_does_not_show_the_last_setups_step(operator_wind
         assert window._frf_lines  # its FRF lines are kept (they build up over the setups)
     finally:
         control.finished.set()  # closing the window does not wait for a run
+
+
+def test_the_message_log_shows_its_newest_line_after_a_prompt(operator_window, qtbot):
+    # GUI review, session 43: a prompt hides the bench list (the log grows), confirming it
+    # shows it again (the log shrinks): the log then stayed at its first lines and every
+    # later one ("STOP pressed: outputs off", a QUALITY or FAULT line, "run aborted") was
+    # appended out of sight
+    window = operator_window()
+    window.resize(1366, 768)
+    for k in range(3):
+        window._say(f"line {k}: " + "word " * 12)
+    window.bench_box.setVisible(False)  # a prompt
+    qtbot.wait(20)
+    window._say("PROMPT: place the transducers")
+    window.bench_box.setVisible(True)  # confirmed
+    qtbot.wait(20)
+    window._say("STOP pressed: outputs off")
+    bar = window.message_log.verticalScrollBar()
+    qtbot.waitUntil(lambda: bar.maximum() > 0)
+    assert bar.value() == bar.maximum()
