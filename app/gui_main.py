@@ -656,6 +656,7 @@ class OperatorWindow(QtWidgets.QMainWindow):
         if self.control is None:
             return
         self.control.runner.live_echoes_in_pause(on)
+        self._room_for_live_echoes(on)
         if self.run_state in ("paused", "paused_live"):
             self._set_state("paused_live" if on else "paused")
             self.eta_label.setText("paused (drive off, live echoes): Resume to continue" if on
@@ -671,6 +672,7 @@ class OperatorWindow(QtWidgets.QMainWindow):
             self.live_button.setChecked(False)
         self.live_button.setVisible(False)
         self._end_aiming()
+        self._room_for_live_echoes(False)
 
     def confirm_prompt(self) -> None:
         """The operator placed the transducers as prompted."""
@@ -679,7 +681,18 @@ class OperatorWindow(QtWidgets.QMainWindow):
         self.prompt_label.setVisible(False)
         self.confirm_button.setVisible(False)
         self._end_aiming()
-        self.bench_box.setVisible(True)
+        self._room_for_live_echoes(False)
+
+    def _room_for_live_echoes(self, aiming: bool) -> None:
+        """While live echoes are shown (a prompt, or asked for in a pause) the bench list
+        and the set-up (locked during a run) make room for the instruction, the gates'
+        notes and a two-line banner: with them the window grew past a 768 px screen (to
+        838 px at a prompt with a rival-echo note, 873 px in a pause, where the banner,
+        STOP and the notes were cut: GUI review, session 43). Room first: showing a
+        widget lays the window out at once, and a window grown past the screen does not
+        shrink back."""
+        self.bench_box.setVisible(not aiming)
+        self.setup_box.setVisible(not aiming)
 
     def _end_aiming(self) -> None:
         if not (self.ascan.gates_editable or self.aim_label.isVisible()):
@@ -810,11 +823,9 @@ class OperatorWindow(QtWidgets.QMainWindow):
                 changed_frfs |= self._add_frf_lines(event.data)
             elif isinstance(event, r.OperatorPrompt):
                 placement = ", ".join(self._channel_labels)
-                # the whole instruction readable: the bench list makes room meanwhile
-                # (GUI review, session 35: the prompt was cut at 67 of its 174 px). Room
-                # first: showing a widget lays the window out at once, and a window grown
-                # past the screen does not shrink back
-                self.bench_box.setVisible(event.auto_continue)
+                # the whole instruction readable: the bench list and the set-up make room
+                # meanwhile (GUI review, session 35: the prompt was cut at 67 of its 174 px)
+                self._room_for_live_echoes(not event.auto_continue)
                 # the runner's own prompt already lists the placement; a protocol's text
                 # says it in words, so the landmark names follow then
                 said = all(p.split(" → ")[-1] in event.message for p in self._channel_labels)
@@ -889,7 +900,7 @@ class OperatorWindow(QtWidgets.QMainWindow):
         self.prompt_label.setVisible(False)
         self.confirm_button.setVisible(False)
         self._hide_live_button()
-        self.bench_box.setVisible(True)
+        self._room_for_live_echoes(False)
         text = f"run {event.status}: {event.n_done}/{event.n_steps} steps"
         if event.reason:
             text += f" — {event.reason}"

@@ -453,3 +453,71 @@ def test_the_message_log_shows_its_newest_line_after_a_prompt(operator_window, q
     bar = window.message_log.verticalScrollBar()
     qtbot.waitUntil(lambda: bar.maximum() > 0)
     assert bar.value() == bar.maximum()
+
+
+RIVAL_NOTE = ("another echo at sample 354 (0.39 us later) is 4.1 dB below the gated one, "
+              "inside the gate: its overlap biases the tracked delay; look at the A-scan and "
+              "set the gate on the bone echo")
+
+
+def _live_echoes(channels, notes=(RIVAL_NOTE,)):
+    """An AimingEchoes event: per channel a plain echo with an automatic gate and notes."""
+    import numpy as np
+
+    from pelvislab.acquisition import runner as r
+
+    time_s = 10e-6 + np.arange(500) / 500e6
+    return r.AimingEchoes(0.5, 0, tuple(
+        r.AimedEcho(ch, f"p{ch}", time_s, np.sin(np.arange(500) / 5.0) * 0.2, (100, 400),
+                    "auto", notes, 500e6, 10e-6, 354) for ch in channels))
+
+
+def _side_text_fits(window):
+    """Every visible word-wrapped text of the run box has the height its text needs."""
+    for label in (window.state_banner, window.prompt_label, window.aim_label):
+        if label.isVisible():
+            assert label.height() >= label.heightForWidth(label.width()), label.text()[:40]
+    for button in (window.start_button, window.pause_button, window.stop_button):
+        assert button.height() >= button.minimumSizeHint().height(), button.text()
+
+
+@pytest.mark.parametrize("where", ["prompt", "pause"])
+def test_live_echoes_with_notes_fit_a_768_px_screen(operator_window, qtbot, where):
+    # GUI review, session 43: at 1366 x 768 the window grew to 838 px at a prompt whose
+    # live echoes carry a rival-echo note (docs/img/gui-aiming.png is 838 px high) and to
+    # 873 px with live echoes in a pause (the bench list stayed): its bottom left the
+    # screen, and in the pause the banner, STOP and the notes were cut
+    from pelvislab.acquisition import runner as r
+
+    window = operator_window()
+    window.resize(1366, 768)
+    control = _fake_control(window)
+    control.runner.live_echoes_in_pause = lambda on: None
+    try:
+        control.events.put(r.SetupStarted(0.0, 0, "a", "p1", {1: "p1", 2: "p2"}, 1))
+        if where == "prompt":
+            control.events.put(r.OperatorPrompt(0.1, 0, "a", "Setup 'a': excitation at "
+                               "SIAS_R_x; place the transducers: ch1 -> p1, ch2 -> p2.",
+                               False))
+        else:
+            control.events.put(r.Paused(0.1, "pause"))
+        window.refresh()
+        if where == "pause":
+            window.live_button.setChecked(True)
+            assert window.state_banner.text() == "PAUSED — drive off, live echoes"
+        control.events.put(_live_echoes((1, 2)))
+        window.refresh()
+        assert window.aim_label.isVisible() and RIVAL_NOTE in window.aim_label.text()
+        qtbot.wait(50)
+        assert window.minimumSizeHint().height() <= 768
+        assert window.height() <= 768
+        _side_text_fits(window)
+        assert window.stop_button.isVisible()
+        # the set-up and the bench come back once the live echoes end
+        if where == "prompt":
+            window.confirm_prompt()
+        else:
+            window.live_button.setChecked(False)
+        assert window.bench_box.isVisible() and window.setup_box.isVisible()
+    finally:
+        control.finished.set()
