@@ -984,6 +984,7 @@ class OperatorWindow(QtWidgets.QMainWindow):
             if self._running():  # Esc during the question may have stopped it already
                 self.control.stop(self.close_reason)
             self._wait_for_the_run_to_end()
+        self.replay.shutdown()  # an analysis under way stops; nobody waits for it
         self.replay.close_session()
         super().closeEvent(event)
 

@@ -5,7 +5,7 @@ from __future__ import annotations
 from pathlib import Path
 
 import pytest
-from PySide6 import QtWidgets
+from PySide6 import QtCore, QtWidgets
 
 from pelvislab.app.gui_main import subject_id_problem
 
@@ -521,3 +521,50 @@ def test_live_echoes_with_notes_fit_a_768_px_screen(operator_window, qtbot, wher
         assert window.bench_box.isVisible() and window.setup_box.isVisible()
     finally:
         control.finished.set()
+
+
+def test_a_long_analysis_can_be_cancelled_and_closing_does_not_wait_for_it(operator_window,
+                                                                          qtbot):
+    # GUI review, session 43: an identification or a gap diagnosis (seconds to a minute)
+    # could not be stopped, and a window closed during one left the process running,
+    # windowless, until it ended (17 s on the demo session; the executor's thread is
+    # waited for at exit)
+    import threading
+    import time
+
+    window = operator_window()
+    replay = window.replay
+    window.tabs.setCurrentWidget(replay)
+    note = replay._progress_for("gap diagnosis")
+    stages = []
+
+    def work():  # an analysis' stages, each ending with a progress line
+        for k in range(200):
+            time.sleep(0.02)
+            note(f"stage {k}")
+            stages.append(k)
+        return "never shown"
+
+    replay.submit(work, lambda result: pytest.fail("a cancelled result was shown"),
+                  "gap diagnosis", replay.gap_button, cancellable=True)
+    assert replay.cancel_button.isVisible() and not replay.gap_button.isEnabled()
+    qtbot.waitUntil(lambda: "gap diagnosis: stage" in replay.analysis_status.text())
+    qtbot.mouseClick(replay.cancel_button, QtCore.Qt.MouseButton.LeftButton)
+    assert "cancelling the gap diagnosis" in replay.analysis_status.text()
+    qtbot.waitUntil(lambda: replay.analysis_status.text() == "gap diagnosis cancelled",
+                    timeout=2000)
+    assert len(stages) < 200 and replay.gap_button.isEnabled()
+    assert not replay.cancel_button.isVisible()
+    # the next analysis runs (the cancel was for the one before)
+    replay.submit(lambda: "ok", lambda result: None, "gap diagnosis", replay.gap_button,
+                  cancellable=True)
+    qtbot.waitUntil(lambda: replay.analysis_status.text() == "gap diagnosis done")
+    # the process does not wait for the worker at exit: it runs in a daemon thread
+    workers = [t for t in threading.enumerate() if t.name == "pelvislab-replay"]
+    assert workers and all(t.daemon for t in workers)
+    # closing the window stops the analysis under way
+    replay.submit(work, lambda result: pytest.fail("shown after the window closed"),
+                  "gap diagnosis", replay.gap_button, cancellable=True)
+    qtbot.waitUntil(lambda: len(stages) > 0)
+    window.close()
+    assert replay._cancel.is_set() and not replay.busy()
