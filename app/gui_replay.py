@@ -845,6 +845,7 @@ class ReplayView(QtWidgets.QWidget):
         for r, values in enumerate(rows):
             for c, text in enumerate(values):
                 item = QtWidgets.QTableWidgetItem(text)
+                item.setToolTip(text)  # the evidence is cut at two lines a row
                 if values[1] != "named":  # not the verdict: greyed, its shrink in ( )
                     item.setForeground(QtCore.Qt.GlobalColor.gray)
                 self.candidate_table.setItem(r, c, item)

@@ -568,3 +568,19 @@ def test_a_long_analysis_can_be_cancelled_and_closing_does_not_wait_for_it(opera
     qtbot.waitUntil(lambda: len(stages) > 0)
     window.close()
     assert replay._cancel.is_set() and not replay.busy()
+
+
+def test_the_gap_candidates_cut_evidence_reads_whole_in_a_tooltip(operator_window):
+    # GUI review, session 43: at 1366 x 768 the evidence column ends in "... with 3
+    # extra ..." (two lines a row), and nothing showed the rest
+    from types import SimpleNamespace
+
+    evidence = ("tissue at output SIPS_R_x (frequency_hz=5e+03, damping_ratio=0.02, "
+                "mass_kg=0.0001); held-out chi2 146.3 -> 145.8 over 152 lines with 3 extra "
+                "parameter(s)")
+    report = {"verdict": "none", "gap_before": 0.0, "where": {}, "candidates": [
+        {"effect": "soft_tissue", "shrink": None, "gap_after": 0.0, "evidence": evidence,
+         "within_tolerance": "gain 1.005 ..."}]}
+    replay = operator_window().replay
+    replay.show_gap(SimpleNamespace(to_json=lambda: report, residual_map=None))
+    assert replay.candidate_table.item(0, 4).toolTip() == evidence
