@@ -656,15 +656,18 @@ class OperatorWindow(QtWidgets.QMainWindow):
         if self.control is None:
             return
         self.control.runner.live_echoes_in_pause(on)
-        self._room_for_live_echoes(on)
+        if on:
+            self._room_for_live_echoes(True)
+        else:  # the live echoes' notes and two-line banner go before the room comes back
+            self._end_aiming()
         if self.run_state in ("paused", "paused_live"):
             self._set_state("paused_live" if on else "paused")
             self.eta_label.setText("paused (drive off, live echoes): Resume to continue" if on
                                    else "paused (outputs off): Resume to continue")
+        if not on:
+            self._room_for_live_echoes(False)
         if on:
             self._say("live echoes in the pause (drive off)")
-        else:
-            self._end_aiming()
 
     def _hide_live_button(self) -> None:
         """The pause ends: no live echoes button, nothing of the live echoes left."""
@@ -1011,7 +1014,11 @@ SIDE_TEXT_WIDTH_PX = 330
 def _fit_height(label: QtWidgets.QLabel) -> None:
     """Give a word-wrapped label of the side panel the height its text needs: nested
     layouts do not always ask for it, and the panel then cut the text. (Its present width
-    is no guide: a label hidden until now has a stale one.)"""
+    is no guide: a label hidden until now has a stale one.) The minimum set before goes
+    first: QLabel's heightForWidth is at least it, so a label once grown (the two-line
+    live-echoes banner, a long note) never shrank back and kept the window over the
+    screen's height (GUI review, session 43)."""
+    label.setMinimumHeight(0)
     label.setMinimumHeight(label.heightForWidth(SIDE_TEXT_WIDTH_PX))
 
 
