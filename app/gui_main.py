@@ -497,6 +497,12 @@ class OperatorWindow(QtWidgets.QMainWindow):
     def _say(self, text: str) -> None:
         stamp = time.strftime("%H:%M:%S")
         self.message_log.appendPlainText(f"{stamp}  {text}")
+        # the newest line in view: appendPlainText follows the end only from the bottom,
+        # and the log, resized when a prompt hides and shows the bench list, was left at
+        # its first lines, every later one (STOP, QUALITY, FAULT, the run's end) out of
+        # sight (GUI review, session 43)
+        bar = self.message_log.verticalScrollBar()
+        bar.setValue(bar.maximum())
 
     def start_run(self) -> None:
         """Validate the set-up, open the session and start the runner thread."""
@@ -650,14 +656,18 @@ class OperatorWindow(QtWidgets.QMainWindow):
         if self.control is None:
             return
         self.control.runner.live_echoes_in_pause(on)
+        if on:
+            self._room_for_live_echoes(True)
+        else:  # the live echoes' notes and two-line banner go before the room comes back
+            self._end_aiming()
         if self.run_state in ("paused", "paused_live"):
             self._set_state("paused_live" if on else "paused")
             self.eta_label.setText("paused (drive off, live echoes): Resume to continue" if on
                                    else "paused (outputs off): Resume to continue")
+        if not on:
+            self._room_for_live_echoes(False)
         if on:
             self._say("live echoes in the pause (drive off)")
-        else:
-            self._end_aiming()
 
     def _hide_live_button(self) -> None:
         """The pause ends: no live echoes button, nothing of the live echoes left."""
@@ -665,6 +675,7 @@ class OperatorWindow(QtWidgets.QMainWindow):
             self.live_button.setChecked(False)
         self.live_button.setVisible(False)
         self._end_aiming()
+        self._room_for_live_echoes(False)
 
     def confirm_prompt(self) -> None:
         """The operator placed the transducers as prompted."""
@@ -673,7 +684,18 @@ class OperatorWindow(QtWidgets.QMainWindow):
         self.prompt_label.setVisible(False)
         self.confirm_button.setVisible(False)
         self._end_aiming()
-        self.bench_box.setVisible(True)
+        self._room_for_live_echoes(False)
+
+    def _room_for_live_echoes(self, aiming: bool) -> None:
+        """While live echoes are shown (a prompt, or asked for in a pause) the bench list
+        and the set-up (locked during a run) make room for the instruction, the gates'
+        notes and a two-line banner: with them the window grew past a 768 px screen (to
+        838 px at a prompt with a rival-echo note, 873 px in a pause, where the banner,
+        STOP and the notes were cut: GUI review, session 43). Room first: showing a
+        widget lays the window out at once, and a window grown past the screen does not
+        shrink back."""
+        self.bench_box.setVisible(not aiming)
+        self.setup_box.setVisible(not aiming)
 
     def _end_aiming(self) -> None:
         if not (self.ascan.gates_editable or self.aim_label.isVisible()):
@@ -804,11 +826,9 @@ class OperatorWindow(QtWidgets.QMainWindow):
                 changed_frfs |= self._add_frf_lines(event.data)
             elif isinstance(event, r.OperatorPrompt):
                 placement = ", ".join(self._channel_labels)
-                # the whole instruction readable: the bench list makes room meanwhile
-                # (GUI review, session 35: the prompt was cut at 67 of its 174 px). Room
-                # first: showing a widget lays the window out at once, and a window grown
-                # past the screen does not shrink back
-                self.bench_box.setVisible(event.auto_continue)
+                # the whole instruction readable: the bench list and the set-up make room
+                # meanwhile (GUI review, session 35: the prompt was cut at 67 of its 174 px)
+                self._room_for_live_echoes(not event.auto_continue)
                 # the runner's own prompt already lists the placement; a protocol's text
                 # says it in words, so the landmark names follow then
                 said = all(p.split(" → ")[-1] in event.message for p in self._channel_labels)
@@ -825,6 +845,9 @@ class OperatorWindow(QtWidgets.QMainWindow):
                         "waiting for the operator: place the transducers, then "
                         "Placed — continue")
             elif isinstance(event, r.SetupStarted):
+                # the previous setup's last step, drained in the same tick, is not drawn
+                # under this setup's landmarks (its FRF lines are kept above)
+                latest_step = None
                 self._channel_labels = [
                     f"ch{c} → {p}" for c, p in sorted(event.transducers.items())]
                 self._setup_channels = sorted(event.transducers)
@@ -880,7 +903,7 @@ class OperatorWindow(QtWidgets.QMainWindow):
         self.prompt_label.setVisible(False)
         self.confirm_button.setVisible(False)
         self._hide_live_button()
-        self.bench_box.setVisible(True)
+        self._room_for_live_echoes(False)
         text = f"run {event.status}: {event.n_done}/{event.n_steps} steps"
         if event.reason:
             text += f" — {event.reason}"
@@ -964,6 +987,7 @@ class OperatorWindow(QtWidgets.QMainWindow):
             if self._running():  # Esc during the question may have stopped it already
                 self.control.stop(self.close_reason)
             self._wait_for_the_run_to_end()
+        self.replay.shutdown()  # an analysis under way stops; nobody waits for it
         self.replay.close_session()
         super().closeEvent(event)
 
@@ -990,7 +1014,11 @@ SIDE_TEXT_WIDTH_PX = 330
 def _fit_height(label: QtWidgets.QLabel) -> None:
     """Give a word-wrapped label of the side panel the height its text needs: nested
     layouts do not always ask for it, and the panel then cut the text. (Its present width
-    is no guide: a label hidden until now has a stale one.)"""
+    is no guide: a label hidden until now has a stale one.) The minimum set before goes
+    first: QLabel's heightForWidth is at least it, so a label once grown (the two-line
+    live-echoes banner, a long note) never shrank back and kept the window over the
+    screen's height (GUI review, session 43)."""
+    label.setMinimumHeight(0)
     label.setMinimumHeight(label.heightForWidth(SIDE_TEXT_WIDTH_PX))
 
 

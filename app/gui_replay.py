@@ -10,8 +10,10 @@ from __future__ import annotations
 import html
 import logging
 import math
+import queue
+import threading
 from collections.abc import Callable
-from concurrent.futures import Future, ThreadPoolExecutor
+from concurrent.futures import Future
 from pathlib import Path
 from typing import Any
 
@@ -79,6 +81,37 @@ def display_columns(frequency_hz: np.ndarray, max_columns: int = 4000
     centres = low + (np.arange(n) + 0.5) * (high - low) / n
     index = np.clip(np.searchsorted(edges, centres, side="right") - 1, 0, f.size - 1)
     return index, low, high
+
+
+class AnalysisCancelled(Exception):
+    """Raised in the worker thread, at an analysis' next progress line, once Cancel was
+    pressed (or the window closed)."""
+
+
+class _Worker:
+    """One daemon thread running the replay's jobs in turn (a ``ThreadPoolExecutor`` of one
+    worker, but whose thread the interpreter does not wait for at exit: with one, a window
+    closed during a gap diagnosis left the process running, windowless, for the rest of
+    it). The jobs only read the session file and compute; nothing is lost by not waiting."""
+
+    def __init__(self) -> None:
+        self._jobs: queue.Queue = queue.Queue()
+        threading.Thread(target=self._loop, name="pelvislab-replay", daemon=True).start()
+
+    def submit(self, work: Callable[[], Any]) -> Future:
+        future: Future = Future()
+        self._jobs.put((future, work))
+        return future
+
+    def _loop(self) -> None:
+        while True:
+            future, work = self._jobs.get()
+            if not future.set_running_or_notify_cancel():
+                continue
+            try:
+                future.set_result(work())
+            except BaseException as exc:  # handed to the UI thread, which says it
+                future.set_exception(exc)
 
 
 PARAM_TABLE_MIN_WIDTH_PX = 340
@@ -183,7 +216,10 @@ class ReplayView(QtWidgets.QWidget):
         self.reader: Any = None
         self.path: Path | None = None
         self.steps: list[Any] = []
-        self._executor = ThreadPoolExecutor(max_workers=1, thread_name_prefix="pelvislab-replay")
+        self._executor = _Worker()
+        # set by Cancel (or closing the window): the running analysis raises
+        # AnalysisCancelled at its next progress line
+        self._cancel = threading.Event()
         # (job, done, what, button, the file it works on)
         self._pending: list[tuple[Future, Callable[[Any], None], str,
                                   QtWidgets.QPushButton | None, Path | None]] = []
@@ -275,6 +311,15 @@ class ReplayView(QtWidgets.QWidget):
         self.analysis_status = QtWidgets.QLabel("")
         self.analysis_status.setWordWrap(True)
         analysis_layout.addWidget(self.analysis_status)
+        # an identification or a gap diagnosis takes seconds to a minute: it can be
+        # stopped (at its next progress line: a stage of the diagnosis, a start of the fit)
+        self.cancel_button = QtWidgets.QPushButton("Cancel analysis")
+        self.cancel_button.setToolTip(
+            "stop the running identification or gap diagnosis at its next stage; "
+            "nothing is shown of it")
+        self.cancel_button.setVisible(False)
+        self.cancel_button.clicked.connect(self.cancel_analysis)
+        analysis_layout.addWidget(self.cancel_button)
         left.addWidget(analysis)
         left_widget = QtWidgets.QWidget()
         left_widget.setLayout(left)
@@ -653,13 +698,15 @@ class ReplayView(QtWidgets.QWidget):
             return
         path = self.path
         gain_std = self.gain_std_box.value() / 100.0
+        note = self._progress_for("identification")
 
         def work() -> Any:
             from pelvislab.app.commands.identify import identify_file
 
-            return identify_file(path, gain_std=gain_std)
+            return identify_file(path, gain_std=gain_std, progress=note)
 
-        self.submit(work, self.show_identification, "identification", self.identify_button)
+        self.submit(work, self.show_identification, "identification", self.identify_button,
+                    cancellable=True)
 
     def show_identification(self, report: Any) -> None:
         """Parameters with their standard errors; measured vs model FRFs."""
@@ -702,9 +749,7 @@ class ReplayView(QtWidgets.QWidget):
         if self.path is None:
             return
         path = self.path
-
-        def note(message: str) -> None:
-            self._progress_note = f"gap diagnosis: {message}"
+        note = self._progress_for("gap diagnosis")
 
         def work() -> Any:
             from pelvislab.app.commands.gap import diagnose_file
@@ -713,7 +758,35 @@ class ReplayView(QtWidgets.QWidget):
 
         # a diagnosis takes about a minute here (serial in the worker thread): the
         # stages' progress lines show where it is
-        self.submit(work, self.show_gap, "gap diagnosis", self.gap_button)
+        self.submit(work, self.show_gap, "gap diagnosis", self.gap_button, cancellable=True)
+
+    def _progress_for(self, what: str) -> Callable[[str], None]:
+        """The progress callback of an analysis (worker thread): its line shown under the
+        buttons, and the point where Cancel stops it."""
+
+        def note(message: str) -> None:
+            if self._cancel.is_set():
+                raise AnalysisCancelled(what)
+            self._progress_note = f"{what}: {message}"
+
+        return note
+
+    def cancel_analysis(self) -> None:
+        """Stop the running identification or gap diagnosis at its next progress line."""
+        if not self._pending:
+            return
+        self._cancel.set()
+        self.cancel_button.setEnabled(False)
+        self.analysis_status.setText(
+            f"cancelling the {self._pending[0][2]} (it stops at its next stage)…")
+
+    def shutdown(self) -> None:
+        """The window closes: the running analysis stops at its next progress line, the
+        queued ones never start (the worker thread is not waited for)."""
+        self._cancel.set()
+        for future, *_ in self._pending:
+            future.cancel()
+        self._pending.clear()
 
     def show_gap(self, result: Any) -> None:
         """Residual map, verdict and candidate effects ranked by shrink (design 4.4)."""
@@ -772,6 +845,7 @@ class ReplayView(QtWidgets.QWidget):
         for r, values in enumerate(rows):
             for c, text in enumerate(values):
                 item = QtWidgets.QTableWidgetItem(text)
+                item.setToolTip(text)  # the evidence is cut at two lines a row
                 if values[1] != "named":  # not the verdict: greyed, its shrink in ( )
                     item.setForeground(QtCore.Qt.GlobalColor.gray)
                 self.candidate_table.setItem(r, c, item)
@@ -888,15 +962,20 @@ class ReplayView(QtWidgets.QWidget):
 
     # ------------------------------------------------------------------ worker plumbing
     def submit(self, work: Callable[[], Any], done: Callable[[Any], None], what: str,
-               button: QtWidgets.QPushButton | None = None) -> Future:
+               button: QtWidgets.QPushButton | None = None,
+               cancellable: bool = False) -> Future:
         """Run ``work`` off the UI thread; ``done(result)`` runs on the UI thread.
         ``button`` (the one that started it) is disabled until the job ends, so that a
-        second click does not queue the same minute-long job again."""
+        second click does not queue the same minute-long job again. ``cancellable``: its
+        progress callback (:meth:`_progress_for`) honours *Cancel analysis*."""
         self._progress_note = ""
         future = self._executor.submit(work)
         self._pending.append((future, done, what, button, self.path))
         if button is not None:
             button.setEnabled(False)
+        if cancellable:
+            self.cancel_button.setVisible(True)
+            self.cancel_button.setEnabled(not self._cancel.is_set())
         self.file_label.setToolTip(f"{what} running…")
         self.analysis_status.setText(f"{what} running…")
         return future
@@ -911,6 +990,9 @@ class ReplayView(QtWidgets.QWidget):
             self._pending.remove(item)
             if button is not None:
                 button.setEnabled(True)
+            if not self._pending:  # a Cancel pressed now is for nothing that runs
+                self._cancel.clear()
+                self.cancel_button.setVisible(False)
             self.analysis_status.setText("" if self._pending else f"{what} done")
             if path != self.path:  # another file was opened meanwhile: not its result
                 self.analysis_status.setText(
@@ -919,6 +1001,9 @@ class ReplayView(QtWidgets.QWidget):
                 continue
             try:
                 result = future.result()
+            except AnalysisCancelled:
+                self.analysis_status.setText(f"{what} cancelled")
+                continue
             except Exception as exc:
                 self.analysis_status.setText(f"{what} failed")
                 try:

@@ -5,7 +5,7 @@ from __future__ import annotations
 from pathlib import Path
 
 import pytest
-from PySide6 import QtWidgets
+from PySide6 import QtCore, QtWidgets
 
 from pelvislab.app.gui_main import subject_id_problem
 
@@ -389,3 +389,202 @@ def test_replay_names_a_point_whose_bone_nothing_gives(operator_window, tmp_path
                 ds.attrs["output_bone"] = "sacrum"
     assert window.open_replay(path) is True
     assert "bone unknown" not in window.replay.file_label.text()
+
+
+def _fake_control(window):
+    """A control whose events the test puts (no runner thread: refresh() draws them)."""
+    import queue
+    import threading
+    from types import SimpleNamespace
+
+    window.control = SimpleNamespace(
+        finished=threading.Event(), events=queue.Queue(), stop=lambda *a: None,
+        runner=SimpleNamespace(unsafe=(), aborted=False, gates={}, confirm=lambda: None))
+    return window.control
+
+
+def test_the_next_setups_prompt_does_not_show_the_last_setups_step(operator_window):
+    # GUI review, session 43: the last step of a setup and the next setup's start reach the
+    # window in one refresh (nothing waits between them); the step was drawn after the
+    # panels were cleared for the new setup, so at its prompt the displacement trace and
+    # the quality rows of the previous landmarks stood under the new landmarks' names
+    import numpy as np
+
+    from pelvislab.acquisition import runner as r
+    from pelvislab.acquisition.protocol import PlannedStep, parse_protocol
+    from pelvislab.tests.test_session_format import POINTS, TEXT, make_step
+
+    protocol = parse_protocol(TEXT, "t.toml", None, POINTS)
+    window = operator_window()
+    control = _fake_control(window)
+    planned = PlannedStep(2, 0, "s1", 280.0, 400, 0.05)
+    data = make_step(protocol, 0, 280.0, np.random.default_rng(0))
+    for event in (r.SetupStarted(0.0, 0, "s1", "a", {1: "a", 2: "b"}, 2),
+                  r.StepFinished(1.0, planned, data, 0.5), r.SetupFinished(1.1, 0, "s1"),
+                  r.SetupStarted(1.2, 1, "s2", "c", {1: "b"}, 2),
+                  r.OperatorPrompt(1.3, 1, "s2", "place ch1 -> b", False)):
+        control.events.put(event)
+    try:
+        window.refresh()
+        assert window.confirm_button.isVisible()
+        x, _ = window.displacement._curves[0].getData()
+        assert x is None or len(x) == 0  # not setup s1's trace under "ch1 → b"
+        assert window.quality.rowCount() == 0  # not s1's "a" and "b" rows
+        assert window._frf_lines  # its FRF lines are kept (they build up over the setups)
+    finally:
+        control.finished.set()  # closing the window does not wait for a run
+
+
+def test_the_message_log_shows_its_newest_line_after_a_prompt(operator_window, qtbot):
+    # GUI review, session 43: a prompt hides the bench list (the log grows), confirming it
+    # shows it again (the log shrinks): the log then stayed at its first lines and every
+    # later one ("STOP pressed: outputs off", a QUALITY or FAULT line, "run aborted") was
+    # appended out of sight
+    window = operator_window()
+    window.resize(1366, 768)
+    for k in range(3):
+        window._say(f"line {k}: " + "word " * 12)
+    window.bench_box.setVisible(False)  # a prompt
+    qtbot.wait(20)
+    window._say("PROMPT: place the transducers")
+    window.bench_box.setVisible(True)  # confirmed
+    qtbot.wait(20)
+    window._say("STOP pressed: outputs off")
+    bar = window.message_log.verticalScrollBar()
+    qtbot.waitUntil(lambda: bar.maximum() > 0)
+    assert bar.value() == bar.maximum()
+
+
+RIVAL_NOTE = ("another echo at sample 354 (0.39 us later) is 4.1 dB below the gated one, "
+              "inside the gate: its overlap biases the tracked delay; look at the A-scan and "
+              "set the gate on the bone echo")
+
+
+def _live_echoes(channels, notes=(RIVAL_NOTE,)):
+    """An AimingEchoes event: per channel a plain echo with an automatic gate and notes."""
+    import numpy as np
+
+    from pelvislab.acquisition import runner as r
+
+    time_s = 10e-6 + np.arange(500) / 500e6
+    return r.AimingEchoes(0.5, 0, tuple(
+        r.AimedEcho(ch, f"p{ch}", time_s, np.sin(np.arange(500) / 5.0) * 0.2, (100, 400),
+                    "auto", notes, 500e6, 10e-6, 354) for ch in channels))
+
+
+def _side_text_fits(window):
+    """Every visible word-wrapped text of the run box has the height its text needs."""
+    for label in (window.state_banner, window.prompt_label, window.aim_label):
+        if label.isVisible():
+            assert label.height() >= label.heightForWidth(label.width()), label.text()[:40]
+    for button in (window.start_button, window.pause_button, window.stop_button):
+        assert button.height() >= button.minimumSizeHint().height(), button.text()
+
+
+@pytest.mark.parametrize("where", ["prompt", "pause"])
+def test_live_echoes_with_notes_fit_a_768_px_screen(operator_window, qtbot, where):
+    # GUI review, session 43: at 1366 x 768 the window grew to 838 px at a prompt whose
+    # live echoes carry a rival-echo note (docs/img/gui-aiming.png is 838 px high) and to
+    # 873 px with live echoes in a pause (the bench list stayed): its bottom left the
+    # screen, and in the pause the banner, STOP and the notes were cut
+    from pelvislab.acquisition import runner as r
+
+    window = operator_window()
+    window.resize(1366, 768)
+    control = _fake_control(window)
+    control.runner.live_echoes_in_pause = lambda on: None
+    try:
+        control.events.put(r.SetupStarted(0.0, 0, "a", "p1", {1: "p1", 2: "p2"}, 1))
+        if where == "prompt":
+            control.events.put(r.OperatorPrompt(0.1, 0, "a", "Setup 'a': excitation at "
+                               "SIAS_R_x; place the transducers: ch1 -> p1, ch2 -> p2.",
+                               False))
+        else:
+            control.events.put(r.Paused(0.1, "pause"))
+        window.refresh()
+        if where == "pause":
+            window.live_button.setChecked(True)
+            assert window.state_banner.text() == "PAUSED — drive off, live echoes"
+        control.events.put(_live_echoes((1, 2)))
+        window.refresh()
+        assert window.aim_label.isVisible() and RIVAL_NOTE in window.aim_label.text()
+        qtbot.wait(50)
+        assert window.minimumSizeHint().height() <= 768
+        assert window.height() <= 768
+        _side_text_fits(window)
+        assert window.stop_button.isVisible()
+        # the set-up and the bench come back once the live echoes end
+        if where == "prompt":
+            window.confirm_prompt()
+        else:
+            window.live_button.setChecked(False)
+        assert window.bench_box.isVisible() and window.setup_box.isVisible()
+        assert not window.aim_label.isVisible()
+        # not grown on the way: the notes went before the set-up and the bench came back
+        # (a window grown past the screen does not shrink back)
+        assert window.height() <= 768
+    finally:
+        control.finished.set()
+
+
+def test_a_long_analysis_can_be_cancelled_and_closing_does_not_wait_for_it(operator_window,
+                                                                          qtbot):
+    # GUI review, session 43: an identification or a gap diagnosis (seconds to a minute)
+    # could not be stopped, and a window closed during one left the process running,
+    # windowless, until it ended (17 s on the demo session; the executor's thread is
+    # waited for at exit)
+    import threading
+    import time
+
+    window = operator_window()
+    replay = window.replay
+    window.tabs.setCurrentWidget(replay)
+    note = replay._progress_for("gap diagnosis")
+    stages = []
+
+    def work():  # an analysis' stages, each ending with a progress line
+        for k in range(200):
+            time.sleep(0.02)
+            note(f"stage {k}")
+            stages.append(k)
+        return "never shown"
+
+    replay.submit(work, lambda result: pytest.fail("a cancelled result was shown"),
+                  "gap diagnosis", replay.gap_button, cancellable=True)
+    assert replay.cancel_button.isVisible() and not replay.gap_button.isEnabled()
+    qtbot.waitUntil(lambda: "gap diagnosis: stage" in replay.analysis_status.text())
+    qtbot.mouseClick(replay.cancel_button, QtCore.Qt.MouseButton.LeftButton)
+    assert "cancelling the gap diagnosis" in replay.analysis_status.text()
+    qtbot.waitUntil(lambda: replay.analysis_status.text() == "gap diagnosis cancelled",
+                    timeout=2000)
+    assert len(stages) < 200 and replay.gap_button.isEnabled()
+    assert not replay.cancel_button.isVisible()
+    # the next analysis runs (the cancel was for the one before)
+    replay.submit(lambda: "ok", lambda result: None, "gap diagnosis", replay.gap_button,
+                  cancellable=True)
+    qtbot.waitUntil(lambda: replay.analysis_status.text() == "gap diagnosis done")
+    # the process does not wait for the worker at exit: it runs in a daemon thread
+    workers = [t for t in threading.enumerate() if t.name == "pelvislab-replay"]
+    assert workers and all(t.daemon for t in workers)
+    # closing the window stops the analysis under way
+    replay.submit(work, lambda result: pytest.fail("shown after the window closed"),
+                  "gap diagnosis", replay.gap_button, cancellable=True)
+    qtbot.waitUntil(lambda: len(stages) > 0)
+    window.close()
+    assert replay._cancel.is_set() and not replay.busy()
+
+
+def test_the_gap_candidates_cut_evidence_reads_whole_in_a_tooltip(operator_window):
+    # GUI review, session 43: at 1366 x 768 the evidence column ends in "... with 3
+    # extra ..." (two lines a row), and nothing showed the rest
+    from types import SimpleNamespace
+
+    evidence = ("tissue at output SIPS_R_x (frequency_hz=5e+03, damping_ratio=0.02, "
+                "mass_kg=0.0001); held-out chi2 146.3 -> 145.8 over 152 lines with 3 extra "
+                "parameter(s)")
+    report = {"verdict": "none", "gap_before": 0.0, "where": {}, "candidates": [
+        {"effect": "soft_tissue", "shrink": None, "gap_after": 0.0, "evidence": evidence,
+         "within_tolerance": "gain 1.005 ..."}]}
+    replay = operator_window().replay
+    replay.show_gap(SimpleNamespace(to_json=lambda: report, residual_map=None))
+    assert replay.candidate_table.item(0, 4).toolTip() == evidence
