@@ -292,6 +292,23 @@ def test_an_frf_on_part_of_the_band_is_left_out_of_peak_picking() -> None:
                 assert mac(shapes[:, [j]], data.shapes[:, [k]])[0, 0] >= 0.98, (o, target)
 
 
+def _fit_a_drawn_chain(seed: int, damping: float, step_hz: float = 1.0,
+                       subject_damping_ratio: float = 1.0) -> tuple:
+    """A 3-mass chain whose stiffnesses are drawn x e^U(-0.2, 0.2) (seed + 100) and whose
+    damping is ``subject_damping_ratio`` x the model's, its noise-free FRFs on
+    ``step_hz`` lines from 1 to 80 Hz peak-picked and fitted by modal updating: (the modes,
+    the fit, the z of each stiffness, its relative error)."""
+    p = chain_problem(3, seed=seed, damping=damping)
+    k = [p.names.index(n) for n in ("k0", "k1", "k2")]
+    truth = p.nominal.copy()
+    truth[k] *= np.exp(np.random.default_rng(seed + 100).uniform(-0.2, 0.2, 3))
+    truth[-1] *= subject_damping_ratio
+    f = np.arange(1.0, 80.0, step_hz)
+    data = modes_from_frf(f, synth(p, truth, f))
+    res = identify_modal(p, data, free=["k0", "k1", "k2"], n_rigid=0)
+    return data, res, (res.values - truth[k]) / res.std, res.values / truth[k] - 1
+
+
 @pytest.mark.parametrize(("damping", "seed"), [(20.0, 4), (50.0, 0), (20.0, 3), (20.0, 5)])
 def test_peak_picked_std_cover_the_picking_bias(damping: float, seed: int) -> None:
     """Shapes read off damped peaks carry the neighbouring modes' response: the fit
@@ -299,16 +316,9 @@ def test_peak_picked_std_cover_the_picking_bias(damping: float, seed: int) -> No
     15-23 % off at |z| 4-105 (session 41's note; these four chains on 1 Hz lines). Each
     picked datum now has a standard uncertainty (the frequency its tolerance, the shape
     the bias picking shows on the model's own FRFs) and the std are absolute."""
-    p = chain_problem(3, seed=seed, damping=damping)
-    k = [p.names.index(n) for n in ("k0", "k1", "k2")]
-    truth = p.nominal.copy()
-    truth[k] *= np.exp(np.random.default_rng(seed + 100).uniform(-0.2, 0.2, 3))
-    f = np.arange(1.0, 80.0, 1.0)
-    data = modes_from_frf(f, synth(p, truth, f))
-    res = identify_modal(p, data, free=["k0", "k1", "k2"], n_rigid=0)
-    z = (res.values - truth[k]) / res.std
+    _, res, z, error = _fit_a_drawn_chain(seed, damping)
     assert res.converged, res.message
-    assert np.all(np.abs(z) < 3), (res.values / truth[k] - 1, z)
+    assert np.all(np.abs(z) < 3), (error, z)
     # the weights are reported per pair: the frequency's 2-sigma interval, the shape's std
     for pair in res.extra["mode_pairs"]:
         lo, hi = pair["frequency_range_hz"]
@@ -322,16 +332,9 @@ def test_peak_picked_frequencies_carry_the_picking_bias(step_hz: float) -> None:
     the grid's tolerance alone (+-0.25-0.5 Hz), the fit said converged with k2 12-17 % off
     at z -4.3 / -5.1 (session 43). The frequency's std now includes the bias picking
     shows on the model's own FRFs, and the pair's interval is its 2-sigma interval."""
-    p = chain_problem(3, seed=1, damping=50.0)
-    k = [p.names.index(n) for n in ("k0", "k1", "k2")]
-    truth = p.nominal.copy()
-    truth[k] *= np.exp(np.random.default_rng(101).uniform(-0.2, 0.2, 3))
-    f = np.arange(1.0, 80.0, step_hz)
-    data = modes_from_frf(f, synth(p, truth, f))
-    res = identify_modal(p, data, free=["k0", "k1", "k2"], n_rigid=0)
-    z = (res.values - truth[k]) / res.std
+    data, res, z, error = _fit_a_drawn_chain(1, 50.0, step_hz)
     assert res.converged, res.message
-    assert np.all(np.abs(z) < 3), (res.values / truth[k] - 1, z)
+    assert np.all(np.abs(z) < 3), (error, z)
     second = res.extra["mode_pairs"][1]
     grid_std_hz = np.diff(data.frequency_range_hz()[1])[0] / 4
     assert second["frequency_std_hz"] > 2 * grid_std_hz  # the bias, not the grid alone
@@ -362,17 +365,9 @@ def test_picked_std_hold_for_a_subject_damped_more_than_the_model(seed: int) -> 
     """Chains damped 30x the model (1 N s/m): the bias read on the model's light damping was
     near zero and the fit said converged at |z| 3.5-4.8 (session 43; 39 % of 36 such fits
     beyond 3). Read with the data's flatness, |z| stays under 3."""
-    p = chain_problem(3, seed=seed, damping=1.0)
-    k = [p.names.index(n) for n in ("k0", "k1", "k2")]
-    truth = p.nominal.copy()
-    truth[k] *= np.exp(np.random.default_rng(seed + 100).uniform(-0.2, 0.2, 3))
-    truth[-1] *= 30
-    f = np.arange(1.0, 80.0, 1.0)
-    data = modes_from_frf(f, synth(p, truth, f))
-    res = identify_modal(p, data, free=["k0", "k1", "k2"], n_rigid=0)
-    z = (res.values - truth[k]) / res.std
+    _, res, z, error = _fit_a_drawn_chain(seed, 1.0, subject_damping_ratio=30.0)
     assert res.converged, res.message
-    assert np.all(np.abs(z) < 3), (res.values / truth[k] - 1, z)
+    assert np.all(np.abs(z) < 3), (error, z)
 
 
 def test_picked_modes_keep_their_peak_lines() -> None:
