@@ -24,8 +24,9 @@ picking: between the lines next to the peak), and the modes must determine every
 (no unresolved direction, no std above the value). The message says which fails.
 
 Peak-picked modes (``ModalData.picking``) are weighted by a standard uncertainty per datum
-(the frequency's tolerance; the shape's picking bias on the model's own FRFs at the fit,
-:func:`_picking_bias`) and their std are absolute; modes given otherwise are fitted
+(the frequency's tolerance and picking bias, the shape's picking bias: both read on the
+model's own FRFs at the fit, damped at least as the data's peaks show, :func:`_picking_bias`)
+and their std are absolute; modes given otherwise are fitted
 unweighted with std scaled by the misfit.
 """
 
@@ -621,7 +622,7 @@ def _picking_bias(problem: FrfProblem, state: tuple, picking: PeakPicking, O: np
     return np.maximum(std, SHAPE_STD_FLOOR), bias_hz
 
 
-def _model_peak_hz(problem: FrfProblem, mats: object, frequency_hz: np.ndarray,
+def _model_peak_hz(problem: FrfProblem, mats: SystemMatrices, frequency_hz: np.ndarray,
                    entries: np.ndarray, near_hz: float) -> float | None:
     """The local maximum of the model's mean log|H| over ``entries`` ((n_out, n_in) bool)
     on the lines ``frequency_hz`` nearest ``near_hz``, refined by a parabola through it and
@@ -643,7 +644,6 @@ def _model_peak_hz(problem: FrfProblem, mats: object, frequency_hz: np.ndarray,
     curvature = y0 - 2 * y1 + y2
     offset = 0.5 * (y0 - y2) / curvature if curvature < 0 else 0.0
     return float(frequency_hz[j] + offset * (frequency_hz[j + 1] - frequency_hz[j]))
-
 
 
 def _curvature(frequency_hz: np.ndarray, y: np.ndarray) -> float:
