@@ -147,3 +147,18 @@ def test_an_frf_only_file_and_a_foreign_file(tmp_path: Path, capsys) -> None:
     assert "not a pelvislab session" in err and "Traceback" not in err
     assert main(["session", "info", str(tmp_path)]) == 1
     assert "is a folder" in capsys.readouterr().err
+
+
+def test_no_resume_is_suggested_for_a_session_whose_plan_is_unknown(tmp_path: Path,
+                                                                    capsys) -> None:
+    # review, session 43: a session whose stored protocol does not parse (written by
+    # another program from design 4.2, /protocol "a record, not an input") was told
+    # "to complete it: pelvislab run PROTOCOL.toml --out S.h5 --resume", which refuses it
+    # (its /protocol must be the protocol file's text, and one that parses)
+    source = _run(tmp_path, abort_in_setup=1)
+    with h5py.File(source, "r+") as handle:
+        handle["protocol"].attrs["toml"] = "a record, not an input"
+    assert main(["session", "info", str(source)]) == 0
+    text = capsys.readouterr().out
+    assert "the plan is unknown" in text and "steps: 3 acquired\n" in text
+    assert "to complete it" not in text

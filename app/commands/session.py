@@ -54,8 +54,11 @@ def info_text(info: dict[str, Any]) -> str:
         if info["reprocessed_from"]:
             lines.append(f"reprocessed from {info['reprocessed_from']}")
         lines.append(_status_line(info))
-        if info["status"] != "completed" and info["steps"]["planned"] != \
-                info["steps"]["acquired"]:
+        # only against a known plan: a stored protocol that does not parse cannot be
+        # resumed (run --resume needs a protocol file holding that very text)
+        planned = info["steps"]["planned"]
+        if info["status"] != "completed" and planned is not None and \
+                info["steps"]["acquired"] < planned:
             if info["reprocessed_from"]:
                 lines.append(f"  to complete it: resume its source session "
                              f"{info['reprocessed_from']} and reprocess that (a reprocessed "
