@@ -162,3 +162,30 @@ def test_no_resume_is_suggested_for_a_session_whose_plan_is_unknown(tmp_path: Pa
     text = capsys.readouterr().out
     assert "the plan is unknown" in text and "steps: 3 acquired\n" in text
     assert "to complete it" not in text
+
+
+def test_the_resume_advice_names_a_protocol_file_only_if_it_holds_the_sessions_text(
+        tmp_path: Path, capsys, monkeypatch: pytest.MonkeyPatch) -> None:
+    # review, session 43: the advice named /protocol's `source` as recorded: a protocol
+    # edited since ("its /protocol differs from p.toml") or a relative path given at the
+    # run, read from another folder (not found), and `run --resume` refused it
+    session = _run(tmp_path, abort_in_setup=1)
+    assert session_info(session)["protocol_source_state"] == "matches"
+    with h5py.File(session, "r+") as handle:
+        handle["protocol"].attrs["source"] = "p.toml"  # as `run p.toml` in tmp_path records
+    elsewhere = tmp_path / "elsewhere"
+    elsewhere.mkdir()
+    monkeypatch.chdir(elsewhere)
+    assert session_info(session)["protocol_source_state"] == "missing"
+    assert main(["session", "info", str(session)]) == 0
+    text = capsys.readouterr().out
+    assert "pelvislab run p.toml --out" not in text
+    assert "holding the session's /protocol text exactly (p.toml is not found from here)" \
+        in text
+    monkeypatch.chdir(tmp_path)
+    assert main(["session", "info", str(session)]) == 0  # from the run's folder: named
+    assert "to complete it: pelvislab run p.toml --out" in capsys.readouterr().out
+    (tmp_path / "p.toml").write_text(PROTOCOL + "\n# edited after the run\n")
+    assert session_info(session)["protocol_source_state"] == "differs"
+    assert main(["session", "info", str(session)]) == 0
+    assert "(p.toml differs from it: edited since the run?)" in capsys.readouterr().out

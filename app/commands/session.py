@@ -63,10 +63,18 @@ def info_text(info: dict[str, Any]) -> str:
                 lines.append(f"  to complete it: resume its source session "
                              f"{info['reprocessed_from']} and reprocess that (a reprocessed "
                              "file is not resumed)")
+            elif info["protocol_source_state"] == "matches":
+                lines.append(f"  to complete it: pelvislab run {info['protocol_source']} "
+                             f"--out {info['file']} --resume")
             else:
-                lines.append(f"  to complete it: pelvislab run "
-                             f"{info['protocol_source'] or 'PROTOCOL.toml'} --out "
-                             f"{info['file']} --resume")
+                # resume refuses a protocol file whose text is not the stored one
+                source = info["protocol_source"]
+                why = {"missing": f"{source} is not found from here",
+                       "differs": f"{source} differs from it: edited since the run?"}.get(
+                    info["protocol_source_state"], "no protocol file is recorded")
+                lines.append(f"  to complete it: pelvislab run PROTOCOL.toml --out "
+                             f"{info['file']} --resume, PROTOCOL.toml holding the "
+                             f"session's /protocol text exactly ({why})")
         for run in info["runs"]:
             bench = {True: "simulated bench", False: "real bench", None: "bench ?"}[
                 run["simulated"]]
