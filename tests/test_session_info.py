@@ -189,3 +189,18 @@ def test_the_resume_advice_names_a_protocol_file_only_if_it_holds_the_sessions_t
     assert session_info(session)["protocol_source_state"] == "differs"
     assert main(["session", "info", str(session)]) == 0
     assert "(p.toml differs from it: edited since the run?)" in capsys.readouterr().out
+
+
+def test_an_frf_file_without_h_std_is_said_what_the_analyses_do_without_it(
+        tmp_path: Path, capsys) -> None:
+    # review, session 43: "H_std absent (analyses estimate the noise)", what export-uff's
+    # note said until this session's fix: ema estimates none, it weights each FRF by 1/RMS
+    imported = tmp_path / "imported.h5"
+    shutil.copy(DATA / "chain_fk_seed3.h5", imported)
+    with h5py.File(imported, "r+") as handle:
+        del handle["frf/H_std"]
+    assert main(["session", "info", str(imported)]) == 0
+    text = capsys.readouterr().out
+    assert "analyses estimate the noise" not in text
+    assert "H_std absent (identify and gap diagnose estimate the noise; ema weights each " \
+        "FRF by 1/RMS)" in text

@@ -121,7 +121,7 @@ def info_text(info: dict[str, Any]) -> str:
         lines.append(f"/frf: {frf['lines']} lines {span}{step} ({frf['lines_with_data']} "
                      f"with data); {len(frf['outputs'])} outputs x {len(frf['inputs'])} "
                      f"inputs, {frf['pairs_measured']} pairs measured{planned}; H_std "
-                     + ("given" if frf["h_std"] else "absent (analyses estimate the noise)"))
+                     + ("given" if frf["h_std"] else NO_H_STD))
         bones = {p["name"]: p["bone"] or "no modelled bone" for p in frf["outputs"]}
         lines.append("  outputs: " + ", ".join(f"{n} ({b})" for n, b in bones.items()))
         bones = {p["name"]: p["bone"] or "no modelled bone" for p in frf["inputs"]}
@@ -142,6 +142,10 @@ def info_text(info: dict[str, Any]) -> str:
     lines.extend(f"note: {n}" for n in info["notes"])
     return "\n".join(lines)
 
+
+#: What the analyses do without H_std (as export-uff's note says).
+NO_H_STD = ("absent (identify and gap diagnose estimate the noise; ema weights each FRF by "
+            "1/RMS)")
 
 #: What a "running" status means in a file that opens: no process holds it for writing.
 KILLED = "no end recorded: the run's process ended without closing the file (killed?)"
