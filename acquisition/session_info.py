@@ -198,6 +198,8 @@ def _session(reader: SessionReader, path: Path) -> dict[str, Any]:
         "subject_position": _text(attrs.get("subject_position", "")) or None,
         "reprocessed_from": _text(source) if source is not None else None,
         "protocol_source": _text(h5["protocol"].attrs.get("source", "")) or None,
+        "protocol_source_state": _source_state(
+            _text(h5["protocol"].attrs.get("source", "")), reader.protocol_text),
         "status": status, "reason": reason,
         "outputs_confirmed_off": reader.outputs_confirmed_off,
         "runs": runs,
@@ -226,6 +228,21 @@ def _session(reader: SessionReader, path: Path) -> dict[str, Any]:
                 "latest_flagged": flagged[-LOG_LINES_KEPT:]},
         "notes": notes,
     }
+
+
+def _source_state(source: str, text: str) -> str | None:
+    """Whether the protocol file the session was run with (``/protocol`` ``source``, as
+    given to ``run``: relative to the folder it was run in) holds the stored protocol text
+    now, read from the current folder: ``matches``, ``differs``, ``missing``; None when no
+    source is recorded. ``run --resume`` needs a file holding that very text."""
+    if not source:
+        return None
+    try:
+        return "matches" if Path(source).read_text(encoding="utf-8") == text else "differs"
+    except UnicodeDecodeError:
+        return "differs"
+    except OSError:
+        return "missing"
 
 
 def _quality_ok(step: Any) -> bool:

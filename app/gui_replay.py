@@ -217,9 +217,11 @@ class ReplayView(QtWidgets.QWidget):
         self.path: Path | None = None
         self.steps: list[Any] = []
         self._executor = _Worker()
-        # set by Cancel (or closing the window): the running analysis raises
-        # AnalysisCancelled at its next progress line
+        # set by Cancel (or closing the window): the analyses whose progress callback was
+        # made before it raise AnalysisCancelled at their next progress line; Cancel puts
+        # a fresh one here for those started after it
         self._cancel = threading.Event()
+        self._cancellable: set[Future] = set()  # pending jobs that Cancel stops
         # (job, done, what, button, the file it works on)
         self._pending: list[tuple[Future, Callable[[Any], None], str,
                                   QtWidgets.QPushButton | None, Path | None]] = []
@@ -764,21 +766,31 @@ class ReplayView(QtWidgets.QWidget):
         """The progress callback of an analysis (worker thread): its line shown under the
         buttons, and the point where Cancel stops it."""
 
+        # this analysis' own flag: a Cancel pressed for an earlier one stopped an analysis
+        # started after it, at its first progress line (review, session 43)
+        cancel = self._cancel
+
         def note(message: str) -> None:
-            if self._cancel.is_set():
+            if cancel.is_set():
                 raise AnalysisCancelled(what)
             self._progress_note = f"{what}: {message}"
 
         return note
 
     def cancel_analysis(self) -> None:
-        """Stop the running identification or gap diagnosis at its next progress line."""
-        if not self._pending:
+        """Stop the identification or gap diagnosis under way (and one queued behind it) at
+        its next progress line; an analysis started after this runs."""
+        running = [what for future, _, what, *_ in self._pending
+                   if future in self._cancellable]
+        if not running:
             return
         self._cancel.set()
+        self._cancel = threading.Event()  # for the analyses started from now on
+        self._cancellable.clear()
         self.cancel_button.setEnabled(False)
         self.analysis_status.setText(
-            f"cancelling the {self._pending[0][2]} (it stops at its next stage)…")
+            f"cancelling the {' and the '.join(running)} "
+            f"({'it stops' if len(running) == 1 else 'each stops'} at its next stage)…")
 
     def shutdown(self) -> None:
         """The window closes: the running analysis stops at its next progress line, the
@@ -974,8 +986,9 @@ class ReplayView(QtWidgets.QWidget):
         if button is not None:
             button.setEnabled(False)
         if cancellable:
+            self._cancellable.add(future)
             self.cancel_button.setVisible(True)
-            self.cancel_button.setEnabled(not self._cancel.is_set())
+            self.cancel_button.setEnabled(True)
         self.file_label.setToolTip(f"{what} running…")
         self.analysis_status.setText(f"{what} running…")
         return future
@@ -990,8 +1003,8 @@ class ReplayView(QtWidgets.QWidget):
             self._pending.remove(item)
             if button is not None:
                 button.setEnabled(True)
-            if not self._pending:  # a Cancel pressed now is for nothing that runs
-                self._cancel.clear()
+            self._cancellable.discard(future)
+            if not self._cancellable:  # a Cancel pressed now is for nothing that runs
                 self.cancel_button.setVisible(False)
             self.analysis_status.setText("" if self._pending else f"{what} done")
             if path != self.path:  # another file was opened meanwhile: not its result

@@ -574,6 +574,42 @@ def test_a_long_analysis_can_be_cancelled_and_closing_does_not_wait_for_it(opera
     assert replay._cancel.is_set() and not replay.busy()
 
 
+def test_an_analysis_started_after_a_cancel_is_not_cancelled_by_it(operator_window, qtbot):
+    # review of session 43's Cancel: one flag for every job, cleared only once no job
+    # was pending. An identification cancelled while it computed (its next progress line
+    # seconds away) and a gap diagnosis started meanwhile: the diagnosis raised at its
+    # first progress line and read "gap diagnosis cancelled", never asked to be
+    import threading
+
+    window = operator_window()
+    replay = window.replay
+    release = threading.Event()
+    shown = []
+    first = replay._progress_for("identification")
+
+    def identification():  # between two progress lines when Cancel is pressed
+        first("start 1")
+        release.wait(2.0)
+        first("start 2")
+        return "cancelled before this"
+
+    def diagnosis():
+        second("stage 1")
+        return "diagnosed"
+
+    replay.submit(identification, lambda result: pytest.fail("a cancelled result was shown"),
+                  "identification", replay.identify_button, cancellable=True)
+    qtbot.waitUntil(lambda: "identification: start 1" in replay.analysis_status.text())
+    qtbot.mouseClick(replay.cancel_button, QtCore.Qt.MouseButton.LeftButton)
+    second = replay._progress_for("gap diagnosis")  # as the Diagnose button makes it
+    replay.submit(diagnosis, shown.append, "gap diagnosis", replay.gap_button,
+                  cancellable=True)
+    assert replay.cancel_button.isEnabled()  # for the diagnosis, which Cancel may stop
+    release.set()
+    qtbot.waitUntil(lambda: not replay.busy(), timeout=2000)
+    assert shown == ["diagnosed"], replay.analysis_status.text()
+
+
 def test_the_gap_candidates_cut_evidence_reads_whole_in_a_tooltip(operator_window):
     # GUI review, session 43: at 1366 x 768 the evidence column ends in "... with 3
     # extra ..." (two lines a row), and nothing showed the rest

@@ -147,3 +147,60 @@ def test_an_frf_only_file_and_a_foreign_file(tmp_path: Path, capsys) -> None:
     assert "not a pelvislab session" in err and "Traceback" not in err
     assert main(["session", "info", str(tmp_path)]) == 1
     assert "is a folder" in capsys.readouterr().err
+
+
+def test_no_resume_is_suggested_for_a_session_whose_plan_is_unknown(tmp_path: Path,
+                                                                    capsys) -> None:
+    # review, session 43: a session whose stored protocol does not parse (written by
+    # another program from design 4.2, /protocol "a record, not an input") was told
+    # "to complete it: pelvislab run PROTOCOL.toml --out S.h5 --resume", which refuses it
+    # (its /protocol must be the protocol file's text, and one that parses)
+    source = _run(tmp_path, abort_in_setup=1)
+    with h5py.File(source, "r+") as handle:
+        handle["protocol"].attrs["toml"] = "a record, not an input"
+    assert main(["session", "info", str(source)]) == 0
+    text = capsys.readouterr().out
+    assert "the plan is unknown" in text and "steps: 3 acquired\n" in text
+    assert "to complete it" not in text
+
+
+def test_the_resume_advice_names_a_protocol_file_only_if_it_holds_the_sessions_text(
+        tmp_path: Path, capsys, monkeypatch: pytest.MonkeyPatch) -> None:
+    # review, session 43: the advice named /protocol's `source` as recorded: a protocol
+    # edited since ("its /protocol differs from p.toml") or a relative path given at the
+    # run, read from another folder (not found), and `run --resume` refused it
+    session = _run(tmp_path, abort_in_setup=1)
+    assert session_info(session)["protocol_source_state"] == "matches"
+    with h5py.File(session, "r+") as handle:
+        handle["protocol"].attrs["source"] = "p.toml"  # as `run p.toml` in tmp_path records
+    elsewhere = tmp_path / "elsewhere"
+    elsewhere.mkdir()
+    monkeypatch.chdir(elsewhere)
+    assert session_info(session)["protocol_source_state"] == "missing"
+    assert main(["session", "info", str(session)]) == 0
+    text = capsys.readouterr().out
+    assert "pelvislab run p.toml --out" not in text
+    assert "holding the session's /protocol text exactly (p.toml is not found from here)" \
+        in text
+    monkeypatch.chdir(tmp_path)
+    assert main(["session", "info", str(session)]) == 0  # from the run's folder: named
+    assert "to complete it: pelvislab run p.toml --out" in capsys.readouterr().out
+    (tmp_path / "p.toml").write_text(PROTOCOL + "\n# edited after the run\n")
+    assert session_info(session)["protocol_source_state"] == "differs"
+    assert main(["session", "info", str(session)]) == 0
+    assert "(p.toml differs from it: edited since the run?)" in capsys.readouterr().out
+
+
+def test_an_frf_file_without_h_std_is_said_what_the_analyses_do_without_it(
+        tmp_path: Path, capsys) -> None:
+    # review, session 43: "H_std absent (analyses estimate the noise)", what export-uff's
+    # note said until this session's fix: ema estimates none, it weights each FRF by 1/RMS
+    imported = tmp_path / "imported.h5"
+    shutil.copy(DATA / "chain_fk_seed3.h5", imported)
+    with h5py.File(imported, "r+") as handle:
+        del handle["frf/H_std"]
+    assert main(["session", "info", str(imported)]) == 0
+    text = capsys.readouterr().out
+    assert "analyses estimate the noise" not in text
+    assert "H_std absent (identify and gap diagnose estimate the noise; ema weights each " \
+        "FRF by 1/RMS)" in text

@@ -54,16 +54,27 @@ def info_text(info: dict[str, Any]) -> str:
         if info["reprocessed_from"]:
             lines.append(f"reprocessed from {info['reprocessed_from']}")
         lines.append(_status_line(info))
-        if info["status"] != "completed" and info["steps"]["planned"] != \
-                info["steps"]["acquired"]:
+        # only against a known plan: a stored protocol that does not parse cannot be
+        # resumed (run --resume needs a protocol file holding that very text)
+        planned = info["steps"]["planned"]
+        if info["status"] != "completed" and planned is not None and \
+                info["steps"]["acquired"] < planned:
             if info["reprocessed_from"]:
                 lines.append(f"  to complete it: resume its source session "
                              f"{info['reprocessed_from']} and reprocess that (a reprocessed "
                              "file is not resumed)")
+            elif info["protocol_source_state"] == "matches":
+                lines.append(f"  to complete it: pelvislab run {info['protocol_source']} "
+                             f"--out {info['file']} --resume")
             else:
-                lines.append(f"  to complete it: pelvislab run "
-                             f"{info['protocol_source'] or 'PROTOCOL.toml'} --out "
-                             f"{info['file']} --resume")
+                # resume refuses a protocol file whose text is not the stored one
+                source = info["protocol_source"]
+                why = {"missing": f"{source} is not found from here",
+                       "differs": f"{source} differs from it: edited since the run?"}.get(
+                    info["protocol_source_state"], "no protocol file is recorded")
+                lines.append(f"  to complete it: pelvislab run PROTOCOL.toml --out "
+                             f"{info['file']} --resume, PROTOCOL.toml holding the "
+                             f"session's /protocol text exactly ({why})")
         for run in info["runs"]:
             bench = {True: "simulated bench", False: "real bench", None: "bench ?"}[
                 run["simulated"]]
@@ -110,7 +121,7 @@ def info_text(info: dict[str, Any]) -> str:
         lines.append(f"/frf: {frf['lines']} lines {span}{step} ({frf['lines_with_data']} "
                      f"with data); {len(frf['outputs'])} outputs x {len(frf['inputs'])} "
                      f"inputs, {frf['pairs_measured']} pairs measured{planned}; H_std "
-                     + ("given" if frf["h_std"] else "absent (analyses estimate the noise)"))
+                     + ("given" if frf["h_std"] else NO_H_STD))
         bones = {p["name"]: p["bone"] or "no modelled bone" for p in frf["outputs"]}
         lines.append("  outputs: " + ", ".join(f"{n} ({b})" for n, b in bones.items()))
         bones = {p["name"]: p["bone"] or "no modelled bone" for p in frf["inputs"]}
@@ -131,6 +142,10 @@ def info_text(info: dict[str, Any]) -> str:
     lines.extend(f"note: {n}" for n in info["notes"])
     return "\n".join(lines)
 
+
+#: What the analyses do without H_std (as export-uff's note says).
+NO_H_STD = ("absent (identify and gap diagnose estimate the noise; ema weights each FRF by "
+            "1/RMS)")
 
 #: What a "running" status means in a file that opens: no process holds it for writing.
 KILLED = "no end recorded: the run's process ended without closing the file (killed?)"
