@@ -204,3 +204,21 @@ def test_an_frf_file_without_h_std_is_said_what_the_analyses_do_without_it(
     assert "analyses estimate the noise" not in text
     assert "H_std absent (identify and gap diagnose estimate the noise; ema weights each " \
         "FRF by 1/RMS)" in text
+
+
+def test_damaged_and_unfinished_step_groups_are_counted_not_raised(
+        complete_session: Path, tmp_path: Path) -> None:
+    """Read from the groups' attributes alone (no displacement: 2.3 s -> 0.8 s on the demo
+    session); a group a kill cut short counts as damaged, a failed one as incomplete."""
+    hurt = tmp_path / "hurt.h5"
+    shutil.copy(complete_session, hurt)
+    with h5py.File(hurt, "r+") as handle:
+        del handle["steps/000001"].attrs["setup"]  # cut short before its attributes
+        handle["steps/000002"].attrs["status"] = "failed"
+        handle.create_group("steps/000099")  # created, nothing written
+    info = session_info(hurt)
+    steps = info["steps"]
+    assert (steps["groups"], steps["damaged"], steps["incomplete"], steps["acquired"]) == \
+        (7, 2, 1, 4)
+    assert "2 step group(s) unreadable" in " ".join(info["notes"])
+    assert info["channels"]["ch1"]["records"] == 4
