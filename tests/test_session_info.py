@@ -222,3 +222,19 @@ def test_damaged_and_unfinished_step_groups_are_counted_not_raised(
         (7, 2, 1, 4)
     assert "2 step group(s) unreadable" in " ".join(info["notes"])
     assert info["channels"]["ch1"]["records"] == 4
+
+
+def test_a_run_that_recorded_no_safe_state_is_named_beside_confirmed_ones(
+        complete_session: Path, tmp_path: Path, capsys) -> None:
+    """A killed run resumed later: the session's outputs_confirmed_off is True (the runs
+    that recorded it), which read "every run's outputs confirmed off"."""
+    resumed = tmp_path / "resumed.h5"
+    shutil.copy(complete_session, resumed)
+    with h5py.File(resumed, "r+") as handle:
+        handle.copy(handle["runs/000"], "runs/001")
+        handle["runs/000"].attrs["status"] = "running"
+        del handle["runs/000"].attrs["outputs_confirmed_off"]
+    assert main(["session", "info", str(resumed)]) == 0
+    text = capsys.readouterr().out
+    assert "every run's outputs confirmed off" not in text
+    assert "not recorded for run 0" in text

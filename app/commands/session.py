@@ -159,6 +159,12 @@ def _status_line(info: dict[str, Any]) -> str:
     said = {True: "every run's outputs confirmed off",
             False: "OUTPUTS NOT CONFIRMED OFF in a run (see the runs below)",
             None: "outputs off not recorded"}[off]
+    unrecorded = [str(r["index"]) for r in info["runs"] if r["outputs_confirmed_off"] is None]
+    if off is True and unrecorded:
+        # the reader's True counts the runs that recorded it: a killed run resumed later
+        # had read "every run's outputs confirmed off" (review, session 43)
+        said = (f"outputs confirmed off at the end of the runs that recorded it; not "
+                f"recorded for run {', '.join(unrecorded)}")
     if info["status"] == "running" and off is not False:
         said += " (a killed run may have left an output on: check the bench)"
     return f"status: {info['status']}{reason}; {said}"
