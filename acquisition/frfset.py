@@ -307,13 +307,20 @@ def read_frf_group(group: h5py.Group) -> FrfSet:
     )
 
 
-def read_frf(path: str | Path, name: str = "frf") -> FrfSet:
-    """Read the FRF set of a session or FRF-only file; clear errors for anything else."""
+def existing_file(path: str | Path) -> Path:
+    """``path`` as a Path when it names an existing file; IsADirectoryError for a folder,
+    FileNotFoundError otherwise (one line each)."""
     path = Path(path)
     if path.is_dir():
         raise IsADirectoryError(f"{path} is a folder, not a session or FRF file")
     if not path.is_file():
         raise FileNotFoundError(f"no such file: {path}")
+    return path
+
+
+def read_frf(path: str | Path, name: str = "frf") -> FrfSet:
+    """Read the FRF set of a session or FRF-only file; clear errors for anything else."""
+    path = existing_file(path)
     try:
         handle = h5py.File(path, "r")
     except OSError as exc:

@@ -17,7 +17,7 @@ from typing import Any
 import h5py
 import numpy as np
 
-from pelvislab.acquisition.frfset import FRF_SCHEMA, FrfSet, read_frf
+from pelvislab.acquisition.frfset import FRF_SCHEMA, FrfSet, existing_file, read_frf
 from pelvislab.acquisition.session import (
     SESSION_SCHEMA,
     STATUS_COMPLETE,
@@ -86,11 +86,7 @@ def session_info(path: str | Path) -> dict[str, Any]:
     Raises the readers' one-line errors (FileNotFoundError, SessionFileError,
     FrfFileError) for anything else. Damaged or unfinished steps are counted, not
     raised."""
-    path = Path(path)
-    if path.is_dir():
-        raise IsADirectoryError(f"{path} is a folder, not a session or FRF file")
-    if not path.is_file():
-        raise FileNotFoundError(f"no such file: {path}")
+    path = existing_file(path)
     try:
         with h5py.File(path, "r") as handle:
             schema = _text(handle.attrs.get("schema", ""))
