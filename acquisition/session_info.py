@@ -160,10 +160,15 @@ def _session(reader: SessionReader, path: Path) -> dict[str, Any]:
                          if _number(c.quality.get("lost_fraction")) is not None])
         snr = np.array([_number(c.quality.get("snr_db_median")) for c in records
                         if _number(c.quality.get("snr_db_median")) is not None])
-        gates = Counter(_text(c.quality.get("gate_source", "auto")) for c in records)
+        # a record without tracking quality (a file written from design 4.2 alone) has
+        # none to count: its defaults ("ok", gate "auto") read as data (review, session 43)
+        gates = Counter(_text(c.quality.get("gate_source", "auto")) if c.quality
+                        else "not recorded" for c in records)
         channels[name] = {
             "records": len(records),
-            "quality_not_ok": sum(1 for c in records if not bool(c.quality.get("ok", True))),
+            "quality_not_recorded": sum(1 for c in records if not c.quality),
+            "quality_not_ok": sum(1 for c in records
+                                  if "ok" in c.quality and not bool(c.quality["ok"])),
             "lost_fraction_median": float(np.median(lost)) if lost.size else None,
             "lost_fraction_max": float(lost.max()) if lost.size else None,
             "snr_db_median": float(np.median(snr)) if snr.size else None,

@@ -238,3 +238,19 @@ def test_a_run_that_recorded_no_safe_state_is_named_beside_confirmed_ones(
     text = capsys.readouterr().out
     assert "every run's outputs confirmed off" not in text
     assert "not recorded for run 0" in text
+
+
+def test_a_design_only_session_says_its_tracking_quality_is_not_recorded(
+        complete_session: Path, tmp_path: Path, capsys) -> None:
+    """A session written from design 4.2 alone has no tracking quality: its records read
+    "0 not ok; gates: auto N", the defaults taken for data (review, session 43)."""
+    from pelvislab.tests.test_session_design_only import _design_only_copy
+
+    foreign = tmp_path / "design.h5"
+    _design_only_copy(complete_session, foreign)
+    info = session_info(foreign)
+    ch1 = info["channels"]["ch1"]
+    assert (ch1["records"], ch1["quality_not_recorded"], ch1["quality_not_ok"]) == (6, 6, 0)
+    assert ch1["gate_sources"] == {"not recorded": 6}
+    assert main(["session", "info", str(foreign)]) == 0
+    assert "0 not ok (6 without tracking quality)" in capsys.readouterr().out

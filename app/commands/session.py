@@ -105,8 +105,10 @@ def info_text(info: dict[str, Any]) -> str:
                    if c["snr_db_median"] is not None else "SNR ?")
             gates = ", ".join(f"{k} {v}" for k, v in c["gate_sources"].items())
             notes = f"; tracker notes on {c['tracker_notes']}" if c["tracker_notes"] else ""
-            lines.append(f"  {name}: {c['records']} records, {c['quality_not_ok']} not ok; "
-                         f"{lost}; {snr}; gates: {gates}{notes}")
+            unknown = (f" ({c['quality_not_recorded']} without tracking quality)"
+                       if c["quality_not_recorded"] else "")
+            lines.append(f"  {name}: {c['records']} records, {c['quality_not_ok']} not ok"
+                         f"{unknown}; {lost}; {snr}; gates: {gates}{notes}")
     frf = info.get("frf")
     if frf:
         span = (f"{frf['frequency_hz'][0]:g}-{frf['frequency_hz'][1]:g} Hz"
