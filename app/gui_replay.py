@@ -330,6 +330,12 @@ class ReplayView(QtWidgets.QWidget):
 
         self.tabs = QtWidgets.QTabWidget()
         layout.addWidget(self.tabs, 1)
+        # what the file holds (`pelvislab session info`), read when the tab is first shown
+        # for a file: runs and how they ended, steps against the plan, tracking per channel
+        self.file_info = QtWidgets.QPlainTextEdit()
+        self.file_info.setReadOnly(True)
+        self.file_info.setLineWrapMode(QtWidgets.QPlainTextEdit.LineWrapMode.WidgetWidth)
+        self._file_info_for: Path | None = None
         step_page = QtWidgets.QWidget()
         grid = QtWidgets.QGridLayout(step_page)
         grid.setContentsMargins(2, 2, 2, 2)
@@ -443,6 +449,8 @@ class ReplayView(QtWidgets.QWidget):
         self._pick_lines: list[Any] = []
         self.modes_page = page
         self.tabs.addTab(page, "Modes")
+        self.tabs.addTab(self.file_info, "File")
+        self.tabs.currentChanged.connect(self._tab_shown)
 
     # ------------------------------------------------------------------ file
     def _browse(self) -> None:
@@ -481,6 +489,9 @@ class ReplayView(QtWidgets.QWidget):
             raise
         self.close_session()
         self.reader, self.path, self.steps = reader, Path(path), steps
+        self._file_info_for = None
+        self.file_info.setPlainText("")
+        self._tab_shown(self.tabs.currentIndex())  # the File tab may be the one shown
         self._dragged_gates = {}
         self._show_dragged_gates()
         status, reason = reader.status
@@ -518,6 +529,21 @@ class ReplayView(QtWidgets.QWidget):
             self.step_list.setCurrentRow(0)
         else:
             self.tabs.setCurrentWidget(self.frf)
+
+    def _tab_shown(self, index: int) -> None:
+        """Fill the File tab the first time it is shown for the open file."""
+        if self.tabs.widget(index) is not self.file_info or self.path is None \
+                or self._file_info_for == self.path:
+            return
+        from pelvislab.acquisition.session_info import session_info
+        from pelvislab.app.commands.session import info_text
+
+        self._file_info_for = self.path
+        try:
+            text = info_text(session_info(self.path))
+        except Exception as exc:  # a summary only: the file's own errors show elsewhere
+            text = f"no summary of {self.path}: {exc}"
+        self.file_info.setPlainText(text)
 
     @staticmethod
     def _bone_unstated(reader: Any, steps: list[Any]) -> list[tuple[str, str]]:

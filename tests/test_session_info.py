@@ -254,3 +254,16 @@ def test_a_design_only_session_says_its_tracking_quality_is_not_recorded(
     assert ch1["gate_sources"] == {"not recorded": 6}
     assert main(["session", "info", str(foreign)]) == 0
     assert "0 not ok (6 without tracking quality)" in capsys.readouterr().out
+
+
+def test_the_replay_shows_the_summary_in_its_file_tab(complete_session: Path, qtbot) -> None:
+    """The GUI replay's File tab holds the same summary, read when first shown."""
+    from pelvislab.app.gui_replay import ReplayView
+
+    view = ReplayView()
+    qtbot.addWidget(view)
+    view.open_session(complete_session)
+    assert view.file_info.toPlainText() == ""  # not read until shown
+    view.tabs.setCurrentWidget(view.file_info)
+    text = view.file_info.toPlainText()
+    assert "steps: 6 acquired of 6 planned" in text and "status: completed" in text
