@@ -1305,6 +1305,10 @@ def _spring_from_support(res: CandidateResult, k0_n_per_m: float) -> np.ndarray:
     return np.concatenate([u[:3] * scale, u[3:6]])
 
 
+PROGRESS_EVERY_S = 2.0
+"""Seconds between progress lines within the long stages (the joint fits' starts took 11 s
+of the demo's diagnosis without one: the GUI's Cancel waited for them)."""
+
 SHARE_DIGITS = 12
 """Significant digits of the ``where`` shares: design 4.4's "shares sum to 1" holds to
 ~1e-11 (4 digits, as written before the contract audit, summed to 0.99993-1.00002)."""
@@ -1716,6 +1720,9 @@ class _Stages:
     # and then that fit's χ² on the fitted and on the held-out lines
     base_refitted_from: CandidateResult | None = None
     chi2_own_starts: tuple[float, float] | None = None
+    # a line per sub-stage of the longest stages (the joint fits: ~17 s of the demo's
+    # diagnosis passed without one, and the GUI's Cancel waited for it); None: silent
+    progress: Callable[[str], None] | None = None
 
 
 def _declared_noise_check(data: GapData, ctx: Context, fit: _Lines, held: _Lines,
@@ -1964,6 +1971,24 @@ def _screen_stage(s: _Stages, cands: Sequence[Candidate]
     return by_variant, spring_starts
 
 
+def _every_few_seconds(progress: Callable[[str], None] | None, what: str, t0: float,
+                       every_s: float = PROGRESS_EVERY_S) -> Callable[[int, int], None] | None:
+    """A ``parallel_map`` ``done`` callback saying "what: n of total jobs" at most every
+    ``every_s`` seconds (and never the last: the stage's own line follows); None without
+    ``progress``."""
+    if progress is None:
+        return None
+    said = [time.perf_counter()]
+
+    def done(n: int, total: int) -> None:
+        now = time.perf_counter()
+        if n < total and now - said[0] >= every_s:
+            said[0] = now
+            progress(f"{what}: {n} of {total} jobs in {now - t0:.1f} s")
+
+    return done
+
+
 def _joint_fit_stage(s: _Stages,
                      by_variant: dict[tuple[str, str], list[tuple[float, Candidate, np.ndarray]]],
                      spring_starts: dict[Candidate, list[tuple[np.ndarray, np.ndarray]]]
@@ -2122,8 +2147,12 @@ def _joint_fit_stage(s: _Stages,
 
     starts_out = [(fits[0][0] + opt.robust_scale**2 * cand.n_params, cand, fits, n_screened)
                   for fits, (cand, _u, n_screened, _starts)
-                  in zip(parallel_map(start_job, jobs, opt.jobs), jobs, strict=True)]
+                  in zip(parallel_map(start_job, jobs, opt.jobs, _every_few_seconds(
+                      s.progress, "joint fits (starts)", t2)), jobs, strict=True)]
     starts_out.sort(key=lambda t: t[0])
+    if s.progress:
+        s.progress(f"joint fits (starts): {len(jobs)} jobs' short fits from their starts "
+                   f"done in {time.perf_counter() - t2:.1f} s; finishing the most promising")
     # a finished job also finishes the starts whose short fits tie with its best: 20
     # evaluations cannot rank them (judge-like set 5050_026, 298 g on an innominate: the
     # best start, from the undistorted base at 66157, finished in a local minimum at
@@ -3300,6 +3329,7 @@ def diagnose(data: GapData, model: PelvisModel, options: GapOptions | None = Non
     timing["screen_s"] = time.perf_counter() - t1
     if progress:
         progress(f"screened {len(cands)} candidate places in {timing['screen_s']:.1f} s")
+    s.progress = progress
     results = _joint_fit_stage(s, by_variant, spring_starts)
     if progress:
         progress(_stage_note("joint fits", time.perf_counter() - t1 - timing["screen_s"],
@@ -3315,6 +3345,8 @@ def diagnose(data: GapData, model: PelvisModel, options: GapOptions | None = Non
     t3 = time.perf_counter()
     results += _polish_stage(s, cands, results)
     timing["polish_s"] = time.perf_counter() - t3
+    if progress and timing["polish_s"] >= PROGRESS_EVERY_S:
+        progress(f"polish of the leaders done in {timing['polish_s']:.1f} s")
     t5 = time.perf_counter()
     results += _support_on_line_stage(s, results)
     timing["support_on_line_s"] = time.perf_counter() - t5

@@ -100,26 +100,39 @@ def _run_forked(index: int) -> Any:
     return fn(items[index])
 
 
-def parallel_map(fn: Callable[[Any], Any], items: Sequence[Any], jobs: int) -> list[Any]:
+def parallel_map(fn: Callable[[Any], Any], items: Sequence[Any], jobs: int,
+                 done: Callable[[int, int], None] | None = None) -> list[Any]:
     """``[fn(item) for item in items]``, spread over up to ``jobs`` forked processes.
 
     ``fn`` and ``items`` need not be picklable (the workers inherit them); each result
     must be. Tasks go to whichever worker is free (one at a time: their costs differ by
     10x). A task's exception is raised here: the first failing task in task order, as in
     the serial loop (tasks not yet started are cancelled). A worker that dies raises
-    :class:`WorkerDied`.
+    :class:`WorkerDied`. ``done(n, total)``, if given, is called in this process as the
+    results arrive in task order (progress; an exception it raises stops the map as a
+    task's would).
     """
     global _FORKED_TASK
     n_workers = min(resolve_jobs(jobs), len(items))
     if n_workers <= 1 or not can_fork_workers():
-        return [fn(item) for item in items]
+        results = []
+        for item in items:
+            results.append(fn(item))
+            if done:
+                done(len(results), len(items))
+        return results
     _FORKED_TASK = (fn, items)
     # with the fork start method, the executor forks every worker before it starts its own
     # management thread, so no child is forked from a multi-threaded parent
     pool = ProcessPoolExecutor(n_workers, mp_context=multiprocessing.get_context("fork"),
                                initializer=_worker_signals, initargs=(os.getpid(),))
     try:
-        return list(pool.map(_run_forked, range(len(items)), chunksize=1))
+        results = []
+        for result in pool.map(_run_forked, range(len(items)), chunksize=1):
+            results.append(result)
+            if done:
+                done(len(results), len(items))
+        return results
     except BrokenProcessPool as exc:
         raise WorkerDied("a worker process of the parallel fit ended without a result "
                          "(killed or out of memory?); run again, or with --jobs 1 to fit "

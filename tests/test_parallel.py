@@ -39,6 +39,40 @@ def test_results_in_task_order_from_other_processes_with_a_closure():
     assert got["parent"] not in got["pids"]
 
 
+@needs_fork
+def test_done_reports_each_result_in_this_process_and_can_stop_the_map():
+    """``done`` (progress: the gap diagnosis' joint-fit starts said nothing for 11 s, and
+    the GUI's Cancel, raised from it, waited as long) sees every result in task order in
+    the calling process; what it raises stops the map, workers and all."""
+    got = _in_fresh_process("""
+        import json, os
+        from pelvislab.model.parallel import can_fork_workers, parallel_map
+        seen = []
+        out = parallel_map(lambda k: k * k, list(range(5)), 2,
+                           done=lambda n, total: seen.append((n, total, os.getpid())))
+        class Stop(Exception):
+            pass
+        def stop(n, total):
+            if n == 2:
+                raise Stop()
+        try:
+            parallel_map(lambda k: k, list(range(40)), 2, done=stop)
+            stopped = False
+        except Stop:
+            stopped = True
+        print(json.dumps({"fork": can_fork_workers(), "out": out, "stopped": stopped,
+                          "seen": [s[:2] for s in seen],
+                          "here": all(s[2] == os.getpid() for s in seen)}))
+        """)
+    assert got["fork"] and got["out"] == [0, 1, 4, 9, 16]
+    assert got["seen"] == [[n, 5] for n in range(1, 6)] and got["here"]
+    assert got["stopped"]
+    serial = []
+    assert parallel_map(lambda k: -k, [1, 2], 1, done=lambda n, t: serial.append((n, t))) \
+        == [-1, -2]
+    assert serial == [(1, 2), (2, 2)]
+
+
 def test_task_error_is_raised_in_the_caller():
     def task(k: int) -> int:
         if k == 3:
