@@ -1075,8 +1075,12 @@ class Runner:
             self._safe_state()
         self.state = "finished"
         if status != "completed" or self._unsafe:
+            # a fault or an output not confirmed off is an error; a STOP, a Ctrl-C or a
+            # signal with the outputs off is what was asked for, said as a warning (the
+            # operator's STOP read "ERROR run aborted": GUI review, session 43)
+            level = "ERROR" if status == "failed" or self._unsafe else "WARNING"
             try:
-                self._log(f"run {status}: {reason}; {self._outputs_phrase()}", "ERROR")
+                self._log(f"run {status}: {reason}; {self._outputs_phrase()}", level)
             except Exception as exc:
                 log.error("listener failed on the final log line: %s", exc)
         try:
