@@ -781,12 +781,22 @@ def parse_protocol(text: str, source: str = "<string>", limits: BenchLimits | No
         if (not isinstance(raw, list) or not raw
                 or any(isinstance(v, bool) or not isinstance(v, int | float) for v in raw)):
             p.add("sweep.frequencies_hz", f"must be a non-empty list of numbers (Hz), got {raw!r}")
-        elif not all(math.isfinite(v) and v > 0 for v in raw):
+        elif not all(math.isfinite(v) and round(v, 9) > 0 for v in raw):
             p.add("sweep.frequencies_hz", "every frequency must be finite and > 0 Hz")
-        elif len(set(raw)) != len(raw):
-            p.add("sweep.frequencies_hz", "frequencies must not repeat")
         else:
-            freqs = sorted(float(v) for v in raw)
+            # on the 1 nHz grid of start/stop/step and of a step's key (PlannedStep.key):
+            # 80.0 and 80.0000000001 passed as two lines, ran as one key, and the session
+            # then said "2 acquired of 3 planned" of a completed run (review, session 42)
+            grid = [round(float(v), 9) for v in raw]
+            repeated = sorted({f for f in grid if grid.count(f) > 1})
+            if repeated:
+                p.add("sweep.frequencies_hz", "frequencies must not repeat (to 1 nHz): "
+                      + "; ".join(f"{f:.10g} Hz is given as "
+                                  + ", ".join(f"frequencies_hz[{i}] = {raw[i]!r}"
+                                              for i, g in enumerate(grid) if g == f)
+                                  for f in repeated))
+            else:
+                freqs = sorted(grid)
     elif sw:
         missing = [k for k in ("start_hz", "stop_hz", "step_hz") if k not in sw]
         if missing:

@@ -373,3 +373,24 @@ def test_shipped_pelvis_protocols_keep_the_nominal_motion_within_the_record(name
         pp_um = 2 * np.abs(H) * (newton_per_volt * vpp / 2)[:, None] * 1e6
         worst_um = max(worst_um, float(pp_um.max()))
     assert worst_um < 300.0, (name, worst_um)
+
+
+@pytest.mark.parametrize("listed", [[80.0, 40.0, 80.0], [40.0, 80.0, 80.0000000001]])
+def test_frequencies_equal_to_1_nhz_are_one_line_and_refused(listed):
+    # 80.0 and 80.0000000001 passed as two lines and ran under one step key (setup,
+    # frequency to 1 nHz, repeat): the completed session said "2 acquired of 3 planned"
+    data = base()
+    data["sweep"] = {"frequencies_hz": listed, "drive_vpp": 0.5, "periods_per_step": 10}
+    message = problems_of(data)
+    assert "sweep.frequencies_hz: frequencies must not repeat" in message, message
+    first = listed.index(80.0)
+    assert f"frequencies_hz[{first}] = 80.0, frequencies_hz[2] = {listed[2]!r}" in message
+
+
+def test_listed_frequencies_are_on_the_step_key_grid():
+    data = base()
+    data["sweep"] = {"frequencies_hz": [156.25, 80.00000000004], "drive_vpp": 0.5,
+                     "periods_per_step": 10}
+    p = parse(data)
+    assert p.sweep.frequencies_hz == (80.0, 156.25)
+    assert len({s.key for s in p.steps()}) == len(p.steps())
