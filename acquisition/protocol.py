@@ -748,6 +748,17 @@ def parse_protocol(text: str, source: str = "<string>", limits: BenchLimits | No
                   f"record (delay_s + samples/sample_rate_hz = "
                   f"{ultrasound.record_end_s * 1e6:.4g} us) must end before the next pulse "
                   f"(1/prf_hz = {1e6 / ultrasound.prf_hz:.4g} us)")
+        from pelvislab.acquisition.tracking import MIN_GATE_SAMPLES, TrackingOptions
+
+        lag = TrackingOptions().max_lag_samples
+        if samples < MIN_GATE_SAMPLES + 2 * lag:  # type: ignore[operator]
+            # 16 samples passed the check and the run then tracked nothing, every FRF line
+            # NaN (review, session 42): no gate fits such a record
+            p.add("ultrasound.samples",
+                  f"a record of {samples} samples cannot be tracked: the tracking needs a "
+                  f"gate of {MIN_GATE_SAMPLES} samples or more with its lag range "
+                  f"({lag} samples) on both sides, {MIN_GATE_SAMPLES + 2 * lag} samples at "
+                  "least (thesis ch. 8.3 records 500)")
         if tw is not None and tw >= 1.0 / prf:  # type: ignore[operator]
             p.add("ultrasound.trigger_width_s", "must be shorter than the pulse period 1/prf_hz")
         if limits.trigger_load_ohm is not None or limits.max_trigger_vpp is not None:

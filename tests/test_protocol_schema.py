@@ -394,3 +394,15 @@ def test_listed_frequencies_are_on_the_step_key_grid():
     p = parse(data)
     assert p.sweep.frequencies_hz == (80.0, 156.25)
     assert len({s.key for s in p.steps()}) == len(p.steps())
+
+
+def test_a_record_too_short_for_any_gate_is_refused():
+    # samples = 16 passed the check and the run tracked nothing (every FRF line NaN): a
+    # gate needs 16 samples and the 12-sample lag range on both sides
+    data = base()
+    data["ultrasound"]["samples"] = 39
+    message = problems_of(data)
+    assert "ultrasound.samples: a record of 39 samples cannot be tracked" in message
+    assert "40 samples at least" in message
+    data["ultrasound"]["samples"] = 40
+    assert parse(data).ultrasound.samples == 40
