@@ -71,6 +71,11 @@ MAX_POINT_DISTANCE_M = 1.0
 refused: no place on a pelvis is (the landmark catalogue's points lie within 0.16 m of it,
 every coordinate within 0.15 m), so it is a unit slip, millimetres typed into
 ``position_m`` (a run measured 2 of 2 steps of a point 93 m away, every FRF line NaN)."""
+MIDLINE_TOLERANCE_M = 0.01
+"""How far (m) a point on one innominate may lie across the mid-sagittal plane (y = 0): the
+bones meet at the pubic symphysis, on that plane (appendix E's symphysis springs attach at
+y = 0 and +-5 mm); a right-innominate point at y > 0 is a sign slip (design 4.1: +y to the
+subject's left, right-side points have y < 0)."""
 CHANNEL_KEYS = {"ch1": 1, "ch2": 2, "ch3": 3, "ch4": 4}
 BONES = ("innominate_right", "innominate_left", "sacrum", "")
 SUBJECT_POSITIONS = ("face-up", "face-down", "side", "specimen", "phantom", "simulated", "")
@@ -644,6 +649,22 @@ def _point(name: str, entry: Mapping[str, Any], where: str, p: _Problems,
                 rule += (f": position_m is in metres, so if these are millimetres write "
                          f"position_m = {in_m} or position_mm = {given}")
             p.add(f"{where}.{key}", rule)
+            pos = None
+    if pos is not None and bone in ("innominate_right", "innominate_left"):
+        # a right-side point typed with y > 0 passed and its FRFs were the right bone's
+        # motion at a place on the left (review, session 42)
+        right = bone == "innominate_right"
+        y = pos[1]
+        if (y > MIDLINE_TOLERANCE_M) if right else (y < -MIDLINE_TOLERANCE_M):
+            key = "position_mm" if "position_mm" in entry else "position_m"
+            side, other = ("right", "left") if right else ("left", "right")
+            given = entry[key][1]
+            p.add(f"{where}.{key}",
+                  f"y = {given:g} {'mm' if key == 'position_mm' else 'm'} is on the subject's "
+                  f"{other} (+y to the left, design 4.1), but bone = {bone!r} is the {side} "
+                  f"one: {side}-side points have y {'<' if right else '>'} 0 (the "
+                  f"innominates meet at y = 0 +- {MIDLINE_TOLERANCE_M * 1e3:g} mm); flip the "
+                  "sign of y, or name the other bone")
             pos = None
     if "direction" not in entry:
         p.add(f"{where}.direction", "missing (unit vector bone -> transducer)")
