@@ -943,6 +943,7 @@ def parse_protocol(text: str, source: str = "<string>", limits: BenchLimits | No
 
     # points and setups ----------------------------------------------------------
     own: dict[str, Point] = {}
+    point_notes: list[str] = []  # warnings on the [points] entries
     refused_points: set[str] = set()  # [points] entries refused above: said once, there
     pts = _table(data, "points", p)
     for pname, entry in pts.items():
@@ -953,6 +954,14 @@ def parse_protocol(text: str, source: str = "<string>", limits: BenchLimits | No
         point = _point(pname, entry, f"points.{pname}", p)
         if point is not None:
             own[pname] = point
+            if "bone" not in entry:
+                # a researcher's point on the sacrum without `bone` was silently on no bone:
+                # the model-based analyses left it out unsaid (review, session 42)
+                point_notes.append(
+                    f"points.{pname}.bone: not given, so the point is on no modelled bone "
+                    "(\"\"): identify and the gap diagnosis leave it out; write bone = "
+                    "\"sacrum\", \"innominate_right\" or \"innominate_left\", or bone = \"\" "
+                    "for a point on no bone")
         else:
             refused_points.add(pname)
     catalogue = dict(load_landmarks() if landmarks is None else landmarks)
@@ -1061,7 +1070,7 @@ def parse_protocol(text: str, source: str = "<string>", limits: BenchLimits | No
 
     protocol = Protocol(name, description, subject, sweep, ultrasound, tuple(setups), used,
                         text, source, (), excitations)
-    warnings: list[str] = []
+    warnings: list[str] = list(point_notes)
     if sweep.settle_s < MIN_SETTLE_S:
         warnings.append(f"sweep.settle_s: {sweep.settle_s:g} s is under the "
                         f"{MIN_SETTLE_S * 1e3:g} ms of ch. 6.2; responses may not have settled")

@@ -128,3 +128,17 @@ def test_innominate_points_at_the_symphysis_and_the_catalogue_pass():
             assert point.position_m[1] < 0
         elif point.bone == "innominate_left":
             assert point.position_m[1] > 0
+
+
+def test_a_point_without_bone_is_warned_about_not_refused():
+    # without `bone` a point was silently on no modelled bone ("") and the model-based
+    # analyses left it out unsaid
+    data = base()
+    data["points"] = {"probe": {"position_mm": [-150.0, 0.0, -40.0],
+                                "direction": [-1.0, 0.0, 0.0]}}
+    data["setups"][0]["transducers"]["ch2"] = "probe"
+    p = parse(data)
+    assert p.points["probe"].bone == ""
+    assert [w for w in p.warnings if w.startswith("points.probe.bone: not given")]
+    data["points"]["probe"]["bone"] = ""
+    assert not [w for w in parse(data).warnings if w.startswith("points.")]
