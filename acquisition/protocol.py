@@ -76,6 +76,11 @@ MIDLINE_TOLERANCE_M = 0.01
 bones meet at the pubic symphysis, on that plane (appendix E's symphysis springs attach at
 y = 0 and +-5 mm); a right-innominate point at y > 0 is a sign slip (design 4.1: +y to the
 subject's left, right-side points have y < 0)."""
+SHADOW_MOVE_MM = 20.0
+SHADOW_TURN_DEG = 30.0
+"""A [points] entry named like a catalogue landmark farther than this from it (the
+catalogue's coordinates are estimates to ~2 cm), turned more, or on another bone, draws a
+warning: sessions would carry another point under the landmark's name."""
 CHANNEL_KEYS = {"ch1": 1, "ch2": 2, "ch3": 3, "ch4": 4}
 BONES = ("innominate_right", "innominate_left", "sacrum", "")
 SUBJECT_POSITIONS = ("face-up", "face-down", "side", "specimen", "phantom", "simulated", "")
@@ -965,6 +970,31 @@ def parse_protocol(text: str, source: str = "<string>", limits: BenchLimits | No
         else:
             refused_points.add(pname)
     catalogue = dict(load_landmarks() if landmarks is None else landmarks)
+    for pname, point in own.items():
+        landmark = catalogue.get(pname)
+        if landmark is None:
+            continue
+        # a point named like a landmark replaces it (documented), but one elsewhere was
+        # unsaid: sessions then carry another place under the landmark's name, which a
+        # reader takes for the catalogue's (review, session 42)
+        moved_mm = 1e3 * math.dist(point.position_m, landmark.position_m)
+        turned = math.degrees(math.acos(max(-1.0, min(1.0, sum(
+            a * b for a, b in zip(point.direction, landmark.direction, strict=True))))))
+        changes = []
+        if point.bone != landmark.bone:
+            changes.append(f"bone {landmark.bone!r} -> {point.bone!r}")
+        # a subject's own coordinates may correct the catalogue's estimates ("a few mm to
+        # ~2 cm", its header) and its direction somewhat: beyond that it is another point
+        if moved_mm > SHADOW_MOVE_MM:
+            changes.append(f"position {moved_mm:.0f} mm away")
+        if turned > SHADOW_TURN_DEG:
+            changes.append(f"direction turned {turned:.0f} deg")
+        if changes:
+            point_notes.append(
+                f"points.{pname}: replaces the catalogue landmark of that name ("
+                + ", ".join(changes) + "); sessions record this point under the landmark's "
+                "name: give it a name of its own (a landmark corrected for a subject stays "
+                f"within {SHADOW_MOVE_MM:g} mm and {SHADOW_TURN_DEG:g} deg, on its bone)")
     known_points = {**catalogue, **own}
 
     setups: list[Setup] = []

@@ -142,3 +142,20 @@ def test_a_point_without_bone_is_warned_about_not_refused():
     assert [w for w in p.warnings if w.startswith("points.probe.bone: not given")]
     data["points"]["probe"]["bone"] = ""
     assert not [w for w in parse(data).warnings if w.startswith("points.")]
+
+
+def test_a_point_named_like_a_landmark_elsewhere_is_warned_about():
+    # [points.SIAS_R_x] on the sacrum, 230 mm from the landmark, replaced it unsaid: the
+    # session carried another place under the landmark's name
+    data = base()  # its catalogue: b = innominate_left at (0, 0.11, 0), direction +x
+    data["points"] = {"b": {"bone": "sacrum", "position_m": [-0.15, 0.0, -0.05],
+                            "direction": [-1.0, 0.0, 0.0]}}
+    p = parse(data)
+    assert p.points["b"].bone == "sacrum"  # the protocol's own point still wins
+    (note,) = [w for w in p.warnings if w.startswith("points.b:")]
+    assert "replaces the catalogue landmark" in note
+    assert "bone 'innominate_left' -> 'sacrum'" in note and "direction turned 180 deg" in note
+    # a subject's own coordinates within the catalogue's uncertainty: no warning
+    data["points"] = {"b": {"bone": "innominate_left", "position_m": [0.01, 0.12, 0.005],
+                            "direction": [0.97, 0.24, 0.0]}}
+    assert not [w for w in parse(data).warnings if w.startswith("points.")]
