@@ -1246,9 +1246,12 @@ def load_protocol(path: Path | str, limits: BenchLimits | None = None,
     if not path.is_file():
         raise FileNotFoundError(f"protocol file not found: {path}")
     try:
-        text = path.read_text(encoding="utf-8")
-    except UnicodeDecodeError:
-        raise ProtocolError(str(path), ["not a UTF-8 text file"]) from None
+        # "utf-8-sig": an editor's "UTF-8 with BOM" (Windows Notepad) was refused as
+        # "not valid TOML: Invalid statement (at line 1, column 1)" (review, session 42)
+        text = path.read_text(encoding="utf-8-sig")
+    except UnicodeDecodeError as exc:
+        raise ProtocolError(str(path), [f"not a UTF-8 text file (byte {exc.start}): save it "
+                                        "as UTF-8"]) from None
     return parse_protocol(text, str(path), limits, landmarks)
 
 

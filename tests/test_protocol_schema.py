@@ -406,3 +406,13 @@ def test_a_record_too_short_for_any_gate_is_refused():
     assert "40 samples at least" in message
     data["ultrasound"]["samples"] = 40
     assert parse(data).ultrasound.samples == 40
+
+
+def test_a_protocol_saved_with_a_byte_order_mark_is_read(tmp_path):
+    # an editor's "UTF-8 with BOM" was refused as "not valid TOML: Invalid statement"
+    path = tmp_path / "p.toml"
+    path.write_bytes(b"\xef\xbb\xbf" + dumps(base()).encode())
+    assert load_protocol(path, landmarks=POINTS).name == "test"
+    path.write_bytes(dumps(base()).replace("T01", "T\xe901").encode("latin-1"))
+    with pytest.raises(ProtocolError, match="not a UTF-8 text file .*: save it as UTF-8"):
+        load_protocol(path, landmarks=POINTS)
