@@ -416,3 +416,19 @@ def test_a_protocol_saved_with_a_byte_order_mark_is_read(tmp_path):
     path.write_bytes(dumps(base()).replace("T01", "T\xe901").encode("latin-1"))
     with pytest.raises(ProtocolError, match="not a UTF-8 text file .*: save it as UTF-8"):
         load_protocol(path, landmarks=POINTS)
+
+
+@pytest.mark.parametrize(("step", "last"), [(30.0, 100.0), (500.0, 40.0)])
+def test_a_stop_off_the_step_grid_is_warned_with_the_last_line(step, last):
+    # start/stop/step are inclusive, but 40-120 Hz in 30 Hz steps ended at 100 Hz (and a
+    # 500 Hz step measured 40 Hz alone) with nothing said
+    data = base()
+    data["sweep"].update(start_hz=40.0, stop_hz=120.0, step_hz=step)
+    p = parse(data)
+    assert p.sweep.frequencies_hz[-1] == last
+    (note,) = [w for w in p.warnings if w.startswith("sweep.stop_hz:")]
+    assert f"the sweep ends at {last:g} Hz" in note
+    data["sweep"].update(start_hz=1.1, stop_hz=1.3, step_hz=0.1)  # float grid, on it
+    data["sweep"]["periods_per_step"] = 2
+    data["ultrasound"]["samples"] = 100
+    assert not [w for w in parse(data).warnings if w.startswith("sweep.stop_hz:")]
