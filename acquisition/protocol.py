@@ -724,9 +724,17 @@ def parse_protocol(text: str, source: str = "<string>", limits: BenchLimits | No
     sub = _table(data, "subject", p)
     _unknown(sub, _SUBJECT, "subject", p)
     extra: dict[str, Any] = {}
-    for key in ("age_years", "mass_kg", "height_m"):
+    for key, most, slip, factor in (("age_years", 130.0, "months", 1 / 12),
+                                    ("mass_kg", 400.0, "grams", 1e-3),
+                                    ("height_m", 2.8, "centimetres", 1e-2)):
         v = _number(sub, key, "subject", p, minimum=0.0)
-        if v is not None:
+        if v is not None and v > most:
+            # 72000 (g), 178 (cm) passed into every session's metadata (review, session 42)
+            unit = _unit_of(key)
+            p.add(f"subject.{key}", f"{v:g} {unit} is more than any subject ({most:g} "
+                                    f"{unit} at most); if these are {slip}, write "
+                                    f"{key} = {v * factor:.3g}")
+        elif v is not None:
             extra[key] = v
     for key in ("sex", "side"):
         v = _string(sub, key, "subject", p)

@@ -432,3 +432,16 @@ def test_a_stop_off_the_step_grid_is_warned_with_the_last_line(step, last):
     data["sweep"]["periods_per_step"] = 2
     data["ultrasound"]["samples"] = 100
     assert not [w for w in parse(data).warnings if w.startswith("sweep.stop_hz:")]
+
+
+@pytest.mark.parametrize(("key", "value", "hint"), [
+    ("mass_kg", 72000, "mass_kg = 72"), ("height_m", 178, "height_m = 1.78"),
+    ("age_years", 492, "age_years = 41")])
+def test_subject_numbers_in_another_unit_are_refused_with_the_value_meant(key, value, hint):
+    # mass_kg = 72000 (grams) and height_m = 178 (cm) went into every session's metadata
+    data = base()
+    data["subject"][key] = value
+    message = problems_of(data)
+    assert f"subject.{key}: {value} " in message and hint in message, message
+    data["subject"][key] = {"mass_kg": 72.0, "height_m": 1.78, "age_years": 41}[key]
+    assert parse(data).subject.extra[key] == data["subject"][key]
