@@ -1122,9 +1122,18 @@ def parse_protocol(text: str, source: str = "<string>", limits: BenchLimits | No
                         f"{MIN_SETTLE_S * 1e3:g} ms of ch. 6.2; responses may not have settled")
     still = protocol.sweep_duration_s()
     if still > MAX_STILL_S:
+        settling = sum(protocol.settle_s(f) for f in sweep.frequencies_hz) * sweep.repeats
+        if settling > still / 2 and sweep.settle_s >= 1.0:
+            # settle_s = 50 (ms meant) drew "consider a coarser step_hz" (review, session 42)
+            hint = (f"{settling:.1f} s of it settling: settle_s = {sweep.settle_s:g} s per step "
+                    f"(in seconds: {sweep.settle_s:g} ms is {sweep.settle_s / 1e3:g})")
+        elif settling > still / 2:
+            hint = f"{settling:.1f} s of it settling (settle_s, settle_periods)"
+        else:
+            hint = "consider a coarser step_hz"
         warnings.append(
             f"sweep: each setup's sweep takes {still:.1f} s, longer than a subject can keep "
-            f"still ({MAX_STILL_S:g} s, thesis ch. 6.2); consider a coarser step_hz")
+            f"still ({MAX_STILL_S:g} s, thesis ch. 6.2); {hint}")
     lowest = min(sweep.frequencies_hz)
     if sweep.periods_per_step is not None and sweep.periods_per_step < 10:
         warnings.append(f"sweep.periods_per_step: {sweep.periods_per_step:g} is below the "

@@ -445,3 +445,15 @@ def test_subject_numbers_in_another_unit_are_refused_with_the_value_meant(key, v
     assert f"subject.{key}: {value} " in message and hint in message, message
     data["subject"][key] = {"mass_kg": 72.0, "height_m": 1.78, "age_years": 41}[key]
     assert parse(data).subject.extra[key] == data["subject"][key]
+
+
+def test_a_sweep_long_from_settling_says_so_not_coarser_steps():
+    # settle_s = 50 (50 ms meant) drew "consider a coarser step_hz"
+    data = base()
+    data["sweep"]["settle_s"] = 50
+    (note,) = [w for w in parse(data).warnings if "keep still" in w]
+    assert "settle_s = 50 s per step" in note and "50 ms is 0.05" in note
+    assert "coarser step_hz" not in note
+    data["sweep"].update(settle_s=0.05, step_hz=1.0)
+    (note,) = [w for w in parse(data).warnings if "keep still" in w]
+    assert "coarser step_hz" in note
