@@ -1134,6 +1134,17 @@ def parse_protocol(text: str, source: str = "<string>", limits: BenchLimits | No
         warnings.append(
             f"sweep: each setup's sweep takes {still:.1f} s, longer than a subject can keep "
             f"still ({MAX_STILL_S:g} s, thesis ch. 6.2); {hint}")
+    if sweep.drive_mode == "auto":
+        levels = [sweep.drive_vpp_at(f) for f in sweep.frequencies_hz]
+        floored = [v for v in levels if v < sweep.min_drive_vpp * (1 - 1e-9)]
+        if floored:
+            # min_drive_vpp = 1 with drive_vpp = 0.5 passed; auto-ranging then never acted,
+            # unsaid (a step at or under the floor is not repeated; one planned at the floor,
+            # the generator minimum in the shipped profiles, is meant so; review, session 42)
+            warnings.append(
+                f"sweep.min_drive_vpp: {sweep.min_drive_vpp:g} Vpp is above the planned "
+                f"level of {len(floored)} of {len(levels)} lines (lowest {min(levels):.3g} "
+                "Vpp): auto-ranging never lowers those")
     lowest = min(sweep.frequencies_hz)
     if sweep.periods_per_step is not None and sweep.periods_per_step < 10:
         warnings.append(f"sweep.periods_per_step: {sweep.periods_per_step:g} is below the "
