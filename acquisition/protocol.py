@@ -71,6 +71,16 @@ MAX_POINT_DISTANCE_M = 1.0
 refused: no place on a pelvis is (the landmark catalogue's points lie within 0.16 m of it,
 every coordinate within 0.15 m), so it is a unit slip, millimetres typed into
 ``position_m`` (a run measured 2 of 2 steps of a point 93 m away, every FRF line NaN)."""
+MIDLINE_TOLERANCE_M = 0.01
+"""How far (m) a point on one innominate may lie across the mid-sagittal plane (y = 0): the
+bones meet at the pubic symphysis, on that plane (appendix E's symphysis springs attach at
+y = 0 and +-5 mm); a right-innominate point at y > 0 is a sign slip (design 4.1: +y to the
+subject's left, right-side points have y < 0)."""
+SHADOW_MOVE_MM = 20.0
+SHADOW_TURN_DEG = 30.0
+"""A [points] entry named like a catalogue landmark farther than this from it (the
+catalogue's coordinates are estimates to ~2 cm), turned more, or on another bone, draws a
+warning: sessions would carry another point under the landmark's name."""
 CHANNEL_KEYS = {"ch1": 1, "ch2": 2, "ch3": 3, "ch4": 4}
 BONES = ("innominate_right", "innominate_left", "sacrum", "")
 SUBJECT_POSITIONS = ("face-up", "face-down", "side", "specimen", "phantom", "simulated", "")
@@ -645,6 +655,22 @@ def _point(name: str, entry: Mapping[str, Any], where: str, p: _Problems,
                          f"position_m = {in_m} or position_mm = {given}")
             p.add(f"{where}.{key}", rule)
             pos = None
+    if pos is not None and bone in ("innominate_right", "innominate_left"):
+        # a right-side point typed with y > 0 passed and its FRFs were the right bone's
+        # motion at a place on the left (review, session 42)
+        right = bone == "innominate_right"
+        y = pos[1]
+        if (y > MIDLINE_TOLERANCE_M) if right else (y < -MIDLINE_TOLERANCE_M):
+            key = "position_mm" if "position_mm" in entry else "position_m"
+            side, other = ("right", "left") if right else ("left", "right")
+            given = entry[key][1]
+            p.add(f"{where}.{key}",
+                  f"y = {given:g} {'mm' if key == 'position_mm' else 'm'} is on the subject's "
+                  f"{other} (+y to the left, design 4.1), but bone = {bone!r} is the {side} "
+                  f"one: {side}-side points have y {'<' if right else '>'} 0 (the "
+                  f"innominates meet at y = 0 +- {MIDLINE_TOLERANCE_M * 1e3:g} mm); flip the "
+                  "sign of y, or name the other bone")
+            pos = None
     if "direction" not in entry:
         p.add(f"{where}.direction", "missing (unit vector bone -> transducer)")
         direction = None
@@ -678,6 +704,7 @@ def parse_protocol(text: str, source: str = "<string>", limits: BenchLimits | No
     except tomllib.TOMLDecodeError as exc:
         raise ProtocolError(source, [f"not valid TOML: {exc}"]) from None
     p = _Problems()
+    notes: list[str] = []  # warnings found while reading (returned after the others' checks)
     _unknown(data, _TOP, "", p)
 
     schema = data.get("schema")
@@ -697,9 +724,17 @@ def parse_protocol(text: str, source: str = "<string>", limits: BenchLimits | No
     sub = _table(data, "subject", p)
     _unknown(sub, _SUBJECT, "subject", p)
     extra: dict[str, Any] = {}
-    for key in ("age_years", "mass_kg", "height_m"):
+    for key, most, slip, factor in (("age_years", 130.0, "months", 1 / 12),
+                                    ("mass_kg", 400.0, "grams", 1e-3),
+                                    ("height_m", 2.8, "centimetres", 1e-2)):
         v = _number(sub, key, "subject", p, minimum=0.0)
-        if v is not None:
+        if v is not None and v > most:
+            # 72000 (g), 178 (cm) passed into every session's metadata (review, session 42)
+            unit = _unit_of(key)
+            p.add(f"subject.{key}", f"{v:g} {unit} is more than any subject ({most:g} "
+                                    f"{unit} at most); if these are {slip}, write "
+                                    f"{key} = {v * factor:.3g}")
+        elif v is not None:
             extra[key] = v
     for key in ("sex", "side"):
         v = _string(sub, key, "subject", p)
@@ -748,6 +783,17 @@ def parse_protocol(text: str, source: str = "<string>", limits: BenchLimits | No
                   f"record (delay_s + samples/sample_rate_hz = "
                   f"{ultrasound.record_end_s * 1e6:.4g} us) must end before the next pulse "
                   f"(1/prf_hz = {1e6 / ultrasound.prf_hz:.4g} us)")
+        from pelvislab.acquisition.tracking import MIN_GATE_SAMPLES, TrackingOptions
+
+        lag = TrackingOptions().max_lag_samples
+        if samples < MIN_GATE_SAMPLES + 2 * lag:  # type: ignore[operator]
+            # 16 samples passed the check and the run then tracked nothing, every FRF line
+            # NaN (review, session 42): no gate fits such a record
+            p.add("ultrasound.samples",
+                  f"a record of {samples} samples cannot be tracked: the tracking needs a "
+                  f"gate of {MIN_GATE_SAMPLES} samples or more with its lag range "
+                  f"({lag} samples) on both sides, {MIN_GATE_SAMPLES + 2 * lag} samples at "
+                  "least (thesis ch. 8.3 records 500)")
         if tw is not None and tw >= 1.0 / prf:  # type: ignore[operator]
             p.add("ultrasound.trigger_width_s", "must be shorter than the pulse period 1/prf_hz")
         if limits.trigger_load_ohm is not None or limits.max_trigger_vpp is not None:
@@ -781,12 +827,22 @@ def parse_protocol(text: str, source: str = "<string>", limits: BenchLimits | No
         if (not isinstance(raw, list) or not raw
                 or any(isinstance(v, bool) or not isinstance(v, int | float) for v in raw)):
             p.add("sweep.frequencies_hz", f"must be a non-empty list of numbers (Hz), got {raw!r}")
-        elif not all(math.isfinite(v) and v > 0 for v in raw):
+        elif not all(math.isfinite(v) and round(v, 9) > 0 for v in raw):
             p.add("sweep.frequencies_hz", "every frequency must be finite and > 0 Hz")
-        elif len(set(raw)) != len(raw):
-            p.add("sweep.frequencies_hz", "frequencies must not repeat")
         else:
-            freqs = sorted(float(v) for v in raw)
+            # on the 1 nHz grid of start/stop/step and of a step's key (PlannedStep.key):
+            # 80.0 and 80.0000000001 passed as two lines, ran as one key, and the session
+            # then said "2 acquired of 3 planned" of a completed run (review, session 42)
+            grid = [round(float(v), 9) for v in raw]
+            repeated = sorted({f for f in grid if grid.count(f) > 1})
+            if repeated:
+                p.add("sweep.frequencies_hz", "frequencies must not repeat (to 1 nHz): "
+                      + "; ".join(f"{f:.10g} Hz is given as "
+                                  + ", ".join(f"frequencies_hz[{i}] = {raw[i]!r}"
+                                              for i, g in enumerate(grid) if g == f)
+                                  for f in repeated))
+            else:
+                freqs = sorted(grid)
     elif sw:
         missing = [k for k in ("start_hz", "stop_hz", "step_hz") if k not in sw]
         if missing:
@@ -808,6 +864,14 @@ def parse_protocol(text: str, source: str = "<string>", limits: BenchLimits | No
                         if freqs[0] <= 0.0:  # a stepped sine needs a frequency (1 nHz grid)
                             p.add("sweep.start_hz", f"must be > 0 Hz, got {start!r}")
                             freqs = None
+                        elif stop - freqs[-1] > 1e-6:  # type: ignore[operator]
+                            # 40-120 Hz in 30 Hz steps ended at 100 Hz, and 500 Hz steps
+                            # measured 40 Hz alone, unsaid (review, session 42)
+                            notes.append(
+                                f"sweep.stop_hz: {stop:g} Hz is not on the grid of start_hz "
+                                f"{start:g} Hz + k x step_hz {step:g} Hz: the sweep ends at "
+                                f"{freqs[-1]:g} Hz ({n} line{'s' if n > 1 else ''}); "
+                                "make stop_hz - start_hz a multiple of step_hz")
     order = _string(sw, "order", "sweep", p, "up", ("up", "down"))
     drive = _number(sw, "drive_vpp", "sweep", p, minimum=0.0)
     profile = _drive_profile(sw, limits, p)
@@ -911,9 +975,42 @@ def parse_protocol(text: str, source: str = "<string>", limits: BenchLimits | No
         point = _point(pname, entry, f"points.{pname}", p)
         if point is not None:
             own[pname] = point
+            if "bone" not in entry:
+                # a researcher's point on the sacrum without `bone` was silently on no bone:
+                # the model-based analyses left it out unsaid (review, session 42)
+                notes.append(
+                    f"points.{pname}.bone: not given, so the point is on no modelled bone "
+                    "(\"\"): identify and the gap diagnosis leave it out; write bone = "
+                    "\"sacrum\", \"innominate_right\" or \"innominate_left\", or bone = \"\" "
+                    "for a point on no bone")
         else:
             refused_points.add(pname)
     catalogue = dict(load_landmarks() if landmarks is None else landmarks)
+    for pname, point in own.items():
+        landmark = catalogue.get(pname)
+        if landmark is None:
+            continue
+        # a point named like a landmark replaces it (documented), but one elsewhere was
+        # unsaid: sessions then carry another place under the landmark's name, which a
+        # reader takes for the catalogue's (review, session 42)
+        moved_mm = 1e3 * math.dist(point.position_m, landmark.position_m)
+        turned = math.degrees(math.acos(max(-1.0, min(1.0, sum(
+            a * b for a, b in zip(point.direction, landmark.direction, strict=True))))))
+        changes = []
+        if point.bone != landmark.bone:
+            changes.append(f"bone {landmark.bone!r} -> {point.bone!r}")
+        # a subject's own coordinates may correct the catalogue's estimates ("a few mm to
+        # ~2 cm", its header) and its direction somewhat: beyond that it is another point
+        if moved_mm > SHADOW_MOVE_MM:
+            changes.append(f"position {moved_mm:.0f} mm away")
+        if turned > SHADOW_TURN_DEG:
+            changes.append(f"direction turned {turned:.0f} deg")
+        if changes:
+            notes.append(
+                f"points.{pname}: replaces the catalogue landmark of that name ("
+                + ", ".join(changes) + "); sessions record this point under the landmark's "
+                "name: give it a name of its own (a landmark corrected for a subject stays "
+                f"within {SHADOW_MOVE_MM:g} mm and {SHADOW_TURN_DEG:g} deg, on its bone)")
     known_points = {**catalogue, **own}
 
     setups: list[Setup] = []
@@ -1019,15 +1116,35 @@ def parse_protocol(text: str, source: str = "<string>", limits: BenchLimits | No
 
     protocol = Protocol(name, description, subject, sweep, ultrasound, tuple(setups), used,
                         text, source, (), excitations)
-    warnings: list[str] = []
+    warnings: list[str] = list(notes)
     if sweep.settle_s < MIN_SETTLE_S:
         warnings.append(f"sweep.settle_s: {sweep.settle_s:g} s is under the "
                         f"{MIN_SETTLE_S * 1e3:g} ms of ch. 6.2; responses may not have settled")
     still = protocol.sweep_duration_s()
     if still > MAX_STILL_S:
+        settling = sum(protocol.settle_s(f) for f in sweep.frequencies_hz) * sweep.repeats
+        if settling > still / 2 and sweep.settle_s >= 1.0:
+            # settle_s = 50 (ms meant) drew "consider a coarser step_hz" (review, session 42)
+            hint = (f"{settling:.1f} s of it settling: settle_s = {sweep.settle_s:g} s per step "
+                    f"(in seconds: {sweep.settle_s:g} ms is {sweep.settle_s / 1e3:g})")
+        elif settling > still / 2:
+            hint = f"{settling:.1f} s of it settling (settle_s, settle_periods)"
+        else:
+            hint = "consider a coarser step_hz"
         warnings.append(
             f"sweep: each setup's sweep takes {still:.1f} s, longer than a subject can keep "
-            f"still ({MAX_STILL_S:g} s, thesis ch. 6.2); consider a coarser step_hz")
+            f"still ({MAX_STILL_S:g} s, thesis ch. 6.2); {hint}")
+    if sweep.drive_mode == "auto":
+        levels = [sweep.drive_vpp_at(f) for f in sweep.frequencies_hz]
+        floored = [v for v in levels if v < sweep.min_drive_vpp * (1 - 1e-9)]
+        if floored:
+            # min_drive_vpp = 1 with drive_vpp = 0.5 passed; auto-ranging then never acted,
+            # unsaid (a step at or under the floor is not repeated; one planned at the floor,
+            # the generator minimum in the shipped profiles, is meant so; review, session 42)
+            warnings.append(
+                f"sweep.min_drive_vpp: {sweep.min_drive_vpp:g} Vpp is above the planned "
+                f"level of {len(floored)} of {len(levels)} lines (lowest {min(levels):.3g} "
+                "Vpp): auto-ranging never lowers those")
     lowest = min(sweep.frequencies_hz)
     if sweep.periods_per_step is not None and sweep.periods_per_step < 10:
         warnings.append(f"sweep.periods_per_step: {sweep.periods_per_step:g} is below the "
@@ -1165,9 +1282,12 @@ def load_protocol(path: Path | str, limits: BenchLimits | None = None,
     if not path.is_file():
         raise FileNotFoundError(f"protocol file not found: {path}")
     try:
-        text = path.read_text(encoding="utf-8")
-    except UnicodeDecodeError:
-        raise ProtocolError(str(path), ["not a UTF-8 text file"]) from None
+        # "utf-8-sig": an editor's "UTF-8 with BOM" (Windows Notepad) was refused as
+        # "not valid TOML: Invalid statement (at line 1, column 1)" (review, session 42)
+        text = path.read_text(encoding="utf-8-sig")
+    except UnicodeDecodeError as exc:
+        raise ProtocolError(str(path), [f"not a UTF-8 text file (byte {exc.start}): save it "
+                                        "as UTF-8"]) from None
     return parse_protocol(text, str(path), limits, landmarks)
 
 

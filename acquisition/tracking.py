@@ -752,6 +752,9 @@ def _band_dft(m: int, nfft: int, bins: tuple[int, ...]) -> tuple[np.ndarray, np.
 
 _GATE_ECHOES = 8
 """Echoes whose mean envelope places the automatic gate."""
+MIN_GATE_SAMPLES = 16
+"""Shortest gate (samples) an echo is tracked in, the operator's, the protocol's or the
+automatic one; a record must hold it and the lag range on both sides."""
 
 
 def _first_echoes_envelope(codes: np.ndarray, sample_rate_hz: float, n_echoes: int,
@@ -987,7 +990,7 @@ def _choose_gate(codes: np.ndarray, fs: float, opts: TrackingOptions,
         if not 0 <= start - L < stop + L <= m:
             raise ValueError(f"gate {opts.gate} +- max_lag_samples={L} does not fit in "
                              f"{m} samples")
-    if stop - start < 16:
+    if stop - start < MIN_GATE_SAMPLES:
         raise ValueError(f"gate ({start}, {stop}) is too short to track an echo")
     if opts.gate is not None and head.size:
         # a gate set by hand through the echo gave `ok` and 5x the noise, unsaid; a note
@@ -1009,11 +1012,12 @@ def gate_problem(gate: tuple[int, int], lag_samples: int, samples: int) -> str:
     record with a lag range of +-``lag_samples``; empty when it can (the rule
     :func:`track_echoes` applies to a given gate: 16 samples or more, lag range inside)."""
     start, stop = gate
-    if start - lag_samples >= 0 and stop + lag_samples <= samples and stop - start >= 16:
+    if (start - lag_samples >= 0 and stop + lag_samples <= samples
+            and stop - start >= MIN_GATE_SAMPLES):
         return ""
-    return (f"it must hold 16 samples or more and leave the lag range ({lag_samples} "
-            f"samples) inside the {samples}-sample record: start {lag_samples} to stop "
-            f"{samples - lag_samples}")
+    return (f"it must hold {MIN_GATE_SAMPLES} samples or more and leave the lag range "
+            f"({lag_samples} samples) inside the {samples}-sample record: start "
+            f"{lag_samples} to stop {samples - lag_samples}")
 
 
 def _zero_segments_not_finite(codes: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

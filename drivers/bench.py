@@ -324,7 +324,12 @@ class BenchConfig:
         if not path.is_file():
             raise FileNotFoundError(f"bench file not found: {path}")
         try:
-            data = tomllib.loads(path.read_text(encoding="utf-8"))
+            # "utf-8-sig": an editor's "UTF-8 with BOM" (Windows Notepad) was refused as
+            # "Invalid statement (at line 1, column 1)" (review, session 42)
+            data = tomllib.loads(path.read_text(encoding="utf-8-sig"))
+        except UnicodeDecodeError as exc:
+            raise BenchConfigError(f"{path}: not a UTF-8 text file (byte {exc.start}): save "
+                                   "it as UTF-8") from None
         except tomllib.TOMLDecodeError as exc:
             raise BenchConfigError(f"{path}: not valid TOML: {exc}") from None
         return cls.from_dict(data, source=path)

@@ -479,3 +479,19 @@ def test_a_driver_that_is_not_a_name_is_a_problem_not_a_crash(tmp_path):
     text = GOOD.replace('[drive]\n', '[drive]\ndriver = ["agilent33220a"]\n')
     with pytest.raises(BenchConfigError, match=r"drive\.driver: unknown driver \['agilent"):
         BenchConfig.load(write(tmp_path, text))
+
+
+def test_a_bench_file_saved_with_a_byte_order_mark_is_read(tmp_path):
+    # an editor's "UTF-8 with BOM" was refused as "Invalid statement (line 1, column 1)"
+    path = tmp_path / "bench.toml"
+    path.write_bytes(b"\xef\xbb\xbf" + GOOD.replace("lab 3", "Labor 3, Liege").encode())
+    assert BenchConfig.load(path).name == "Labor 3, Liege"
+
+
+def test_a_bench_file_not_in_utf8_is_refused_naming_the_file(tmp_path):
+    # a Latin-1 file failed with the codec's bare message, no file named
+    path = tmp_path / "bench.toml"
+    path.write_bytes(GOOD.replace("lab 3", "Li\xe8ge").encode("latin-1"))
+    with pytest.raises(BenchConfigError, match=r"bench\.toml: not a UTF-8 text file \(byte "
+                                               r"\d+\): save it as UTF-8"):
+        BenchConfig.load(path)

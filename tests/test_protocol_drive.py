@@ -134,3 +134,17 @@ def test_record_longer_than_the_digitizer_memory_refused():
     assert "sweep.periods_per_step: the longest record (10000 pulses x 1000 samples" in message
     assert "digitizer memory of 8388608 samples" in message
     parse(data, BenchLimits(max_samples_per_channel=16 * 1024 * 1024))
+
+
+def test_a_floor_above_the_planned_levels_is_warned_about():
+    # min_drive_vpp = 1 with drive_vpp = 0.5 passed: a step at or under the floor is never
+    # repeated, so auto-ranging did nothing, unsaid
+    from tests.test_protocol_schema import base, parse
+
+    data = base()
+    data["sweep"].update(drive_vpp=0.5, drive_mode="auto", max_displacement_m=20e-6,
+                         min_drive_vpp=1.0)
+    (note,) = [w for w in parse(data).warnings if w.startswith("sweep.min_drive_vpp:")]
+    assert "above the planned level of 119 of 119 lines" in note
+    data["sweep"]["min_drive_vpp"] = 0.5  # at the level: meant (a profile's floor)
+    assert not [w for w in parse(data).warnings if w.startswith("sweep.min_drive_vpp:")]

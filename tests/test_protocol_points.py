@@ -92,3 +92,70 @@ def test_a_refused_point_is_reported_once_not_again_as_unknown(entry, key):
     assert "unknown point" not in message
     problems = message.split(": ", 1)[1].split("; ")
     assert len(problems) == 1 and problems[0].startswith(f"{key}: "), problems
+
+
+@pytest.mark.parametrize(("bone", "position", "key", "text"), [
+    ("innominate_right", {"position_m": [0.0, 0.1, 0.0]}, "points.probe.position_m",
+     "y = 0.1 m is on the subject's left"),
+    ("innominate_left", {"position_mm": [-55.0, -125.0, 5.0]}, "points.probe.position_mm",
+     "y = -125 mm is on the subject's right"),
+])
+def test_an_innominate_point_on_the_other_side_is_refused(bone, position, key, text):
+    # a right-innominate point typed with y > 0 passed: its FRFs were the right bone's
+    # motion computed at a place on the left (design 4.1: +y to the subject's left)
+    data = base()
+    data["points"] = {"probe": {"bone": bone, **position, "direction": [1.0, 0.0, 0.0]}}
+    data["setups"][0]["transducers"]["ch2"] = "probe"
+    message = problems_of(data)
+    assert f"{key}: {text}" in message and "flip the sign of y" in message, message
+    assert "unknown point" not in message
+
+
+def test_innominate_points_at_the_symphysis_and_the_catalogue_pass():
+    data = base()
+    data["points"] = {
+        "sym_r": {"bone": "innominate_right", "position_mm": [0.0, 5.0, -95.0],
+                  "direction": [1.0, 0.0, 0.0]},
+        "sym_l": {"bone": "innominate_left", "position_mm": [-10.0, -5.0, -100.0],
+                  "direction": [1.0, 0.0, 0.0]},
+        "mid": {"bone": "sacrum", "position_mm": [-150.0, -40.0, -55.0],
+                "direction": [-1.0, 0.0, 0.0]}}
+    data["setups"][0]["transducers"] = {"ch1": "sym_r", "ch2": "sym_l"}
+    parse(data)
+    catalogue = load_landmarks()
+    for point in catalogue.values():
+        if point.bone == "innominate_right":
+            assert point.position_m[1] < 0
+        elif point.bone == "innominate_left":
+            assert point.position_m[1] > 0
+
+
+def test_a_point_without_bone_is_warned_about_not_refused():
+    # without `bone` a point was silently on no modelled bone ("") and the model-based
+    # analyses left it out unsaid
+    data = base()
+    data["points"] = {"probe": {"position_mm": [-150.0, 0.0, -40.0],
+                                "direction": [-1.0, 0.0, 0.0]}}
+    data["setups"][0]["transducers"]["ch2"] = "probe"
+    p = parse(data)
+    assert p.points["probe"].bone == ""
+    assert [w for w in p.warnings if w.startswith("points.probe.bone: not given")]
+    data["points"]["probe"]["bone"] = ""
+    assert not [w for w in parse(data).warnings if w.startswith("points.")]
+
+
+def test_a_point_named_like_a_landmark_elsewhere_is_warned_about():
+    # [points.SIAS_R_x] on the sacrum, 230 mm from the landmark, replaced it unsaid: the
+    # session carried another place under the landmark's name
+    data = base()  # its catalogue: b = innominate_left at (0, 0.11, 0), direction +x
+    data["points"] = {"b": {"bone": "sacrum", "position_m": [-0.15, 0.0, -0.05],
+                            "direction": [-1.0, 0.0, 0.0]}}
+    p = parse(data)
+    assert p.points["b"].bone == "sacrum"  # the protocol's own point still wins
+    (note,) = [w for w in p.warnings if w.startswith("points.b:")]
+    assert "replaces the catalogue landmark" in note
+    assert "bone 'innominate_left' -> 'sacrum'" in note and "direction turned 180 deg" in note
+    # a subject's own coordinates within the catalogue's uncertainty: no warning
+    data["points"] = {"b": {"bone": "innominate_left", "position_m": [0.01, 0.12, 0.005],
+                            "direction": [0.97, 0.24, 0.0]}}
+    assert not [w for w in parse(data).warnings if w.startswith("points.")]

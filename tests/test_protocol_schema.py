@@ -373,3 +373,87 @@ def test_shipped_pelvis_protocols_keep_the_nominal_motion_within_the_record(name
         pp_um = 2 * np.abs(H) * (newton_per_volt * vpp / 2)[:, None] * 1e6
         worst_um = max(worst_um, float(pp_um.max()))
     assert worst_um < 300.0, (name, worst_um)
+
+
+@pytest.mark.parametrize("listed", [[80.0, 40.0, 80.0], [40.0, 80.0, 80.0000000001]])
+def test_frequencies_equal_to_1_nhz_are_one_line_and_refused(listed):
+    # 80.0 and 80.0000000001 passed as two lines and ran under one step key (setup,
+    # frequency to 1 nHz, repeat): the completed session said "2 acquired of 3 planned"
+    data = base()
+    data["sweep"] = {"frequencies_hz": listed, "drive_vpp": 0.5, "periods_per_step": 10}
+    message = problems_of(data)
+    assert "sweep.frequencies_hz: frequencies must not repeat" in message, message
+    first = listed.index(80.0)
+    assert f"frequencies_hz[{first}] = 80.0, frequencies_hz[2] = {listed[2]!r}" in message
+
+
+def test_listed_frequencies_are_on_the_step_key_grid():
+    data = base()
+    data["sweep"] = {"frequencies_hz": [156.25, 80.00000000004], "drive_vpp": 0.5,
+                     "periods_per_step": 10}
+    p = parse(data)
+    assert p.sweep.frequencies_hz == (80.0, 156.25)
+    assert len({s.key for s in p.steps()}) == len(p.steps())
+
+
+def test_a_record_too_short_for_any_gate_is_refused():
+    # samples = 16 passed the check and the run tracked nothing (every FRF line NaN): a
+    # gate needs 16 samples and the 12-sample lag range on both sides
+    data = base()
+    data["ultrasound"]["samples"] = 39
+    message = problems_of(data)
+    assert "ultrasound.samples: a record of 39 samples cannot be tracked" in message
+    assert "40 samples at least" in message
+    data["ultrasound"]["samples"] = 40
+    assert parse(data).ultrasound.samples == 40
+
+
+def test_a_protocol_saved_with_a_byte_order_mark_is_read(tmp_path):
+    # an editor's "UTF-8 with BOM" was refused as "not valid TOML: Invalid statement"
+    path = tmp_path / "p.toml"
+    path.write_bytes(b"\xef\xbb\xbf" + dumps(base()).encode())
+    assert load_protocol(path, landmarks=POINTS).name == "test"
+    path.write_bytes(dumps(base()).replace("T01", "T\xe901").encode("latin-1"))
+    with pytest.raises(ProtocolError, match="not a UTF-8 text file .*: save it as UTF-8"):
+        load_protocol(path, landmarks=POINTS)
+
+
+@pytest.mark.parametrize(("step", "last"), [(30.0, 100.0), (500.0, 40.0)])
+def test_a_stop_off_the_step_grid_is_warned_with_the_last_line(step, last):
+    # start/stop/step are inclusive, but 40-120 Hz in 30 Hz steps ended at 100 Hz (and a
+    # 500 Hz step measured 40 Hz alone) with nothing said
+    data = base()
+    data["sweep"].update(start_hz=40.0, stop_hz=120.0, step_hz=step)
+    p = parse(data)
+    assert p.sweep.frequencies_hz[-1] == last
+    (note,) = [w for w in p.warnings if w.startswith("sweep.stop_hz:")]
+    assert f"the sweep ends at {last:g} Hz" in note
+    data["sweep"].update(start_hz=1.1, stop_hz=1.3, step_hz=0.1)  # float grid, on it
+    data["sweep"]["periods_per_step"] = 2
+    data["ultrasound"]["samples"] = 100
+    assert not [w for w in parse(data).warnings if w.startswith("sweep.stop_hz:")]
+
+
+@pytest.mark.parametrize(("key", "value", "hint"), [
+    ("mass_kg", 72000, "mass_kg = 72"), ("height_m", 178, "height_m = 1.78"),
+    ("age_years", 492, "age_years = 41")])
+def test_subject_numbers_in_another_unit_are_refused_with_the_value_meant(key, value, hint):
+    # mass_kg = 72000 (grams) and height_m = 178 (cm) went into every session's metadata
+    data = base()
+    data["subject"][key] = value
+    message = problems_of(data)
+    assert f"subject.{key}: {value} " in message and hint in message, message
+    data["subject"][key] = {"mass_kg": 72.0, "height_m": 1.78, "age_years": 41}[key]
+    assert parse(data).subject.extra[key] == data["subject"][key]
+
+
+def test_a_sweep_long_from_settling_says_so_not_coarser_steps():
+    # settle_s = 50 (50 ms meant) drew "consider a coarser step_hz"
+    data = base()
+    data["sweep"]["settle_s"] = 50
+    (note,) = [w for w in parse(data).warnings if "keep still" in w]
+    assert "settle_s = 50 s per step" in note and "50 ms is 0.05" in note
+    assert "coarser step_hz" not in note
+    data["sweep"].update(settle_s=0.05, step_hz=1.0)
+    (note,) = [w for w in parse(data).warnings if "keep still" in w]
+    assert "coarser step_hz" in note
