@@ -718,6 +718,9 @@ def parse_protocol(text: str, source: str = "<string>", limits: BenchLimits | No
     name = _string(data, "name", "", p)
     if name == "" and "name" not in data:
         p.add("name", "missing (a short protocol name)")
+    elif isinstance(name, str) and not name.strip():
+        # required, so not blank either: sessions and the GUI name the protocol by it
+        p.add("name", "is blank; give a short protocol name")
     description = _string(data, "description", "", p) or ""
 
     # subject ---------------------------------------------------------------------
@@ -1048,6 +1051,10 @@ def parse_protocol(text: str, source: str = "<string>", limits: BenchLimits | No
             continue
         _unknown(raw, _SETUP, where, p)
         sname = _string(raw, "name", where, p, default=f"setup{i + 1}")
+        if isinstance(sname, str) and not sname.strip():
+            # a step's setup is its name: a blank one reads as none in the session
+            p.add(f"{where}.name", f"is blank; give the setup a name or leave the key out "
+                                   f"(then setup{i + 1})")
         excitation = resolve(raw.get("excitation"), f"{where}.excitation")
         prompt = _string(raw, "prompt", where, p) or ""
         tr = raw.get("transducers")

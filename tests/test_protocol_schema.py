@@ -179,6 +179,9 @@ def test_down_order_and_list():
         (lambda d: d["sweep"].update(start_hz=-5.0), "sweep.start_hz", "must be > 0"),
         # rounds to 0 Hz on the 1 nHz grid (hypothesis found a ZeroDivisionError here)
         (lambda d: d["sweep"].update(start_hz=1.5e-73), "sweep.start_hz", "must be > 0"),
+        # required names are not blank either (a review: name = "" passed)
+        (lambda d: d.update(name="  "), "name", "is blank"),
+        (lambda d: d["setups"][0].update(name=""), "setups[0].name", "is blank"),
     ],
 )
 def test_each_rule_names_key_and_rule(mutate, key, rule):
