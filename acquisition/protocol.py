@@ -354,7 +354,8 @@ class Protocol:
         lines = [
             f"protocol {self.name!r} ({self.source}), schema {PROTOCOL_SCHEMA} "
             f"v{PROTOCOL_SCHEMA_VERSION}",
-            f"  sweep: {len(f)} steps {lo:g}-{hi:g} Hz ({self.sweep.order}"
+            f"  sweep: {len(f)} step{'s' if len(f) != 1 else ''} {lo:g}-{hi:g} Hz "
+            f"({self.sweep.order}"
             + (f", each {self.sweep.repeats} times" if self.sweep.repeats > 1 else "")
             + "), drive " + self._drive_text() + ", "
             f"{min(pulses)}-{max(pulses)} pulses per step at "

@@ -96,6 +96,14 @@ def problems_of(data: dict) -> str:
     return message
 
 
+def test_a_single_line_sweep_reads_one_step():
+    data = base()
+    data["sweep"] = {"frequencies_hz": [80.0], "drive_vpp": 0.5, "settle_s": 0.05,
+                     "periods_per_step": 10}
+    assert "  sweep: 1 step 80-80 Hz (" in parse(data).summary()
+    assert "  sweep: 119 steps 5-300 Hz (" in parse(base()).summary()
+
+
 def test_thesis_sweep_duration_is_23_s():
     # ch. 6.2: 5-300 Hz, 2.5 Hz, 10 periods per step, 50 ms settle -> "23 seconds"
     p = parse(base())
