@@ -113,21 +113,39 @@ def test_a_parameter_on_its_bound_is_named_and_has_no_std():
     p = chain_problem(3, seed=4)
     f = np.arange(2.0, 80.0, 1.0)
     true = p.nominal.copy()
-    true[p.names.index("c")] *= 30.0  # beyond start x 10
+    # beyond start x 10 (a damping this far is now fitted in its wider range: below)
+    true[p.names.index("k2")] *= 30.0
     res = identify_frf(p, f, synth(p, true, f), residual=ResidualSpec("log"),
                        strategy=Strategy(max_starts=1, stop_rms=1e-8))
-    assert res.extra["on_bound"] == ["c"]
-    assert np.isnan(res.std[p.names.index("c")])
-    assert "c (std null; the others' std hold it there)" in res.message
+    assert res.extra["on_bound"] == ["k2"]
+    assert np.isnan(res.std[p.names.index("k2")])
+    assert "k2 (std null; the others' std hold it there)" in res.message
     assert not res.converged
-    assert res.as_dict()["parameters"]["c"]["std"] is None
-    # the others' std are those of a fit with c held where it ended (its column left out)
-    held = identify_frf(p, f, synth(p, true, f), free=[n for n in p.names if n != "c"],
+    assert res.as_dict()["parameters"]["k2"]["std"] is None
+    # the others' std are those of a fit with k2 held where it ended (its column left out)
+    held = identify_frf(p, f, synth(p, true, f), free=[n for n in p.names if n != "k2"],
                         start=res.values, residual=ResidualSpec("log"),
                         strategy=Strategy(max_starts=1, stop_rms=1e-8))
     others = [p.names.index(n) for n in held.names]
     np.testing.assert_allclose(res.std[others], held.std, rtol=0.02)
-    assert np.isnan(res.correlation[p.names.index("c")]).all()
+    assert np.isnan(res.correlation[p.names.index("k2")]).all()
+
+
+@pytest.mark.parametrize("factor", [30.0, 1e3, 1e-3])
+def test_a_damping_decades_from_the_start_is_fitted_in_its_wider_range(factor):
+    """Subjects' damping may lie decades from appendix E's (judge-like sets: 10-3000 for
+    0.8 N s/m): within start x/÷ 10 it ended on its bound, not converged (0 of 19 such
+    sets, session 43). When no start reaches the target the dampings are scanned over
+    decades and fitted within x/÷ 1e4-3e4 of the start."""
+    p = chain_problem(3, seed=4)
+    f = np.arange(2.0, 80.0, 1.0)
+    true = p.nominal.copy()
+    true[p.names.index("c")] *= factor
+    res = identify_frf(p, f, synth(p, true, f), residual=ResidualSpec("log"),
+                       strategy=Strategy(max_starts=1, stop_rms=1e-8))
+    assert res.converged, res.message
+    assert res.extra["on_bound"] == []
+    np.testing.assert_allclose(res.values, true, rtol=1e-4)
 
 
 def test_a_weak_direction_known_to_worse_than_an_e_fold_is_not_resolved():
