@@ -22,6 +22,7 @@ from pelvislab.model.ema import (
     stabilisation_diagram,
 )
 from pelvislab.tests.test_ema_estimator import modal_receptance
+from pelvislab.tests.test_ema_missing_mode import _modal_frf
 
 F_HZ = np.arange(5.0, 300.01, 1.0)
 
@@ -29,9 +30,7 @@ F_HZ = np.arange(5.0, 300.01, 1.0)
 def _one_mode(frequency_hz, damping_ratio, trial):
     rng = np.random.default_rng([7, trial])
     shapes = rng.normal(size=(2, 1))
-    H0 = modal_receptance(F_HZ, poles_from_modal(np.array([frequency_hz]),
-                                                 np.array([damping_ratio])),
-                          shapes, shapes[:1])
+    H0 = _modal_frf([frequency_hz], [damping_ratio], shapes)
     e = (rng.normal(size=H0.shape) + 1j * rng.normal(size=H0.shape)) / np.sqrt(2)
     return H0 * (1 + 0.01 * e), 0.01 * np.abs(H0)
 
