@@ -541,6 +541,8 @@ class BenchConfig:
                     f"pulsers[{i}].channel: {channel}: the [[pulsers]] tables are matched to "
                     f"the digitizer channels by their order (table {i + 1} feeds channel "
                     f"{i + 1}); put them in channel order, or leave `channel` out")
+        problems += _generator_floor_problems(roles, simulated, max_drive_vpp,
+                                              max_trigger_vpp)
 
         if problems:
             shown = "; ".join(problems[:6])
@@ -782,6 +784,41 @@ def _read_drive_calibration(path: Path, err: Callable[[str], BenchConfigError]
         raise err(f"{path}: needs a header line and at least two rows "
                   "(frequency_hz, N/V); the calibration is not extrapolated")
     return tuple(freqs), tuple(values), tuple(u_rel)
+
+
+def _generator_floor_problems(roles: Mapping[str, InstrumentConfig | None], simulated: bool,
+                              max_drive_vpp: float | None,
+                              max_trigger_vpp: float | None) -> list[str]:
+    """``key: rule`` for each generator whose bench limit (V pk-pk: ``[limits]`` or the
+    section's ``max_vpp``, the lower) is below the 33220A's smallest amplitude into its
+    declared load (10 mVpp into 50 ohm, 20 mVpp into high-Z [DS]): every level the run
+    could send would be refused. Such a file passed ``bench check`` (session 43 note)."""
+    from pelvislab.drivers.agilent33220a import amplitude_limits_vpp
+
+    out = []
+    for role, bench_limit in (("drive", max_drive_vpp), ("trigger", max_trigger_vpp)):
+        section = roles.get(role)
+        if section is None and not simulated:
+            continue  # the missing section is the problem already named
+        options = {} if section is None else section.options
+        load: Any = options.get("load_ohm")
+        if load is None:  # only a simulated bench's section may leave it out
+            load = math.inf if role == "drive" else SIMULATED_TRIGGER_LOAD_OHM
+        load_ohm = math.inf if isinstance(load, str) else float(load)
+        limits = [(float(v), key) for v, key in
+                  ((bench_limit, f"limits.max_{role}_vpp"), (options.get("max_vpp"),
+                                                             f"{role}.max_vpp"))
+                  if v is not None]
+        if not limits:
+            continue
+        limit, key = min(limits)
+        floor = amplitude_limits_vpp(load_ohm)[0]
+        if limit < floor:
+            into = "high-Z" if math.isinf(load_ohm) else f"{load_ohm:g} ohm"
+            out.append(f"{key}: {limit:g} V pk-pk is below the 33220A's smallest amplitude "
+                       f"{floor:g} V pk-pk into {into}: the {role} generator could send "
+                       "nothing")
+    return out
 
 
 def _load_ohm(value: Any, key: str, err: _ErrFactory) -> float:

@@ -93,6 +93,12 @@ def test_good_bench_file_parses(tmp_path):
           "reference_clock_hz = 10.001e6"), "calibration.reference_clock_hz"),
         (('resource = "PCI::INSTR0"', 'resource = "PCI::INSTR0"\nexternal_clock_hz = 10'),
          "digitizer.external_clock_hz"),
+        # a limit below the 33220A's smallest amplitude (20 mVpp into high-Z, 10 mVpp into
+        # 50 ohm) refused every level at run time, and bench check passed it
+        (("max_drive_vpp = 2.5", "max_drive_vpp = 0.015"), "limits.max_drive_vpp"),
+        (('load_ohm = "inf"', 'load_ohm = "inf"\nmax_vpp = 0.01'), "drive.max_vpp"),
+        (("max_drive_vpp = 2.5", "max_drive_vpp = 2.5\nmax_trigger_vpp = 0.005"),
+         "limits.max_trigger_vpp"),
     ],
 )
 def test_bad_bench_file_names_the_key(tmp_path, edit, key):
@@ -100,6 +106,19 @@ def test_bad_bench_file_names_the_key(tmp_path, edit, key):
     assert text != GOOD
     with pytest.raises(BenchConfigError, match=f"{key.replace('.', '[.]')}: "):
         BenchConfig.load(write(tmp_path, text))
+
+
+def test_a_generator_limit_at_its_smallest_amplitude_is_accepted(tmp_path):
+    # 15 mVpp is above the 10 mVpp floor into 50 ohm, below the 20 mVpp into high-Z
+    text = GOOD.replace('load_ohm = "inf"', "load_ohm = 50").replace(
+        "max_drive_vpp = 2.5", "max_drive_vpp = 0.015")
+    assert BenchConfig.load(write(tmp_path, text)).max_drive_vpp == 0.015
+    with pytest.raises(BenchConfigError, match="0.015 V pk-pk is below the 33220A's smallest "
+                       "amplitude 0.02 V pk-pk into high-Z"):
+        BenchConfig.load(write(tmp_path, text.replace("load_ohm = 50", 'load_ohm = "inf"', 2)))
+    simulated = '[bench]\nsimulated = true\n[limits]\nmax_drive_vpp = 0.015\n'
+    with pytest.raises(BenchConfigError, match="limits.max_drive_vpp: .*into high-Z"):
+        BenchConfig.load(write(tmp_path, simulated))
 
 
 def test_a_reference_clock_in_another_unit_is_refused_naming_the_unit(tmp_path, capsys):
