@@ -27,6 +27,7 @@ import logging
 import math
 import os
 import re
+import socket
 import time
 from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
@@ -456,6 +457,10 @@ class SessionWriter:
         g.attrs["status"] = "running"
         g.attrs["reason"] = ""
         g.attrs["software_version"] = software_version
+        # who writes it: with HDF5 file locking off (NFS), a file being written opens for
+        # reading, and only these tell a live run from a killed one (`session info`)
+        g.attrs["host"] = socket.gethostname()
+        g.attrs["pid"] = os.getpid()
         _write_bench(g.create_group("bench"), bench)
         # created now, with the run: its first entries, a step later, then add to it and
         # not to the run's own group (a kill in that flush leaves the run's status readable)

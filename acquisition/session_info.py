@@ -9,7 +9,10 @@ text or JSON (docs/session-format.md, "At a glance").
 
 from __future__ import annotations
 
+import os
+import socket
 from collections import Counter
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -135,6 +138,8 @@ def _session(reader: SessionReader, path: Path) -> dict[str, Any]:
             "simulated": None if bench is None or "simulated" not in bench.attrs
             else bool(bench.attrs["simulated"]),
             "software_version": _text(a.get("software_version", "")),
+            "host": _text(a.get("host", "")) or None,
+            "pid": int(a["pid"]) if "pid" in a else None,
         })
     status, reason = reader.status
     steps, damaged = _scan_steps(h5)
@@ -208,6 +213,7 @@ def _session(reader: SessionReader, path: Path) -> dict[str, Any]:
         "protocol_source_state": _source_state(
             _text(h5["protocol"].attrs.get("source", "")), reader.protocol_text),
         "status": status, "reason": reason,
+        "writer_alive": _writer_alive(runs[-1]) if status == "running" and runs else None,
         "outputs_confirmed_off": reader.outputs_confirmed_off,
         "runs": runs,
         "bench": {
@@ -235,6 +241,25 @@ def _session(reader: SessionReader, path: Path) -> dict[str, Any]:
                 "latest_flagged": flagged[-LOG_LINES_KEPT:]},
         "notes": notes,
     }
+
+
+def _writer_alive(run: Mapping[str, Any]) -> bool | None:
+    """Whether the process that wrote ``run`` (its recorded host and pid) is alive: True
+    (alive, or its pid was reused), False (gone: the run was killed), None (another host,
+    or a file from before they were recorded). With HDF5 file locking on, a file being
+    written does not open at all; with it off (NFS), this tells a live run from a killed
+    one."""
+    if run.get("pid") is None or run.get("host") != socket.gethostname():
+        return None
+    try:
+        os.kill(int(run["pid"]), 0)  # signal 0: nothing sent, only whether it exists
+    except ProcessLookupError:
+        return False
+    except PermissionError:  # another user's process
+        return True
+    except (OSError, OverflowError, ValueError):
+        return None
+    return True
 
 
 def _source_state(source: str, text: str) -> str | None:

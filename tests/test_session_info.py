@@ -5,7 +5,11 @@ whose outputs could not be confirmed off) and from an FRF-only file."""
 from __future__ import annotations
 
 import json
+import os
 import shutil
+import socket
+import subprocess
+import sys
 from pathlib import Path
 
 import h5py
@@ -126,13 +130,43 @@ def test_cli_text_names_outputs_not_confirmed_off_and_the_json_is_the_same(
     assert json.loads(capsys.readouterr().out) == written
     killed = tmp_path / "killed.h5"  # what a kill -9 leaves: no end, nothing confirmed
     shutil.copy(complete_session, killed)
+    gone = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"],
+                          capture_output=True, text=True, check=True)
     with h5py.File(killed, "r+") as handle:
         handle["runs/000"].attrs["status"] = "running"
+        handle["runs/000"].attrs["pid"] = int(gone.stdout)  # a process that has ended
         del handle["runs/000"].attrs["outputs_confirmed_off"]
     assert main(["session", "info", str(killed)]) == 0
     text = capsys.readouterr().out
     assert "status: running (no end recorded" in text and "killed?" in text
     assert "may have left an output on: check the bench" in text
+
+
+def test_a_run_whose_writer_lives_is_not_called_killed(
+        complete_session: Path, tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
+    """With HDF5 file locking off (NFS) a file being written opens for reading: its run
+    read "killed?", with a resume command that would have made two writers."""
+    live = tmp_path / "live.h5"
+    shutil.copy(complete_session, live)
+    with h5py.File(live, "r+") as handle:
+        assert handle["runs/000"].attrs["host"] == socket.gethostname()
+        handle["runs/000"].attrs["status"] = "running"
+        handle["runs/000"].attrs["pid"] = os.getpid()  # this process: alive
+        del handle["runs/000"].attrs["outputs_confirmed_off"]
+        del handle["steps"][sorted(handle["steps"])[-1]]  # short of its plan
+    info = session_info(live)
+    assert info["writer_alive"] is True and info["runs"][0]["pid"] == os.getpid()
+    assert main(["session", "info", str(live)]) == 0
+    text = capsys.readouterr().out
+    assert "is alive: still being written" in text and "killed" not in text
+    assert "--resume" not in text
+    with h5py.File(live, "r+") as handle:  # written on another machine: cannot tell
+        handle["runs/000"].attrs["host"] = "bench-pc-7"
+    assert session_info(live)["writer_alive"] is None
+    assert main(["session", "info", str(live)]) == 0
+    text = capsys.readouterr().out
+    assert f"killed, unless its process {os.getpid()} on bench-pc-7 is still running" in text
+    assert "check the bench" in text
 
 
 def test_an_frf_only_file_and_a_foreign_file(tmp_path: Path, capsys) -> None:

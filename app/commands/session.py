@@ -57,8 +57,9 @@ def info_text(info: dict[str, Any]) -> str:
         # only against a known plan: a stored protocol that does not parse cannot be
         # resumed (run --resume needs a protocol file holding that very text)
         planned = info["steps"]["planned"]
+        # no resume advice while its writer lives: two writers would corrupt the file
         if info["status"] != "completed" and planned is not None and \
-                info["steps"]["acquired"] < planned:
+                info["steps"]["acquired"] < planned and not info.get("writer_alive"):
             if info["reprocessed_from"]:
                 lines.append(f"  to complete it: resume its source session "
                              f"{info['reprocessed_from']} and reprocess that (a reprocessed "
@@ -157,6 +158,13 @@ def _status_line(info: dict[str, Any]) -> str:
     reason = f" ({info['reason']})" if info["reason"] else ""
     if info["status"] == "running":
         reason = f" ({KILLED})"
+        last = info["runs"][-1] if info["runs"] else {}
+        if info.get("writer_alive"):
+            reason = (f" (no end recorded, and its process {last.get('pid')} on this host "
+                      "is alive: still being written, with HDF5 file locking off?)")
+        elif info.get("writer_alive") is None and last.get("host"):
+            reason = (f" (no end recorded: killed, unless its process {last.get('pid')} on "
+                      f"{last['host']} is still running)")
     off = info["outputs_confirmed_off"]
     said = {True: "every run's outputs confirmed off",
             False: "OUTPUTS NOT CONFIRMED OFF in a run (see the runs below)",
@@ -168,7 +176,8 @@ def _status_line(info: dict[str, Any]) -> str:
         said = (f"outputs confirmed off at the end of the runs that recorded it; not "
                 f"recorded for run {', '.join(unrecorded)}")
     if info["status"] == "running" and off is not False:
-        said += " (a killed run may have left an output on: check the bench)"
+        said += (" (a killed run may have left an output on: check the bench)"
+                 if not info.get("writer_alive") else "")
     return f"status: {info['status']}{reason}; {said}"
 
 
