@@ -679,6 +679,12 @@ class Runner:
                              "the transducers as placed; set it at a setup's prompt, or give "
                              "the setup `gates` in the protocol")
         with self._gates_lock:
+            if self._current_setup is not setup:
+                # the next setup started while this was checked: its transducers are placed
+                # anew, so a gate seen in the last one's echoes does not apply
+                raise ValueError(f"setup {setup.name!r} ended before the gate for "
+                                 f"ch{channel} was set: nothing changed; set it in setup "
+                                 f"{self._current_setup.name!r}'s echoes")
             self._protocol_gated.discard(channel)
             if gate is None:
                 self._gates.pop(channel, None)

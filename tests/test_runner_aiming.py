@@ -209,6 +209,31 @@ def test_set_gate_refuses_what_cannot_be_tracked(tmp_path):
         assert runner.gates == {}
 
 
+def test_a_gate_checked_as_the_next_setup_starts_is_not_set_in_it(tmp_path, monkeypatch):
+    """set_gate read the current setup outside its lock: a gate seen in one setup's echoes
+    could land in the next setup's, whose transducers are placed anew."""
+    protocol = tmp_path / "p.toml"
+    protocol.write_text(PROTOCOL)
+    bench = sim_bench.open_simulated_bench(generators="python")
+    with prepare_session(protocol, tmp_path / "s.h5", bench=bench) as session:
+        runner = session.runner
+        first, second = runner.protocol.setups[:2]
+        runner._current_setup = first  # as at setup a's prompt
+        options = runner._tracking_options
+
+        def next_setup_starts():  # called by set_gate between its check and its lock
+            with runner._gates_lock:
+                runner._current_setup = second
+            return options()
+
+        monkeypatch.setattr(runner, "_tracking_options", next_setup_starts)
+        with pytest.raises(ValueError, match=f"setup '{first.name}' ended before the gate "
+                           f"for ch1 was set: nothing changed; set it in setup "
+                           f"'{second.name}'"):
+            runner.set_gate(1, (100, 200))
+        assert runner.gates == {}
+
+
 def _gate_on_rival(runner, echoes):
     note = next(n for n in echoes[1].notes if "another echo" in n)
     bone = int(note.split("sample ")[1].split()[0])
