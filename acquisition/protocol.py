@@ -71,6 +71,11 @@ MAX_POINT_DISTANCE_M = 1.0
 refused: no place on a pelvis is (the landmark catalogue's points lie within 0.16 m of it,
 every coordinate within 0.15 m), so it is a unit slip, millimetres typed into
 ``position_m`` (a run measured 2 of 2 steps of a point 93 m away, every FRF line NaN)."""
+MIN_BONE_POINT_DISTANCE_M = 0.02
+"""A point on a bone nearer than this to the model origin is refused: the origin (between
+the SIAS, design 4.1) lies in front of the abdomen, the nearest bone (the pubic symphysis,
+appendix E) some 90 mm below it, and the catalogue's nearest landmark 115 mm away; such a
+point is metres typed into ``position_mm`` (0.05 read as 0.05 mm)."""
 MIDLINE_TOLERANCE_M = 0.01
 """How far (m) a point on one innominate may lie across the mid-sagittal plane (y = 0): the
 bones meet at the pubic symphysis, on that plane (appendix E's symphysis springs attach at
@@ -654,6 +659,18 @@ def _point(name: str, entry: Mapping[str, Any], where: str, p: _Problems,
                 in_m = "[" + ", ".join(f"{v / 1000.0:g}" for v in entry[key]) + "]"
                 rule += (f": position_m is in metres, so if these are millimetres write "
                          f"position_m = {in_m} or position_mm = {given}")
+            p.add(f"{where}.{key}", rule)
+            pos = None
+        elif bone and distance < MIN_BONE_POINT_DISTANCE_M:
+            key = "position_mm" if "position_mm" in entry else "position_m"
+            given = "[" + ", ".join(f"{v:g}" for v in entry[key]) + "]"
+            rule = (f"{given} is {distance * 1e3:.3g} mm from the model origin (between the "
+                    f"SIAS, in front of the abdomen), where no bone is (a point on {bone} "
+                    f"lies at least {MIN_BONE_POINT_DISTANCE_M * 1e3:g} mm from it)")
+            if key == "position_mm":
+                in_mm = "[" + ", ".join(f"{v * 1000.0:g}" for v in entry[key]) + "]"
+                rule += (f": position_mm is in millimetres, so if these are metres write "
+                         f"position_mm = {in_mm} or position_m = {given}")
             p.add(f"{where}.{key}", rule)
             pos = None
     if pos is not None and bone in ("innominate_right", "innominate_left"):

@@ -73,6 +73,28 @@ def test_the_limit_is_far_outside_the_landmark_catalogue():
     assert parse(data).points["far"].position_m == pytest.approx((0.99, 0.0, 0.0))
 
 
+def test_metres_typed_into_position_mm_on_a_bone_are_refused_saying_so():
+    from pelvislab.acquisition.protocol import MIN_BONE_POINT_DISTANCE_M
+
+    nearest = min(math.dist(pt.position_m, (0.0, 0.0, 0.0))
+                  for pt in load_landmarks().values() if pt.bone)
+    assert MIN_BONE_POINT_DISTANCE_M < 0.1 < nearest  # the catalogue: 115 mm and more
+    data = base()
+    data["points"] = {"slip": {"bone": "sacrum", "position_mm": [-0.135, 0.0, -0.01],
+                               "direction": [-1.0, 0.0, 0.0]}}
+    data["setups"][0]["transducers"]["ch2"] = "slip"
+    message = problems_of(data)
+    assert ("points.slip.position_mm: [-0.135, 0, -0.01] is 0.135 mm from the model origin"
+            in message)
+    assert ("if these are metres write position_mm = [-135, 0, -10] or position_m = "
+            "[-0.135, 0, -0.01]") in message
+    data["points"]["slip"]["position_mm"] = [-135.0, 0.0, -10.0]
+    assert parse(data).points["slip"].position_m == pytest.approx((-0.135, 0.0, -0.01))
+    # a point of no bone (a phantom's, a bed's) may sit at the origin
+    data["points"]["slip"].update(bone="", position_mm=[0.0, 0.0, 0.0])
+    assert parse(data).points["slip"].position_m == (0.0, 0.0, 0.0)
+
+
 @pytest.mark.parametrize("entry, key", [
     ({"bone": "", "position_m": [0.0, 0.0, 0.0], "direction": [-1.0, 0.0, 1.0]},
      "points.probe.direction"),
