@@ -749,8 +749,12 @@ class ReplayView(QtWidgets.QWidget):
             self.param_table.setItem(r, 0, QtWidgets.QTableWidgetItem(label))
             self.param_table.setItem(r, 1, QtWidgets.QTableWidgetItem(f"{entry['value']:.4g}"))
             std = entry.get("std")
-            self.param_table.setItem(r, 2, QtWidgets.QTableWidgetItem(
-                "" if std is None else f"{std:.2g}"))
+            cell = QtWidgets.QTableWidgetItem("" if std is None else f"{std:.2g}")
+            interval = entry.get("interval_95")
+            if interval:  # a weak parameter's is a factor, not value +- 2 std
+                cell.setToolTip(f"95 % interval {interval[0]:.3g} to {interval[1]:.3g}"
+                                + ("" if name.startswith("f_") else " (the fit's log space)"))
+            self.param_table.setItem(r, 2, cell)
         # as wide as its contents (the std column sat behind a horizontal scrollbar)
         table = self.param_table
         table.resizeColumnsToContents()

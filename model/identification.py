@@ -352,7 +352,8 @@ class FitResult:
     def as_dict(self) -> dict[str, object]:
         """JSON-ready dict (design 4.5)."""
         return {
-            "parameters": {n: {"value": float(v), "std": _nan_to_none(s)}
+            "parameters": {n: {"value": float(v), "std": _nan_to_none(s),
+                               "interval_95": interval_95(n, float(v), float(s))}
                            for n, v, s in zip(self.names, self.values, self.std, strict=True)},
             "converged": bool(self.converged),
             "cost": float(self.cost),
@@ -370,6 +371,27 @@ class FitResult:
             },
             **self.extra,
         }
+
+
+#: Two-sided 95 % quantile of the standard normal.
+Z_95 = 1.959963984540054
+
+
+def interval_95(name: str, value: float, std: float) -> list[float] | None:
+    """The 95 % interval [low, high] of a fitted parameter, in its SI unit, in the space the
+    fit ran in: ``value x/÷ exp(1.96 std / value)`` for the log-fitted masses, stiffnesses
+    and dampings (their ``std`` is the linearised ``value x std(log p)``), ``value +- 1.96
+    std`` for the linear f_k, f_c (eq. 7.1-7.3). A weak parameter's linear ``value +- 2 std``
+    reached below zero, a value no mass or spring can take, and hid that the fit's
+    uncertainty is a factor (calibration audit, session 43). None without a finite std."""
+    if not (np.isfinite(std) and np.isfinite(value)) or std < 0:
+        return None
+    if name in ("f_k", "f_c") or value <= 0:
+        return [value - Z_95 * std, value + Z_95 * std]
+    # capped below float's range (value x e^300 stays finite for any SI value here): a std
+    # of many e-folds says "undetermined" as well
+    factor = float(np.exp(min(Z_95 * std / value, 300.0)))
+    return [value / factor, value * factor]
 
 
 def _nan_to_none(x: float) -> float | None:

@@ -247,6 +247,8 @@ def test_replay_identification_shows_parameters_and_model_frfs(operator_window, 
     qtbot.mouseClick(replay.identify_button, QtCore.Qt.MouseButton.LeftButton)
     qtbot.waitUntil(lambda: replay.param_table.rowCount() > 0, timeout=120_000)
     names = {replay.param_table.item(r, 0).text() for r in range(replay.param_table.rowCount())}
+    assert all(replay.param_table.item(r, 2).toolTip().startswith("95 % interval ")
+               for r in range(replay.param_table.rowCount()))
     # with their units (GUI review, session 35: a bare "k_io_R 1.028e+06")
     assert {"k_io_R (N/m)", "c_pub (N s/m)", "m_sacrum (kg)"} <= names
     assert replay.ident_frf._model, "no model FRF drawn"

@@ -112,6 +112,8 @@ def test_recovers_parameters_from_perturbed_start(kind: str) -> None:
     d = res.as_dict()
     assert set(d["parameters"]) == set(p.names)
     assert d["parameters"]["k0"]["value"] == pytest.approx(true[4], rel=1e-6)
+    low, high = d["parameters"]["k0"]["interval_95"]
+    assert low < d["parameters"]["k0"]["value"] < high
 
 
 def test_wrong_start_is_reported_not_hidden() -> None:

@@ -122,6 +122,7 @@ def test_a_parameter_on_its_bound_is_named_and_has_no_std():
     assert "k2 (std null; the others' std hold it there)" in res.message
     assert not res.converged
     assert res.as_dict()["parameters"]["k2"]["std"] is None
+    assert res.as_dict()["parameters"]["k2"]["interval_95"] is None
     # the others' std are those of a fit with k2 held where it ended (its column left out)
     held = identify_frf(p, f, synth(p, true, f), free=[n for n in p.names if n != "k2"],
                         start=res.values, residual=ResidualSpec("log"),
@@ -274,3 +275,19 @@ def test_per_frf_gains_within_their_prior_are_not_read_as_structure(seed):
     assert res.converged, res.message
     assert abs(res.extra["residual_whiteness"]["lag1_correlation"]) < 0.1
     assert np.all(np.abs((res.values - p.nominal) / res.std) < 3)
+
+
+def test_the_95_interval_is_taken_in_the_space_the_fit_ran_in() -> None:
+    """A weak stiffness's linear value +- 2 std reached below zero; the fit ran in log p,
+    where the interval is a factor (calibration audit, session 43)."""
+    from pelvislab.model.identification import interval_95
+
+    low, high = interval_95("k_io", 1e5, 1.5e5)  # std 150 %: a factor e^2.94 = 19
+    assert low > 0 and high / 1e5 == pytest.approx(1e5 / low)
+    assert high / 1e5 == pytest.approx(np.exp(1.959964 * 1.5), rel=1e-6)
+    # a small std: the linear interval, to first order
+    assert interval_95("c_sij", 10.0, 0.1) == pytest.approx([9.804, 10.198], abs=2e-3)
+    # f_k, f_c are fitted linearly (they may be 0 or negative)
+    assert interval_95("f_k", 0.0, 0.5) == pytest.approx([-0.98, 0.98], abs=1e-3)
+    assert interval_95("k_io", 1e5, float("nan")) is None
+    assert interval_95("k_io", 1e5, 1e9)[1] < float("inf")  # undetermined, no overflow
