@@ -97,6 +97,8 @@ class PeakPicking:
     """(n_lines,) the mean log|H| (natural log of m/N) the peaks were picked on, or None."""
     mean_log_entries: np.ndarray | None = None
     """(n_out, n_in) bool: the FRFs that mean is over."""
+    min_prominence: float = 0.1
+    """The smallest prominence (natural-log units) a peak was picked with."""
 
 
 @dataclass(frozen=True)
@@ -358,6 +360,11 @@ def identify_modal(
         pair["shape_std"] = float(shape_std[i]) if picked else None
         pair["frequency_std_hz"] = float(frequency_std_hz[i]) if picked else None
     unmatched = [p for p in pairs_report if not p["matched"]]
+    # the model's peaks at the fit that no measured mode stands for: a mode the picking or
+    # the selection left out, or model error; said, not judged (a subject damped more than
+    # the model may smear a peak the model shows)
+    extra_peaks = (_model_peaks_without_data(problem, paired(sol.x)[1], data.picking, ranges)
+                   if picked else [])
     with np.errstate(invalid="ignore"):
         undetermined = [n for n, v, s in zip(free, values[idx], std, strict=True)
                         if not np.isfinite(s) or s > abs(v)]
@@ -375,6 +382,11 @@ def identify_modal(
                                                             for p in unmatched)
                     + " (peaks that are not model modes, shapes read off resonance, or "
                     "model error)")
+    if extra_peaks:
+        message += ("; the model at the fit shows peak(s) at "
+                    + ", ".join(f"{f:.4g}" for f in extra_peaks)
+                    + " Hz that no measured mode stands for (a mode the picking or the "
+                    "selection left out, or model error)")
     if undetermined or unresolved:
         message += ("; the modes do not determine the parameters: "
                     + ("std above the value or null for "
@@ -391,6 +403,7 @@ def identify_modal(
         evaluations=evals[0], wall_time_s=time.perf_counter() - t0, residual_kind="modal",
         singular_values=sv, weak_directions=weak, message=message,
         extra={"rms_residual": rms, "on_bound": bound_names, "mode_pairs": pairs_report,
+               "model_peaks_without_data_hz": extra_peaks,
                "pair_min_mac": PAIR_MIN_MAC, "undetermined": undetermined},
     )
 
@@ -550,7 +563,8 @@ def modes_from_frf(
     tol = np.maximum(spacing, DEFAULT_FREQUENCY_TOL * f[peaks][:, None])
     return ModalData(f[peaks], np.array(shapes).T, frequency_tol_hz=tol,
                      picking=PeakPicking(f, measured, peaks, noise, total,
-                                         entries.reshape(Hm.shape[1:])))
+                                         entries.reshape(Hm.shape[1:]),
+                                         float(min_prominence)))
 
 
 def _picked_shape(Hk: np.ndarray, measured: np.ndarray) -> np.ndarray:
@@ -620,6 +634,34 @@ def _picking_bias(problem: FrfProblem, state: tuple, picking: PeakPicking, O: np
     if picking.shape_noise_std is not None:
         std = np.hypot(std, picking.shape_noise_std)
     return np.maximum(std, SHAPE_STD_FLOOR), bias_hz
+
+
+def _model_peaks_without_data(problem: FrfProblem, mats: SystemMatrices,
+                              picking: PeakPicking, ranges: np.ndarray) -> list[float]:
+    """Frequencies (Hz) of the peaks the model's own FRFs (``mats``: the fit, its damping)
+    show where the data's were picked (same lines, same FRFs, the same prominence) that lie
+    outside every measured mode's interval (``ranges``, (n_m, 2) Hz) by more than a line:
+    resonances the model predicts in the band and the measured modes do not include."""
+    from scipy.signal import find_peaks
+
+    from pelvislab.model.identification import frf_with_jacobian
+
+    if picking.mean_log_entries is None:
+        return []
+    f = picking.frequency_hz
+    H, _ = frf_with_jacobian(mats, problem.outputs, problem.inputs, f,
+                             omega_max_rad_s=problem.omega_max_rad_s, jacobian=False)
+    mag = np.abs(H[:, picking.mean_log_entries])
+    mag = mag[:, np.all(mag > 0, axis=0)]
+    if mag.shape[1] == 0:
+        return []
+    peaks, _ = find_peaks(np.mean(np.log(mag), axis=1), prominence=picking.min_prominence)
+    out = []
+    for k in peaks:
+        line = max(f[k] - f[k - 1], f[k + 1] - f[k])
+        if not np.any((ranges[:, 0] - line <= f[k]) & (f[k] <= ranges[:, 1] + line)):
+            out.append(float(f[k]))
+    return out
 
 
 def _model_peak_hz(problem: FrfProblem, mats: SystemMatrices, frequency_hz: np.ndarray,

@@ -380,3 +380,25 @@ def test_picked_modes_keep_their_peak_lines() -> None:
     with pytest.raises(ValueError, match="picking names 3 peak line"):
         ModalData(data.frequency_hz[:2], data.shapes[:, :2], data.frequency_tol_hz[:2],
                   picking=data.picking)
+
+
+def test_a_model_peak_no_measured_mode_stands_for_is_named() -> None:
+    """Modal updating judged the measured modes only: a resonance the model shows in the
+    band that the modes given leave out (here the chain's third, left out of the selection)
+    went unsaid."""
+    from dataclasses import replace
+
+    p = chain_problem(3, seed=1, damping=1.0)
+    f = np.arange(1.0, 80.0, 0.5)
+    data = modes_from_frf(f, synth(p, p.nominal, f))
+    assert data.frequency_hz.size == 3
+    whole = identify_modal(p, data, free=["k0", "k1", "k2"], n_rigid=0)
+    assert whole.extra["model_peaks_without_data_hz"] == []
+    assert "no measured mode stands for" not in whole.message
+    two = ModalData(data.frequency_hz[:2], data.shapes[:, :2], data.frequency_tol_hz[:2],
+                    replace(data.picking, peak_line=data.picking.peak_line[:2]))
+    res = identify_modal(p, two, free=["k0", "k1", "k2"], n_rigid=0)
+    (left_out,) = res.extra["model_peaks_without_data_hz"]
+    assert left_out == pytest.approx(data.frequency_hz[2], abs=1.0)
+    assert (f"the model at the fit shows peak(s) at {left_out:.4g} Hz that no measured mode "
+            "stands for") in res.message
