@@ -172,6 +172,12 @@ def test_a_sweep_beyond_the_calibration_is_refused_before_anything_opens(tmp_pat
                                             r"below 20 Hz"):
         load_protocol(ranged, BenchLimits.from_config(cfg))
     load_protocol(protocol)  # one constant N/V: no range to keep to
+    # a table written in kHz lies wholly below the sweep: said so
+    khz = BenchConfig.load(write_bench(tmp_path, "frequency_hz,newton_per_volt_re,"
+                                       "newton_per_volt_im\n0.005,8,0\n0.4,7,-1\n"))
+    with pytest.raises(ProtocolError, match=r"\(0.005-0.4 Hz\).*its rows x 1000 would cover "
+                                            r"the sweep: kHz in its frequency_hz column\?"):
+        load_protocol(protocol, BenchLimits.from_config(khz))
     bench_path = tmp_path / "bench.toml"
     with pytest.raises(ProtocolError, match="outside the drive calibration"):
         prepare_session(protocol, tmp_path / "s.h5", bench_path=bench_path)
