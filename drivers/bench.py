@@ -276,6 +276,26 @@ class BenchConfig:
             return None
         return math.inf if isinstance(load, str) else float(load)  # strings: "inf" (checked)
 
+    def simulated_sections_note(self) -> str | None:
+        """What a simulated bench makes of the file's instrument sections, when it has any:
+        their resources are not opened; a generator's ``load_ohm``, ``max_vpp``,
+        ``timeout_s`` and ``external_reference`` and the pulsers' resources (as names)
+        apply, a ``[digitizer]`` section does not. None for a real bench or no sections
+        (they were taken without a word: a bench file switched to simulated for a dry run
+        read as if its instruments had answered; session 43 note)."""
+        if not self.simulated:
+            return None
+        given = [r for r, section in (("trigger", self.trigger), ("drive", self.drive),
+                                      ("digitizer", self.digitizer)) if section is not None]
+        if self.pulsers:
+            given.append("pulsers")
+        if not given:
+            return None
+        unused = " ([digitizer] not at all)" if self.digitizer is not None else ""
+        return (f"simulated = true: {', '.join(f'[{r}]' for r in given)} not opened, "
+                "the simulator answers instead; a generator's load_ohm, max_vpp, timeout_s "
+                f"and external_reference apply{unused}")
+
     def instrument_models(self) -> tuple[InstrumentModel, ...]:
         """The instruments this bench file opens, by their driver classes (imported here,
         nothing opened): a real bench's by its sections' ``driver``; a simulated bench's as

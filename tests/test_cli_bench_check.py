@@ -25,6 +25,22 @@ def test_a_simulated_bench_file_lists_every_instrument(tmp_path, capsys):
     assert out.rstrip().endswith("ok: every instrument answered; outputs off")
 
 
+def test_a_simulated_bench_file_with_instrument_sections_says_they_are_not_opened(
+        tmp_path, capsys):
+    bench = tmp_path / "dry.toml"
+    bench.write_text('[bench]\nname = "dry run"\nsimulated = true\n[limits]\n'
+                     'max_drive_vpp = 2.0\n[calibration]\ndrive_newton_per_volt = 8.0\n'
+                     '[drive]\nresource = "USB0::1::2::B::INSTR"\nload_ohm = "inf"\n'
+                     '[digitizer]\nresource = "PCI::INSTR0"\n')
+    assert main(["bench", "check", str(bench)]) == 0
+    out = capsys.readouterr().out
+    assert ("  note: simulated = true: [drive], [digitizer] not opened, the simulator answers "
+            "instead; a generator's load_ohm, max_vpp, timeout_s and external_reference "
+            "apply ([digitizer] not at all)\n") in out
+    assert main(["bench", "check", str(_dry(tmp_path))]) == 0
+    assert "note:" not in capsys.readouterr().out  # no sections, nothing to say
+
+
 def _dry(tmp_path):
     bench = tmp_path / "dry.toml"
     bench.write_text('[bench]\nname = "dry run"\nsimulated = true\n[limits]\n'

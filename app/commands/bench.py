@@ -120,6 +120,9 @@ def check_command(args: argparse.Namespace) -> int:
     say(f"{config.name}{' (SIMULATED)' if config.simulated else ''}")
     say(f"  drive calibration: {drive_calibration_text(config)}")
     say(f"  speed of sound: {speed_of_sound_text(config)}")
+    sections = config.simulated_sections_note()
+    if sections:
+        say(f"  note: {sections}")
     listed: set[str] = set()
 
     def answered(role: str, instrument: Any) -> None:
