@@ -147,6 +147,37 @@ def undamped_modes(M: np.ndarray, K: np.ndarray) -> tuple[np.ndarray, np.ndarray
     return lam, Z
 
 
+def frequency_dependent_omega2(lam: np.ndarray, f_k: float, omega_max_rad_s: float
+                               ) -> tuple[np.ndarray, np.ndarray]:
+    """Undamped ω² (rad²/s²) of modes whose eigenvalues of (K, M) are ``lam`` when the
+    stiffness is K(ω) = K (1 + f_k ω / (4 ω_max)) (eq. 7.1-7.3, app. D), and dω²/dλ.
+
+    K(ω) scales K, so the shapes are those of (K, M) and each mode's ω solves
+    ω² = λ (1 + a ω), a = f_k / (4 ω_max): ω = (aλ + √((aλ)² + 4λ)) / 2 (the fixed point
+    app. D iterates to, without damping); dω²/dλ = 2ω (1 + aω) / (2ω − aλ). ``f_k`` 0: λ
+    and 1."""
+    lam = np.clip(np.asarray(lam, float), 0.0, None)
+    if f_k == 0.0:
+        return lam, np.ones_like(lam)
+    a = f_k / (4.0 * omega_max_rad_s)
+    w = 0.5 * (a * lam + np.sqrt((a * lam) ** 2 + 4.0 * lam))
+    with np.errstate(invalid="ignore", divide="ignore"):
+        slope = np.where(w > 0, 2 * w * (1 + a * w) / (2 * w - a * lam), 1.0)
+    return w**2, slope
+
+
+def _frf(problem: FrfProblem, mats: SystemMatrices, frequency_hz: np.ndarray,
+         freq_dep: tuple[float, float]) -> np.ndarray:
+    """The model's FRFs (n_f, n_out, n_in) at ``frequency_hz`` with the eq. 7.1-7.3
+    factors ``freq_dep`` = (f_k, f_c)."""
+    from pelvislab.model.identification import frf_with_jacobian
+
+    H, _ = frf_with_jacobian(mats, problem.outputs, problem.inputs, frequency_hz,
+                             f_k=freq_dep[0], f_c=freq_dep[1],
+                             omega_max_rad_s=problem.omega_max_rad_s, jacobian=False)
+    return H
+
+
 def eigen_sensitivities(
     M: np.ndarray, K: np.ndarray, dM: np.ndarray, dK: np.ndarray, lam: np.ndarray,
     Z: np.ndarray, modes: Sequence[int],
@@ -193,6 +224,8 @@ def identify_modal(
     bounds_factor: float = 10.0,
     max_nfev: int = 100,
     progress: Callable[[str], None] | None = None,
+    f_k: float = 0.0,
+    f_c: float = 0.0,
 ) -> FitResult:
     """Gauss-Newton modal updating of the ``free`` parameters (default: the stiffnesses).
 
@@ -202,8 +235,16 @@ def identify_modal(
     ``frequency_weight``, ``shape_weight``: the residual weights of modes given without
     ``data.picking``; peak-picked modes are weighted by their standard uncertainty, and
     these weigh only the first fit, from which that uncertainty is first estimated.
+    ``f_k``, ``f_c``: the model's eq. 7.1-7.3 factors, held: the model's frequencies are
+    those of K(ω) (:func:`frequency_dependent_omega2`; they were left out, so a model file
+    with f_k was fitted as if it had none), its FRFs for the picking's biases include both.
     """
     t0 = time.perf_counter()
+    freq_dep = (float(f_k), float(f_c))
+
+    def omega2(lam: np.ndarray) -> np.ndarray:
+        return frequency_dependent_omega2(lam, freq_dep[0], problem.omega_max_rad_s)[0]
+
     names = list(problem.names)
     if free is None:  # masses + stiffnesses together are invisible up to scale (eq. 6.7-6.9)
         free = [n for n in names if n.startswith("k_")] or list(names)
@@ -244,7 +285,7 @@ def identify_modal(
         # proximity breaks ties)
         phi_model = O @ Z[:, elastic]
         m = mac(phi_model, phi_meas)
-        fratio = np.abs(np.log(lam[elastic][:, None] / w2_meas[None, :]))
+        fratio = np.abs(np.log(omega2(lam[elastic])[:, None] / w2_meas[None, :]))
         score = m - 0.01 * fratio
         pairs = elastic[np.argmax(score, axis=0)]
         return values, mats, lam, Z, pairs
@@ -254,8 +295,10 @@ def identify_modal(
         dlam, dz = eigen_sensitivities(mats.M, mats.K, mats.dM[idx], mats.dK[idx], lam, Z,
                                        list(pairs))
         evals[0] += 1
-        r_f = weight_f * (lam[pairs] / w2_meas - 1.0)
-        J_f = weight_f[:, None] * dlam / w2_meas[:, None]
+        w2, slope = frequency_dependent_omega2(lam[pairs], freq_dep[0],
+                                               problem.omega_max_rad_s)
+        r_f = weight_f * (w2 / w2_meas - 1.0)
+        J_f = weight_f[:, None] * slope[:, None] * dlam / w2_meas[:, None]
         r_s, J_s = [], []
         for i, s in enumerate(pairs):
             u = O @ Z[:, s]
@@ -313,7 +356,8 @@ def identify_modal(
         grid_std_hz = np.diff(data.frequency_range_hz(), axis=1)[:, 0] / 4
         frequency_std_hz = grid_std_hz
         for _ in range(PICKING_PASSES):
-            estimate, bias_hz = _picking_bias(problem, paired(sol.x), data.picking, O)
+            estimate, bias_hz = _picking_bias(problem, paired(sol.x), data.picking, O,
+                                              freq_dep)
             estimate_f = np.hypot(grid_std_hz, bias_hz)
             if shape_std is not None:
                 # never below an earlier estimate: a fit that absorbed the bias shows less
@@ -354,7 +398,7 @@ def identify_modal(
         sides = np.hypot(sides, widen[:, None])
         ranges = np.stack([data.frequency_hz - sides[:, 0], data.frequency_hz + sides[:, 1]],
                           axis=1)
-    pairs_report = _mode_pairs(paired(sol.x), O, data, ranges)
+    pairs_report = _mode_pairs(paired(sol.x), O, data, ranges, omega2)
     for i, pair in enumerate(pairs_report):
         # the uncertainties a picked mode was weighed with (null: given without picking)
         pair["shape_std"] = float(shape_std[i]) if picked else None
@@ -363,8 +407,8 @@ def identify_modal(
     # the model's peaks at the fit that no measured mode stands for: a mode the picking or
     # the selection left out, or model error; said, not judged (a subject damped more than
     # the model may smear a peak the model shows)
-    extra_peaks = (_model_peaks_without_data(problem, paired(sol.x)[1], data.picking, ranges)
-                   if picked else [])
+    extra_peaks = (_model_peaks_without_data(problem, paired(sol.x)[1], data.picking, ranges,
+                                             freq_dep) if picked else [])
     with np.errstate(invalid="ignore"):
         undetermined = [n for n, v, s in zip(free, values[idx], std, strict=True)
                         if not np.isfinite(s) or s > abs(v)]
@@ -408,14 +452,15 @@ def identify_modal(
     )
 
 
-def _mode_pairs(state: tuple, O: np.ndarray, data: ModalData, ranges: np.ndarray
+def _mode_pairs(state: tuple, O: np.ndarray, data: ModalData, ranges: np.ndarray,
+                omega2: Callable[[np.ndarray], np.ndarray] = lambda lam: lam,
                 ) -> list[dict[str, object]]:
     """Each measured mode's model partner at the fit: frequencies, MAC, the interval the
     measured frequency allows (``ranges``, (n_m, 2) Hz), and whether the pair holds
     (MAC >= PAIR_MIN_MAC, the model's frequency in the interval, no other measured mode
     paired with the same model mode)."""
     _, _, lam, Z, pairs = state
-    f_model = np.sqrt(np.clip(lam[pairs], 0.0, None)) / (2 * np.pi)
+    f_model = np.sqrt(np.clip(omega2(lam[pairs]), 0.0, None)) / (2 * np.pi)
     macs = np.array([mac(O @ Z[:, [s]], data.shapes[:, [i]])[0, 0]
                      for i, s in enumerate(pairs)])
     shared = np.array([np.count_nonzero(pairs == s) > 1 for s in pairs])
@@ -577,7 +622,8 @@ def _picked_shape(Hk: np.ndarray, measured: np.ndarray) -> np.ndarray:
     return u[:, 0]
 
 
-def _picking_bias(problem: FrfProblem, state: tuple, picking: PeakPicking, O: np.ndarray
+def _picking_bias(problem: FrfProblem, state: tuple, picking: PeakPicking, O: np.ndarray,
+                  freq_dep: tuple[float, float] = (0.0, 0.0)
                   ) -> tuple[np.ndarray, np.ndarray]:
     """What peak picking makes of the model's own FRFs at ``state`` (the fit's values, the
     model's damping), against the paired undamped modes:
@@ -595,12 +641,12 @@ def _picking_bias(problem: FrfProblem, state: tuple, picking: PeakPicking, O: np
     A model estimate of the picking's bias (a damped mode's peak lies below its undamped
     frequency, neighbouring modes move it either way): right to the extent the model's
     damping and neighbouring modes are the subject's."""
-    from pelvislab.model.identification import frf_with_jacobian
 
     _, mats0, lam, Z, pairs = state
     lines = picking.frequency_hz[picking.peak_line]
-    f_undamped = np.sqrt(np.clip(lam[pairs], 0.0, None)) / (2 * np.pi)
-    f_all = np.sqrt(lam[lam > 1e-6 * lam.max()]) / (2 * np.pi)
+    w2 = frequency_dependent_omega2(lam, freq_dep[0], problem.omega_max_rad_s)[0]
+    f_undamped = np.sqrt(w2[pairs]) / (2 * np.pi)
+    f_all = np.sqrt(w2[lam > 1e-6 * lam.max()]) / (2 * np.pi)
     band = picking.frequency_hz[[0, -1]]
     std = np.empty(pairs.size)
     bias_hz = np.empty(pairs.size)
@@ -608,9 +654,8 @@ def _picking_bias(problem: FrfProblem, state: tuple, picking: PeakPicking, O: np
         # the model's damping, or more where the data's peak is flatter: a model damped
         # less than the subject showed no bias to estimate (chains damped 30x the model:
         # converged fits beyond |z| 3, 39 % -> 0 %; session 43)
-        mats = _damping_like_the_data(problem, mats0, picking, k)
-        H, _ = frf_with_jacobian(mats, problem.outputs, problem.inputs, lines[i:i + 1],
-                                 omega_max_rad_s=problem.omega_max_rad_s, jacobian=False)
+        mats = _damping_like_the_data(problem, mats0, picking, k, freq_dep)
+        H = _frf(problem, mats, lines[i:i + 1], freq_dep)
         # the entries the data lack read 0 there when the column is chosen: here too
         read = _picked_shape(np.where(picking.measured[k], H[0], 0.0), picking.measured[k])
         mode = O @ Z[:, s]
@@ -626,8 +671,8 @@ def _picking_bias(problem: FrfProblem, state: tuple, picking: PeakPicking, O: np
         hi = min(band[1], f_undamped[i] * BIAS_WINDOW,
                  np.sqrt(above.min() * f_undamped[i]) if above.size else np.inf)
         fine = np.linspace(lo, hi, BIAS_GRID_LINES)
-        peak = _model_peak_hz(problem, mats, fine, picking.measured[k], f_undamped[i]) \
-            if fine[-1] > fine[0] else None
+        peak = _model_peak_hz(problem, mats, fine, picking.measured[k], f_undamped[i],
+                              freq_dep) if fine[-1] > fine[0] else None
         # no peak of the model's there (heavily damped, or beyond the band): no estimate,
         # the grid's tolerance stands (the data's own miss made a mismatched datum weightless)
         bias_hz[i] = 0.0 if peak is None else peak - f_undamped[i]
@@ -637,20 +682,18 @@ def _picking_bias(problem: FrfProblem, state: tuple, picking: PeakPicking, O: np
 
 
 def _model_peaks_without_data(problem: FrfProblem, mats: SystemMatrices,
-                              picking: PeakPicking, ranges: np.ndarray) -> list[float]:
+                              picking: PeakPicking, ranges: np.ndarray,
+                              freq_dep: tuple[float, float] = (0.0, 0.0)) -> list[float]:
     """Frequencies (Hz) of the peaks the model's own FRFs (``mats``: the fit, its damping)
     show where the data's were picked (same lines, same FRFs, the same prominence) that lie
     outside every measured mode's interval (``ranges``, (n_m, 2) Hz) by more than a line:
     resonances the model predicts in the band and the measured modes do not include."""
     from scipy.signal import find_peaks
 
-    from pelvislab.model.identification import frf_with_jacobian
-
     if picking.mean_log_entries is None:
         return []
     f = picking.frequency_hz
-    H, _ = frf_with_jacobian(mats, problem.outputs, problem.inputs, f,
-                             omega_max_rad_s=problem.omega_max_rad_s, jacobian=False)
+    H = _frf(problem, mats, f, freq_dep)
     mag = np.abs(H[:, picking.mean_log_entries])
     mag = mag[:, np.all(mag > 0, axis=0)]
     if mag.shape[1] == 0:
@@ -665,14 +708,12 @@ def _model_peaks_without_data(problem: FrfProblem, mats: SystemMatrices,
 
 
 def _model_peak_hz(problem: FrfProblem, mats: SystemMatrices, frequency_hz: np.ndarray,
-                   entries: np.ndarray, near_hz: float) -> float | None:
+                   entries: np.ndarray, near_hz: float,
+                   freq_dep: tuple[float, float] = (0.0, 0.0)) -> float | None:
     """The local maximum of the model's mean log|H| over ``entries`` ((n_out, n_in) bool)
     on the lines ``frequency_hz`` nearest ``near_hz``, refined by a parabola through it and
     its neighbours; None when the lines' interior has no local maximum."""
-    from pelvislab.model.identification import frf_with_jacobian
-
-    H, _ = frf_with_jacobian(mats, problem.outputs, problem.inputs, frequency_hz,
-                             omega_max_rad_s=problem.omega_max_rad_s, jacobian=False)
+    H = _frf(problem, mats, frequency_hz, freq_dep)
     mag = np.abs(H[:, entries])
     mag = mag[:, np.all(mag > 0, axis=0)]
     if mag.shape[1] == 0:
@@ -696,7 +737,8 @@ def _curvature(frequency_hz: np.ndarray, y: np.ndarray) -> float:
 
 
 def _damping_like_the_data(problem: FrfProblem, mats: SystemMatrices, picking: PeakPicking,
-                           k: int) -> SystemMatrices:
+                           k: int, freq_dep: tuple[float, float] = (0.0, 0.0)
+                           ) -> SystemMatrices:
     """``mats`` with the damping matrix C scaled up (at most :data:`DAMPING_SCALE_MAX`)
     until the model's mean log|H| is as flat as the data's across the peak line ``k`` and
     its neighbours (second divided difference over the same FRFs); ``mats`` itself where
@@ -706,8 +748,6 @@ def _damping_like_the_data(problem: FrfProblem, mats: SystemMatrices, picking: P
     a model damped less than the subject is too small (data damped 10x the model's: 29 % of
     converged 3-mass chains beyond |z| 3), while one estimated on a model damped more only
     widens the std."""
-    from pelvislab.model.identification import frf_with_jacobian
-
     if picking.mean_log_magnitude is None or picking.mean_log_entries is None:
         return mats
     lines = picking.frequency_hz[k - 1:k + 2]
@@ -715,8 +755,7 @@ def _damping_like_the_data(problem: FrfProblem, mats: SystemMatrices, picking: P
 
     def flatness(log_scale: float) -> float:
         scaled = replace(mats, C=mats.C * np.exp(log_scale))
-        H, _ = frf_with_jacobian(scaled, problem.outputs, problem.inputs, lines,
-                                 omega_max_rad_s=problem.omega_max_rad_s, jacobian=False)
+        H = _frf(problem, scaled, lines, freq_dep)
         mag = np.abs(H[:, picking.mean_log_entries])
         return _curvature(lines, np.mean(np.log(mag), axis=1))
 

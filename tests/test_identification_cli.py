@@ -191,3 +191,26 @@ def test_modal_updating_picks_peaks_on_the_lines_it_has(tmp_path: Path, capsys) 
     assert [f for f in whole if min(abs(f - 10), abs(f - 105)) > 5] == [
         f for f in doc["modes_hz"] if min(abs(f - 10), abs(f - 105)) > 5]
     assert "notes" not in json.loads(full.read_text())
+
+
+def test_modal_updating_gets_the_model_files_frequency_dependence(tmp_path: Path,
+                                                                  monkeypatch) -> None:
+    """identify --method modal fitted the modes of M and K only: a model file's f_k, f_c
+    were dropped."""
+    import pelvislab.model.identification_modal as modal
+
+    text = (Path(modal.__file__).parent / "appendix_e.toml").read_text()
+    model = tmp_path / "fk.toml"
+    model.write_text(text.replace("f_k = 0.0", "f_k = 0.5").replace("f_c = 0.0", "f_c = 0.2"))
+    seen = {}
+    fit = modal.identify_modal
+
+    def recording(*args, **kwargs):
+        seen.update(kwargs)
+        return fit(*args, **kwargs)
+
+    monkeypatch.setattr(modal, "identify_modal", recording)
+    data = Path(__file__).parent / "data" / "demo_sim_seed1.h5"
+    main(["identify", str(data), "--method", "modal", "--model", str(model),
+          "--json", str(tmp_path / "m.json")])
+    assert (seen["f_k"], seen["f_c"]) == (0.5, 0.2)

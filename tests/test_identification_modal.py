@@ -402,3 +402,38 @@ def test_a_model_peak_no_measured_mode_stands_for_is_named() -> None:
     assert left_out == pytest.approx(data.frequency_hz[2], abs=1.0)
     assert (f"the model at the fit shows peak(s) at {left_out:.4g} Hz that no measured mode "
             "stands for") in res.message
+
+
+def test_frequency_dependent_stiffness_moves_the_undamped_frequencies_as_app_d() -> None:
+    from pelvislab.model.identification_modal import frequency_dependent_omega2
+    from pelvislab.model.modal import complex_modes
+
+    p = chain_problem(3, seed=2)
+    m = p.assemble(p.nominal)
+    lam, _ = undamped_modes(m.M, m.K)
+    f_max_hz = p.omega_max_rad_s / (2 * np.pi)
+    w2, slope = frequency_dependent_omega2(lam, 0.8, p.omega_max_rad_s)
+    # the app. D fixed point without damping (tiny C: the iteration needs a pole)
+    iterated = complex_modes(m.M, m.K, 1e-9 * m.K, f_k=0.8, f_max_hz=f_max_hz, tol=1e-12)
+    np.testing.assert_allclose(np.sqrt(w2), np.sort(np.abs(iterated.poles.imag)), rtol=1e-8)
+    assert np.all(w2 > lam)  # K(w) > K
+    h = 1e-6 * lam
+    up = frequency_dependent_omega2(lam + h, 0.8, p.omega_max_rad_s)[0]
+    np.testing.assert_allclose(slope, (up - w2) / h, rtol=1e-5)
+    assert frequency_dependent_omega2(lam, 0.0, p.omega_max_rad_s)[0] is not None
+    np.testing.assert_array_equal(frequency_dependent_omega2(lam, 0.0, 1.0)[0], lam)
+
+
+def test_modal_updating_holds_the_models_frequency_dependence() -> None:
+    """A model file's f_k was left out of the modal residual: the stiffnesses took up
+    K(w)'s share (here ~10-25 % off, not converged or biased)."""
+    p = chain_problem(3, seed=1, damping=1.0)
+    truth = p.nominal.copy()
+    truth[3:6] *= np.exp(np.random.default_rng(1).uniform(-0.2, 0.2, 3))
+    f = np.arange(1.0, 120.0, 0.25)
+    data = modes_from_frf(f, synth(p, truth, f, f_k=1.5))
+    held = identify_modal(p, data, free=["k0", "k1", "k2"], n_rigid=0, f_k=1.5)
+    assert held.converged, held.message
+    assert np.all(np.abs(held.values / truth[3:6] - 1) < 0.03)
+    left_out = identify_modal(p, data, free=["k0", "k1", "k2"], n_rigid=0)
+    assert np.max(np.abs(left_out.values / truth[3:6] - 1)) > 0.1

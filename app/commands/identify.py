@@ -171,7 +171,7 @@ def identify_file(path: str | Path, method: str = "frf", params: list[str] | Non
         if version_b:
             # it was dropped without a word (exit 0, no f_k, f_c in the JSON): audit
             raise ValueError("--version-b applies to --method frf (the FRF fit; modal "
-                             "updating fits the modes of M and K, without f_k, f_c)")
+                             "updating holds the model file's f_k, f_c)")
         # options of the FRF fit's misfit and multi-start: modal updating has neither, and
         # they were dropped without a word (exit 0; session 41's note)
         fit_only = [flag for flag, given in (
@@ -197,7 +197,7 @@ def identify_file(path: str | Path, method: str = "frf", params: list[str] | Non
         except ValueError as exc:
             raise ValueError(f"{path}: {exc}") from None
         noise_note = _dropped_lines_note(frf, picking_lines(frf.H), picking_frfs(frf.H))
-        result = identify_modal(problem, data, free=free, progress=progress)
+        result = identify_modal(problem, data, free=free, progress=progress, f_k=f_k, f_c=f_c)
         extra: dict[str, Any] = {"method": "modal", "noise": noise_source,
                                  "modes_hz": [float(f) for f in data.frequency_hz]}
     elif method == "frf":
