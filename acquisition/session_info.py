@@ -243,6 +243,17 @@ def _session(reader: SessionReader, path: Path) -> dict[str, Any]:
     }
 
 
+def last_run_writer_alive(h5: h5py.File) -> bool | None:
+    """:func:`_writer_alive` of the last run in ``/runs`` of an open session file (None
+    without runs)."""
+    runs = h5.get("runs")
+    if runs is None or not len(runs):
+        return None
+    a = runs[sorted(runs)[-1]].attrs
+    return _writer_alive({"host": _text(a.get("host", "")) or None,
+                          "pid": int(a["pid"]) if "pid" in a else None})
+
+
 def _writer_alive(run: Mapping[str, Any]) -> bool | None:
     """Whether the process that wrote ``run`` (its recorded host and pid) is alive: True
     (alive, or its pid was reused), False (gone: the run was killed), None (another host,

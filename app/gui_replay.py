@@ -495,9 +495,16 @@ class ReplayView(QtWidgets.QWidget):
         self._dragged_gates = {}
         self._show_dragged_gates()
         status, reason = reader.status
-        # "running" in a file nobody writes: the process ended without closing it
-        shown = ("did not end (the process was killed?)" if status == "running"
-                 else status)
+        # "running" in a file nobody writes: the process ended without closing it; one that
+        # opens while its writer lives (HDF5 file locking off) is still being written
+        shown = status
+        if status == "running":
+            from pelvislab.acquisition.session_info import last_run_writer_alive
+
+            alive = last_run_writer_alive(reader.handle) if hasattr(reader, "handle") \
+                else None
+            shown = ("still being written (its process is alive: these are the steps so "
+                     "far)" if alive else "did not end (the process was killed?)")
         text = f"{Path(path).name}: {len(steps)} steps, run {shown}"
         if isinstance(reader, _FrfOnlyFile):
             text = f"{Path(path).name}: FRF-only file (no steps to replay)"
