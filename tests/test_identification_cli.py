@@ -47,7 +47,7 @@ def test_identify_writes_design_json(tmp_path: Path) -> None:
     assert isinstance(doc["evaluations"], int) and doc["wall_time_s"] > 0
 
 
-def test_identify_with_h_std_uses_chi_square(tmp_path: Path) -> None:
+def test_identify_with_h_std_uses_chi_square(tmp_path: Path, capsys) -> None:
     src = tmp_path / "frf.h5"
     _frf_file(src, {"m_sacrum": 1.1}, with_std=True)
     out = tmp_path / "out.json"
@@ -56,6 +56,18 @@ def test_identify_with_h_std_uses_chi_square(tmp_path: Path) -> None:
     assert doc["residual"] == "std"
     assert doc["parameters"]["m_sacrum"]["value"] == pytest.approx(0.396, rel=1e-6)
     assert doc["parameters"]["m_sacrum"]["std"] > 0
+    # the terminal gets the result too (nothing was printed when it converged)
+    printed = capsys.readouterr().out.splitlines()
+    low, high = doc["parameters"]["m_sacrum"]["interval_95"]
+    assert printed[0].startswith("identify (frf): converged, rms residual ")
+    assert printed[1:] == [
+        f"  m_sacrum  {doc['parameters']['m_sacrum']['value']:.4g} kg  "
+        f"(std {doc['parameters']['m_sacrum']['std']:.2g}, 95 % {low:.4g} to {high:.4g})",
+        f"  k_io_R    {doc['parameters']['k_io_R']['value']:.4g} N/m  "
+        f"(std {doc['parameters']['k_io_R']['std']:.2g}, 95 % "
+        f"{doc['parameters']['k_io_R']['interval_95'][0]:.4g} to "
+        f"{doc['parameters']['k_io_R']['interval_95'][1]:.4g})",
+        f"JSON: {out}"]
 
 
 def test_bad_file_gives_one_line_error(tmp_path: Path, capsys: pytest.CaptureFixture) -> None:

@@ -400,6 +400,31 @@ def recorded_calibration_std(path: str | Path, frequency_hz: Any
     return float(np.sqrt(np.mean(at_lines ** 2))), "bench", None
 
 
+def summary_text(document: dict[str, Any]) -> str:
+    """The identification's JSON (design 4.5) as a few lines: converged or not, the misfit,
+    and each parameter with its unit, standard error and 95 % interval."""
+    rms = document.get("rms_residual")
+    misfit = "" if rms is None else (
+        f", rms residual {rms:.3g}"
+        + (" (in noise sigma)" if document.get("residual") == "std" else ""))
+    head = ("converged" if document.get("converged")
+            else "NOT converged (the reason: on stderr and in the JSON's message)")
+    lines = [f"identify ({document.get('method', '?')}): {head}{misfit}"]
+    units = document.get("units", {})
+    params = document.get("parameters", {})
+    width = max((len(n) for n in params), default=0)
+    for name, entry in params.items():
+        unit = next((u for prefix, u in units.items() if name.startswith(prefix)), "")
+        unit = "" if unit == "1" else f" {unit}"
+        std = entry.get("std")
+        interval = entry.get("interval_95")
+        spread = "std n/a" if std is None else f"std {std:.2g}"
+        if interval:
+            spread += f", 95 % {interval[0]:.4g} to {interval[1]:.4g}"
+        lines.append(f"  {name:<{width}}  {entry['value']:.4g}{unit}  ({spread})")
+    return "\n".join(lines)
+
+
 def _identify(args: argparse.Namespace) -> int:
     if args.starts is not None and args.starts < 1:
         raise ValueError(f"--starts {args.starts}: must be >= 1")
@@ -430,6 +455,10 @@ def _identify(args: argparse.Namespace) -> int:
         print_json(report.to_json())
     else:
         write_json(out, report.to_json())
+        # what a user at the terminal wants first (the command printed nothing when it
+        # converged: session 44); the JSON holds the rest
+        print(summary_text(report.document))
+        print(f"JSON: {out}")
     for note in report.document.get("notes", []):
         print(f"note: {note}", file=sys.stderr)
     if not report.converged:
