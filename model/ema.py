@@ -1138,6 +1138,27 @@ def mode_significance(
     return out
 
 
+def _local_misfit(H: np.ndarray, H_fit: np.ndarray, H_std: np.ndarray, half_window: int = 3
+                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+    """Per line: the sum of ``|H_fit - H|² / H_std²`` over the FRFs, the number of values
+    summed, and the mean over ``half_window`` lines on each side (arrays (n_f,)); None when
+    no value has a finite fit and a positive ``H_std``. Lines in array order."""
+    std = np.asarray(H_std, dtype=float)
+    ok = np.isfinite(H) & np.isfinite(H_fit) & np.isfinite(std) & (std > 0)
+    if not ok.any():
+        return None
+    r2 = np.where(ok, np.abs(np.where(ok, H_fit - H, 0)) ** 2 / np.where(ok, std, 1.0) ** 2,
+                  0.0)
+    kernel = np.ones(2 * half_window + 1)
+    line_sum, line_n = r2.sum(axis=(1, 2)), ok.sum(axis=(1, 2))
+    # "full" cut to the lines: "same" returns the kernel's length when there are fewer
+    # lines than it (5 lines of validation_phase.toml: an IndexError; review, session 36)
+    centred = slice(half_window, half_window + line_sum.size)
+    local = (np.convolve(line_sum, kernel, "full")[centred]
+             / np.maximum(np.convolve(line_n, kernel, "full")[centred], 1))
+    return line_sum, line_n, local
+
+
 def misfit_beyond_noise(frequency_hz: np.ndarray, H: np.ndarray, H_fit: np.ndarray,
                         H_std: np.ndarray, half_window: int = 3
                         ) -> tuple[float, float, float]:
@@ -1149,24 +1170,33 @@ def misfit_beyond_noise(frequency_hz: np.ndarray, H: np.ndarray, H_fit: np.ndarr
     ``sqrt(E|H_measured - H|²)``), the line where that mean over the FRFs, averaged over
     ``half_window`` lines on each side, is largest, and that local mean (NaNs when no
     value qualifies). Arrays (n_f, n_out, n_in)."""
-    std = np.asarray(H_std, dtype=float)
-    ok = np.isfinite(H) & np.isfinite(H_fit) & np.isfinite(std) & (std > 0)
-    if not ok.any():
+    sums = _local_misfit(H, H_fit, H_std, half_window)
+    if sums is None:
         return float("nan"), float("nan"), float("nan")
-    r2 = np.where(ok, np.abs(np.where(ok, H_fit - H, 0)) ** 2 / np.where(ok, std, 1.0) ** 2,
-                  0.0)
-    kernel = np.ones(2 * half_window + 1)
-    line_sum, line_n = r2.sum(axis=(1, 2)), ok.sum(axis=(1, 2))
-    # "full" cut to the lines: "same" returns the kernel's length when there are fewer
-    # lines than it (5 lines of validation_phase.toml: an IndexError; review, session 36)
-    centred = slice(half_window, half_window + line_sum.size)
-    local = (np.convolve(line_sum, kernel, "full")[centred]
-             / np.maximum(np.convolve(line_n, kernel, "full")[centred], 1))
+    line_sum, line_n, local = sums
     # of the lines whose neighbourhood is worst, the worst line itself
     ties = np.flatnonzero(local >= local.max() * (1 - 1e-12))
     worst = int(ties[np.argmax(line_sum[ties] / np.maximum(line_n[ties], 1))])
-    return (float(r2.sum() / ok.sum()), float(np.asarray(frequency_hz, float)[worst]),
+    return (float(line_sum.sum() / line_n.sum()), float(np.asarray(frequency_hz, float)[worst]),
             float(local[worst]))
+
+
+def _away_from_poles(frequency_hz: np.ndarray, at_hz: np.ndarray, poles: np.ndarray
+                     ) -> tuple[np.ndarray, np.ndarray]:
+    """Whether each frequency ``at_hz`` lies away from every pole: more than 5 half-power
+    bandwidths ζf, 3 local line spacings (of the 7 lines of ``frequency_hz`` around it)
+    and 2 % of f from each pole's frequency; and that line spacing (Hz), both (n_at,)."""
+    f = np.sort(np.asarray(frequency_hz, dtype=float))
+    at_hz = np.atleast_1d(np.asarray(at_hz, dtype=float))
+    # the spacing of the lines there (a stepped sine zooms in on peaks: make demo's grid
+    # is 0.5 Hz at the median, 10 Hz away from its two zoom windows)
+    idx = np.searchsorted(f, at_hz)
+    spacing_hz = np.array([_line_spacing_hz(f[max(i - 3, 0):i + 4]) for i in idx])
+    fn, zeta = pole_frequency_damping(np.asarray(poles, dtype=complex).reshape(-1))
+    reach = np.maximum(np.maximum(5 * zeta * fn, 0.02 * fn)[None, :],
+                       3 * spacing_hz[:, None])
+    away = np.all(np.abs(at_hz[:, None] - fn[None, :]) > reach, axis=1)
+    return away, spacing_hz
 
 
 def _missing_mode_note(frequency_hz: np.ndarray, H: np.ndarray, H_fit: np.ndarray,
@@ -1181,13 +1211,9 @@ def _missing_mode_note(frequency_hz: np.ndarray, H: np.ndarray, H_fit: np.ndarra
     if not local > MISSING_MODE_LOCAL_CHI2:
         return ""
     f = np.sort(np.asarray(frequency_hz, dtype=float))
-    # the spacing of the lines there (a stepped sine zooms in on peaks: make demo's grid
-    # is 0.5 Hz at the median, 10 Hz away from its two zoom windows)
-    at = int(np.searchsorted(f, f_worst))
-    spacing_hz = _line_spacing_hz(f[max(at - 3, 0):at + 4])
-    fn, zeta = pole_frequency_damping(poles)
-    reach = np.maximum.reduce([5 * zeta * fn, np.full(fn.shape, 3 * spacing_hz), 0.02 * fn])
-    if np.any(np.abs(f_worst - fn) <= reach):
+    away, spacing = _away_from_poles(f, np.array([f_worst]), poles)
+    spacing_hz = float(spacing[0])
+    if not away[0]:
         return ""
     if f_worst <= f[min(3, f.size - 1)] or f_worst >= f[max(f.size - 4, 0)]:
         # the residual terms stand for the modes outside the lines; one near the edge
