@@ -18,7 +18,9 @@ then SDT, table 11.1), done here with two standard frequency-domain steps:
    (constant ``UR``, modes above the band) per FRF, as ME'scope does (thesis ch. 11.3).
 
 Automatic pole selection uses a fixed, documented clustering rule on the fully stable poles
-(:func:`select_poles`); a list of frequencies overrides it (:func:`pick_poles`).
+(:func:`select_poles`), completed, with ``H_std``, by a heavily damped mode fitted where the
+modes found leave the data beyond their noise (:func:`fit_missing_pole`); a list of
+frequencies overrides it (:func:`pick_poles`).
 
 Conventions (design 4.1): receptance in m/N, ``x(t) = Re(X e^{+i omega t})``; a pole is
 ``lambda = -zeta omega_n + i omega_n sqrt(1 - zeta^2)`` in rad/s, reported as the undamped
@@ -939,6 +941,145 @@ def polish_wide_poles(
     return trial(sol.x)
 
 
+MISSING_POLE_DAMPING = (0.05, 0.1, 0.2, 0.35)
+"""Damping ratios from which :func:`fit_missing_pole` starts at the place of the misfit; its
+lightest allowed damping is the first."""
+
+
+def fit_missing_pole(
+    frequency_hz: np.ndarray,
+    H: np.ndarray,
+    poles: np.ndarray,
+    H_std: np.ndarray,
+    diagram: StabilisationDiagram | None = None,
+    criteria: StabilityCriteria | None = None,
+    lower_residual: bool = True,
+    upper_residual: bool = True,
+) -> np.ndarray:
+    """A heavily damped pole (rad/s) where the modal model of ``poles`` leaves the data
+    beyond their noise away from every pole; an empty array when there is no such place or
+    no pole there passes the checks below.
+
+    A mode of zeta 0.2-0.35 has p-LSCF poles that scatter by 2-3 % between orders
+    (docs/ema.md), so the selection may leave it out although the data show it: a 25 %
+    damped mode at 150 Hz between two 1 % modes, as strong as they, 1 Hz grid and 1 %
+    noise, was missed in 9 of 20 draws, and the misfit it left reached a local mean
+    ``|H_fit - H|² / H_std²`` of 4.6-3900 at 131-148 Hz. The place: the line where that
+    mean over 7 lines (:func:`misfit_beyond_noise`) is largest among the lines away from
+    every pole (as the missing-mode note judges it: more than 5 ζf, 3 line spacings and
+    2 % from each) and not within 4 lines of the band's ends (a mode outside the lines),
+    when it exceeds ``MISSING_MODE_LOCAL_CHI2``. The fit: the pole alone, the others
+    held, by variable projection as in :func:`refine_poles` (residues and residual terms by
+    LSFD inside the cost; weights 1/``H_std`` per line; Golub & Pereyra, SIAM J. Numer.
+    Anal. 10, 1973), within the lines (``edge_lines`` of them on each side) and zeta in
+    ``[MISSING_POLE_DAMPING[0], max_damping_ratio]``, from that place at the damping
+    ratios of ``MISSING_POLE_DAMPING`` and from every pole of ``diagram`` (any order, zeta
+    in those bounds) whose half-power band ``f (1 +/- zeta)`` holds the place: the two
+    starts of lowest cost are fitted. The pole is kept only when
+
+    - it ends inside its bounds (a pole pushed to the lightest damping is a lighter mode,
+      whose damping the bound misstates: a weak 3 % mode on a 1 Hz grid came out at 0.05
+      and brought the misfit under the threshold in 2 of 10 draws; ``make demo``'s 112 Hz
+      mode between its 10 Hz lines also ends there);
+    - it lies away from every pole of ``poles`` as above (it duplicates no mode found);
+    - the local mean at the place falls to ``MISSING_MODE_LOCAL_CHI2`` or below (:func:`ema`
+      then runs the significance check again with it, where a 1 % mode that the missing
+      one's misfit had made fail it comes back, fits it again with the modes kept, and
+      checks the region, :func:`_region_explained`);
+    - it passes the significance check of every mode (:func:`mode_significance`,
+      ``min_significance``).
+
+    ``frequency_hz`` (n_f,) Hz, sorted; ``H``, ``H_std`` (n_f, n_out, n_in) m/N;
+    ``poles`` rad/s (modes and residual modes).
+    """
+    import scipy.optimize
+
+    crit = criteria or StabilityCriteria()
+    none = np.zeros(0, dtype=complex)
+    poles = np.asarray(poles, dtype=complex).reshape(-1)
+    f = np.asarray(frequency_hz, dtype=float).reshape(-1)
+    Hc = np.asarray(H, dtype=complex)
+    std = np.asarray(H_std, dtype=float)
+    if f.size < 2 * (crit.edge_lines + 4) + 1:
+        return none
+    H_fit = lsfd(f, Hc, poles, std, lower_residual, upper_residual)[3]
+    sums = _local_misfit(Hc, H_fit, std)
+    if sums is None:
+        return none
+    local = sums[2]
+    away, _ = _away_from_poles(f, f, poles)
+    inner = np.zeros(f.size, dtype=bool)
+    inner[4:-4] = True  # at the ends the missing-mode note speaks of a mode outside the lines
+    place = away & inner & (local > MISSING_MODE_LOCAL_CHI2)
+    if not place.any():
+        return none
+    at = int(np.flatnonzero(place)[np.argmax(local[place])])
+    f_at = float(f[at])
+    _, _, w = _prepare(f, Hc, std, per_line=True)
+    ok = w > 0
+
+    def pole(x: np.ndarray) -> np.ndarray:
+        return poles_from_modal(np.array([f_at * np.exp(x[0])]), np.array([x[1]]))
+
+    def residual(x: np.ndarray) -> np.ndarray:
+        fit = lsfd(f, Hc, np.concatenate([poles, pole(x)]), std, lower_residual,
+                   upper_residual)[3]
+        e = np.where(ok, (fit - np.nan_to_num(Hc)) * w, 0.0)
+        return np.concatenate([e.real.ravel(), e.imag.ravel()])
+
+    z_lo, z_hi = MISSING_POLE_DAMPING[0], crit.max_damping_ratio
+    lines = np.sort(f)
+    lo = np.array([math.log(lines[crit.edge_lines] / f_at), z_lo])
+    hi = np.array([math.log(lines[-1 - crit.edge_lines] / f_at), z_hi])
+    starts = [np.array([0.0, z]) for z in MISSING_POLE_DAMPING]
+    if diagram is not None:
+        for k in range(len(diagram.orders)):
+            fk, zk = diagram.frequency_hz(k), diagram.damping_ratio(k)
+            near = (zk > z_lo) & (zk < z_hi) & (np.abs(fk - f_at) <= zk * fk)
+            starts += [np.array([math.log(a / f_at), b]) for a, b in zip(fk[near], zk[near],
+                                                                          strict=True)]
+    inside = [x for x in starts if np.all(x > lo) and np.all(x < hi)]
+    if not inside:
+        return none
+    costs = [float(np.sum(residual(x) ** 2)) for x in inside]
+    best = None
+    for i in np.argsort(costs)[:2]:
+        sol = scipy.optimize.least_squares(residual, inside[i], bounds=(lo, hi),
+                                           x_scale="jac", method="trf", max_nfev=30)
+        if np.all(np.isfinite(sol.x)) and (best is None or sol.cost < best.cost):
+            best = sol
+    if best is None or np.any(best.active_mask != 0):
+        return none
+    new = pole(best.x)
+    fn, zeta = pole_frequency_damping(new)
+    if not _away_from_poles(f, fn, poles)[0][0]:
+        return none
+    both = np.concatenate([poles, new])
+    fit = lsfd(f, Hc, both, std, lower_residual, upper_residual)[3]
+    if _local_misfit(Hc, fit, std)[2][at] > MISSING_MODE_LOCAL_CHI2:
+        return none
+    significance = mode_significance(f, Hc, both, fit, crit.significance_window, std,
+                                     lower_residual, upper_residual)[-1]
+    if significance < crit.min_significance:
+        return none
+    return new
+
+
+def _region_explained(frequency_hz: np.ndarray, H: np.ndarray, H_fit: np.ndarray,
+                      H_std: np.ndarray, before: np.ndarray, pole: complex) -> bool:
+    """Whether the fit ``H_fit`` with an added ``pole`` leaves the local mean
+    ``|H_fit - H|² / H_std²`` (7 lines) at ``MISSING_MODE_LOCAL_CHI2`` or below over the
+    lines of the pole's half-power band ``f (1 +/- zeta)`` that lay away from every pole
+    of ``before`` (:func:`fit_missing_pole`: the added mode explains the region it was
+    added for to near the noise)."""
+    f = np.asarray(frequency_hz, dtype=float)
+    fn, zeta = pole_frequency_damping(np.array([pole]))
+    region = (_away_from_poles(f, f, before)[0]
+              & (np.abs(f - fn[0]) <= zeta[0] * fn[0]))
+    sums = _local_misfit(H, H_fit, H_std)
+    return sums is not None and not np.any(sums[2][region] > MISSING_MODE_LOCAL_CHI2)
+
+
 def modal_phase_collinearity(shapes: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """MPC (0..1, 1 = real mode) and mean phase deviation (deg) of complex shapes (n_dof, n).
 
@@ -1138,6 +1279,27 @@ def mode_significance(
     return out
 
 
+def _local_misfit(H: np.ndarray, H_fit: np.ndarray, H_std: np.ndarray, half_window: int = 3
+                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+    """Per line: the sum of ``|H_fit - H|² / H_std²`` over the FRFs, the number of values
+    summed, and the mean over ``half_window`` lines on each side (arrays (n_f,)); None when
+    no value has a finite fit and a positive ``H_std``. Lines in array order."""
+    std = np.asarray(H_std, dtype=float)
+    ok = np.isfinite(H) & np.isfinite(H_fit) & np.isfinite(std) & (std > 0)
+    if not ok.any():
+        return None
+    r2 = np.where(ok, np.abs(np.where(ok, H_fit - H, 0)) ** 2 / np.where(ok, std, 1.0) ** 2,
+                  0.0)
+    kernel = np.ones(2 * half_window + 1)
+    line_sum, line_n = r2.sum(axis=(1, 2)), ok.sum(axis=(1, 2))
+    # "full" cut to the lines: "same" returns the kernel's length when there are fewer
+    # lines than it (5 lines of validation_phase.toml: an IndexError; review, session 36)
+    centred = slice(half_window, half_window + line_sum.size)
+    local = (np.convolve(line_sum, kernel, "full")[centred]
+             / np.maximum(np.convolve(line_n, kernel, "full")[centred], 1))
+    return line_sum, line_n, local
+
+
 def misfit_beyond_noise(frequency_hz: np.ndarray, H: np.ndarray, H_fit: np.ndarray,
                         H_std: np.ndarray, half_window: int = 3
                         ) -> tuple[float, float, float]:
@@ -1149,24 +1311,33 @@ def misfit_beyond_noise(frequency_hz: np.ndarray, H: np.ndarray, H_fit: np.ndarr
     ``sqrt(E|H_measured - H|²)``), the line where that mean over the FRFs, averaged over
     ``half_window`` lines on each side, is largest, and that local mean (NaNs when no
     value qualifies). Arrays (n_f, n_out, n_in)."""
-    std = np.asarray(H_std, dtype=float)
-    ok = np.isfinite(H) & np.isfinite(H_fit) & np.isfinite(std) & (std > 0)
-    if not ok.any():
+    sums = _local_misfit(H, H_fit, H_std, half_window)
+    if sums is None:
         return float("nan"), float("nan"), float("nan")
-    r2 = np.where(ok, np.abs(np.where(ok, H_fit - H, 0)) ** 2 / np.where(ok, std, 1.0) ** 2,
-                  0.0)
-    kernel = np.ones(2 * half_window + 1)
-    line_sum, line_n = r2.sum(axis=(1, 2)), ok.sum(axis=(1, 2))
-    # "full" cut to the lines: "same" returns the kernel's length when there are fewer
-    # lines than it (5 lines of validation_phase.toml: an IndexError; review, session 36)
-    centred = slice(half_window, half_window + line_sum.size)
-    local = (np.convolve(line_sum, kernel, "full")[centred]
-             / np.maximum(np.convolve(line_n, kernel, "full")[centred], 1))
+    line_sum, line_n, local = sums
     # of the lines whose neighbourhood is worst, the worst line itself
     ties = np.flatnonzero(local >= local.max() * (1 - 1e-12))
     worst = int(ties[np.argmax(line_sum[ties] / np.maximum(line_n[ties], 1))])
-    return (float(r2.sum() / ok.sum()), float(np.asarray(frequency_hz, float)[worst]),
+    return (float(line_sum.sum() / line_n.sum()), float(np.asarray(frequency_hz, float)[worst]),
             float(local[worst]))
+
+
+def _away_from_poles(frequency_hz: np.ndarray, at_hz: np.ndarray, poles: np.ndarray
+                     ) -> tuple[np.ndarray, np.ndarray]:
+    """Whether each frequency ``at_hz`` lies away from every pole: more than 5 half-power
+    bandwidths ζf, 3 local line spacings (of the 7 lines of ``frequency_hz`` around it)
+    and 2 % of f from each pole's frequency; and that line spacing (Hz), both (n_at,)."""
+    f = np.sort(np.asarray(frequency_hz, dtype=float))
+    at_hz = np.atleast_1d(np.asarray(at_hz, dtype=float))
+    # the spacing of the lines there (a stepped sine zooms in on peaks: make demo's grid
+    # is 0.5 Hz at the median, 10 Hz away from its two zoom windows)
+    idx = np.searchsorted(f, at_hz)
+    spacing_hz = np.array([_line_spacing_hz(f[max(i - 3, 0):i + 4]) for i in idx])
+    fn, zeta = pole_frequency_damping(np.asarray(poles, dtype=complex).reshape(-1))
+    reach = np.maximum(np.maximum(5 * zeta * fn, 0.02 * fn)[None, :],
+                       3 * spacing_hz[:, None])
+    away = np.all(np.abs(at_hz[:, None] - fn[None, :]) > reach, axis=1)
+    return away, spacing_hz
 
 
 def _missing_mode_note(frequency_hz: np.ndarray, H: np.ndarray, H_fit: np.ndarray,
@@ -1181,13 +1352,9 @@ def _missing_mode_note(frequency_hz: np.ndarray, H: np.ndarray, H_fit: np.ndarra
     if not local > MISSING_MODE_LOCAL_CHI2:
         return ""
     f = np.sort(np.asarray(frequency_hz, dtype=float))
-    # the spacing of the lines there (a stepped sine zooms in on peaks: make demo's grid
-    # is 0.5 Hz at the median, 10 Hz away from its two zoom windows)
-    at = int(np.searchsorted(f, f_worst))
-    spacing_hz = _line_spacing_hz(f[max(at - 3, 0):at + 4])
-    fn, zeta = pole_frequency_damping(poles)
-    reach = np.maximum.reduce([5 * zeta * fn, np.full(fn.shape, 3 * spacing_hz), 0.02 * fn])
-    if np.any(np.abs(f_worst - fn) <= reach):
+    away, spacing = _away_from_poles(f, np.array([f_worst]), poles)
+    spacing_hz = float(spacing[0])
+    if not away[0]:
         return ""
     if f_worst <= f[min(3, f.size - 1)] or f_worst >= f[max(f.size - 4, 0)]:
         # the residual terms stand for the modes outside the lines; one near the edge
@@ -1248,7 +1415,10 @@ def ema(
     docs/ema.md);
     ``residual_poles`` fits a stable pole at the edge of the lines (fewer than ``edge_lines``
     lines on one side), when one explains the lines near it, together with the modes
-    (:func:`edge_poles`; ``EmaResult.residual_poles``).
+    (:func:`edge_poles`; ``EmaResult.residual_poles``). With ``H_std`` and the automatic
+    selection, up to two heavily damped modes that do not stabilise over orders are fitted
+    where the modes found leave the data beyond their noise (:func:`fit_missing_pole`; the
+    notes name them).
     Returns an :class:`EmaResult` (modes sorted by frequency, shapes, complexity, fit).
     """
     from pelvislab.model.identification import single_blas_thread
@@ -1291,6 +1461,7 @@ def _ema(
     diagram = stabilisation_diagram(f, Hc, max_order=max_order, H_std=std, criteria=crit)
     band = (float(f.min()), float(f.max()))
     notes: list[str] = []
+    no_pole = ""
     if frequencies_hz is not None and len(frequencies_hz) > 0:
         poles = pick_poles(diagram, frequencies_hz)
         selection = "manual"
@@ -1307,11 +1478,11 @@ def _ema(
                 advice = (f"try --max-order {min(12, allowed)}, or measure more lines"
                           if allowed > top_order else
                           f"{f.size} lines allow no higher order: measure more lines")
-                notes.append(f"no stable pole found in the band: the stabilisation diagram "
-                             f"goes up to order {top_order} only; a mode needs "
-                             f"{crit.min_count} stable orders ({advice})")
+                no_pole = (f"no stable pole found in the band: the stabilisation diagram "
+                           f"goes up to order {top_order} only; a mode needs "
+                           f"{crit.min_count} stable orders ({advice})")
             else:
-                notes.append("no stable pole found in the band" + _spacing_hint(f))
+                no_pole = "no stable pole found in the band" + _spacing_hint(f)
     edges = edge_poles(diagram, crit) if residual_poles else np.zeros(0, dtype=complex)
     if edges.size and poles.size:  # a manual pick may name a pole at the edge itself
         fe, _ = pole_frequency_damping(edges)
@@ -1332,24 +1503,77 @@ def _ema(
         poles = polish_wide_poles(f, Hc, poles, std, edges, crit, lower_residual,
                                   upper_residual)
         poles = poles[np.argsort(np.abs(poles))]
-    residues, LR, UR, H_fit, significance, edge_significance = fit(poles, edges)
-    refit = False
-    dropped: list[float] = []
-    # a dropped pole changes its neighbours' significance (it may have stood in for part of
-    # a mode, or for an edge pole's tail): refit and check again until every mode and edge
-    # pole kept passes, a few rounds at most (a mode kept at significance 1.1-1.23 after
-    # one round was found by session 32's review and property search)
-    for _ in range(4):
-        weak = (significance < crit.min_significance if selection == "auto"
-                else np.zeros(poles.size, dtype=bool))
-        weak_edges = edge_significance < crit.min_significance
-        if not weak.any() and not weak_edges.any():
+
+    def check(modes: np.ndarray, extra: np.ndarray) -> tuple:
+        """The modes and edge poles that pass the significance check, and their fit."""
+        residues, LR, UR, H_fit, significance, edge_significance = fit(modes, extra)
+        # a dropped pole changes its neighbours' significance (it may have stood in for
+        # part of a mode, or for an edge pole's tail): refit and check again until every
+        # mode and edge pole kept passes, a few rounds at most (a mode kept at
+        # significance 1.1-1.23 after one round was found by session 32's review and
+        # property search)
+        for _ in range(4):
+            weak = (significance < crit.min_significance if selection == "auto"
+                    else np.zeros(modes.size, dtype=bool))
+            weak_edges = edge_significance < crit.min_significance
+            if not weak.any() and not weak_edges.any():
+                break
+            modes, extra = modes[~weak], extra[~weak_edges]
+            residues, LR, UR, H_fit, significance, edge_significance = fit(modes, extra)
+        return modes, extra, residues, LR, UR, H_fit, significance
+
+    selected, selected_edges = poles, edges
+    poles, edges, residues, LR, UR, H_fit, significance = check(poles, edges)
+    added = np.zeros(0, dtype=complex)
+    # a heavily damped mode does not stabilise over orders and may be left out although
+    # the data show it (fit_missing_pole); one added changes what the others must explain
+    # (its misfit had made a 1 % mode 90 Hz away fail the significance check), so the check
+    # runs again with the selected poles it dropped, but those within the added pole's
+    # half-power band: they stood in for it, and dropped together with it (all weak poles
+    # go at once) they took it along (1 of 20 draws); at most two such poles
+    while selection == "auto" and std is not None and added.size < 2:
+        new = fit_missing_pole(f, Hc, np.concatenate([poles, edges]), std, diagram, crit,
+                               lower_residual, upper_residual)
+        if not new.size:
             break
-        fw, _ = pole_frequency_damping(poles[weak])
-        dropped.extend(float(x) for x in fw)
-        poles, edges = poles[~weak], edges[~weak_edges]
-        residues, LR, UR, H_fit, significance, edge_significance = fit(poles, edges)
-    if dropped:
+        fa, za = pole_frequency_damping(np.concatenate([added, new]))
+        fs, _ = pole_frequency_damping(selected)
+        inside = np.any(np.abs(fs[:, None] - fa[None, :]) <= (za * fa)[None, :], axis=1)
+        restored = selected[~np.isin(selected, poles) & ~inside]
+        modes = np.concatenate([poles, restored, new])
+        modes = modes[np.argsort(np.abs(modes))]
+        state = check(modes, selected_edges)
+        if np.any(state[0] == new[0]):
+            # fitted again with the modes now kept (a 1 % mode restored, noise poles
+            # dropped), as the selection's heavily damped poles are (zeta > 0.1; lighter
+            # ones are left as fitted): 0.4-0.9 % off in frequency when fitted without the
+            # restored mode, <= 0.07 % with it
+            others = np.concatenate([state[0][state[0] != new[0]], state[1]])
+            polished = polish_wide_poles(f, Hc, new, std, others, crit, lower_residual,
+                                         upper_residual)
+            if polished[0] != new[0]:
+                modes[modes == new[0]] = polished[0]
+                new = polished
+                state = check(modes, selected_edges)
+        if not np.any(state[0] == new[0]) or not _region_explained(
+                f, Hc, state[5], std, np.concatenate([poles, edges]), new[0]):
+            break  # not significant, or not explaining its region, with the rest refitted
+        added = np.concatenate([added, new])
+        poles, edges, residues, LR, UR, H_fit, significance = state
+    if no_pole and not added.size:
+        notes.append(no_pole)
+    if added.size:
+        fa, za = pole_frequency_damping(added)
+        notes.append("heavily damped mode(s) fitted where the selected modes left the data "
+                     "beyond their noise (their poles do not stabilise "
+                     "over orders; fitted on the FRFs with the other poles held, kept as they "
+                     "explain their region to the noise and pass the significance check): "
+                     + ", ".join(f"{x:.4g} Hz (zeta {z:.2%})" for x, z in zip(fa, za,
+                                                                             strict=True))
+                     + "; judge them with the stabilisation diagram")
+    refit = False
+    dropped, _ = pole_frequency_damping(selected[~np.isin(selected, poles)])
+    if dropped.size:
         notes.append("dropped pole(s) that do not explain their neighbourhood (significance "
                      f"< {crit.min_significance:g}): "
                      + ", ".join(f"{x:.4g} Hz" for x in sorted(dropped)))
