@@ -331,6 +331,31 @@ def remove_stale_partials(path: Path | str) -> list[str]:
     return removed
 
 
+def process_identity(pid: int) -> tuple[str, int] | None:
+    """(boot id, start time in clock ticks since boot) of process ``pid`` on this machine,
+    from Linux's /proc; None where there is no /proc or no such process. A pid alone says
+    nothing once the process has ended: after a reboot (a power cut, the usual end of a
+    killed run) or in time, another process holds it; the pair does not repeat."""
+    try:
+        boot = Path("/proc/sys/kernel/random/boot_id").read_text().strip()
+        stat = Path(f"/proc/{int(pid)}/stat").read_text()
+        # "pid (comm) state ppid ...": comm may hold spaces and parentheses; starttime is
+        # field 22, the 20th after the comm
+        return boot, int(stat[stat.rindex(")") + 2:].split()[19])
+    except (OSError, ValueError, IndexError):
+        return None
+
+
+_WRITING: set[str] = set()
+"""Session files a :class:`SessionWriter` of this process has open (resolved paths): a run
+recorded with this process's identity is being written only if its file is one of them."""
+
+
+def being_written_here(path: Path | str) -> bool:
+    """Whether a :class:`SessionWriter` of this process has ``path`` open."""
+    return str(Path(path).resolve()) in _WRITING
+
+
 class SessionWriter:
     """Writes one session file step by step (create it, or open one to resume).
 
@@ -341,6 +366,7 @@ class SessionWriter:
                  offset_s: float) -> None:
         self._h5 = handle
         self.path = path
+        _WRITING.add(str(Path(path).resolve()))
         self._t0 = started_monotonic
         self._offset_s = offset_s
         self._largest_step_bytes = 0  # file growth of the largest step written, bytes
@@ -461,6 +487,9 @@ class SessionWriter:
         # reading, and only these tell a live run from a killed one (`session info`)
         g.attrs["host"] = socket.gethostname()
         g.attrs["pid"] = os.getpid()
+        identity = process_identity(os.getpid())
+        if identity is not None:  # Linux: what tells this process from a later one
+            g.attrs["boot_id"], g.attrs["pid_start_ticks"] = identity
         _write_bench(g.create_group("bench"), bench)
         # created now, with the run: its first entries, a step later, then add to it and
         # not to the run's own group (a kill in that flush leaves the run's status readable)
@@ -663,6 +692,7 @@ class SessionWriter:
     def close(self) -> None:
         """Flush, close and fsync (idempotent): a session reported complete is on the disk,
         not only in the operating system's cache (a power cut after the run keeps it)."""
+        _WRITING.discard(str(Path(self.path).resolve()))
         if self._h5.id.valid:
             self._h5.flush()
             self._h5.close()

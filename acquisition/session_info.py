@@ -138,8 +138,7 @@ def _session(reader: SessionReader, path: Path) -> dict[str, Any]:
             "simulated": None if bench is None or "simulated" not in bench.attrs
             else bool(bench.attrs["simulated"]),
             "software_version": _text(a.get("software_version", "")),
-            "host": _text(a.get("host", "")) or None,
-            "pid": int(a["pid"]) if "pid" in a else None,
+            **_writer_record(a),
         })
     status, reason = reader.status
     steps, damaged = _scan_steps(h5)
@@ -213,7 +212,8 @@ def _session(reader: SessionReader, path: Path) -> dict[str, Any]:
         "protocol_source_state": _source_state(
             _text(h5["protocol"].attrs.get("source", "")), reader.protocol_text),
         "status": status, "reason": reason,
-        "writer_alive": _writer_alive(runs[-1]) if status == "running" and runs else None,
+        "writer_alive": (_writer_alive(runs[-1], path)
+                         if status == "running" and runs and source is None else None),
         "outputs_confirmed_off": reader.outputs_confirmed_off,
         "runs": runs,
         "bench": {
@@ -243,33 +243,52 @@ def _session(reader: SessionReader, path: Path) -> dict[str, Any]:
     }
 
 
-def last_run_writer_alive(h5: h5py.File) -> bool | None:
-    """:func:`_writer_alive` of the last run in ``/runs`` of an open session file (None
-    without runs)."""
+def last_run_writer_alive(h5: h5py.File, path: Path | str) -> bool | None:
+    """:func:`_writer_alive` of the last run in ``/runs`` of the open session file at
+    ``path`` (None without runs, or for a reprocessed file: its runs are its source's)."""
     runs = h5.get("runs")
-    if runs is None or not len(runs):
+    if runs is None or not len(runs) or "reprocessed_from" in h5.attrs:
         return None
-    a = runs[sorted(runs)[-1]].attrs
-    return _writer_alive({"host": _text(a.get("host", "")) or None,
-                          "pid": int(a["pid"]) if "pid" in a else None})
+    return _writer_alive(_writer_record(runs[sorted(runs)[-1]].attrs), path)
 
 
-def _writer_alive(run: Mapping[str, Any]) -> bool | None:
-    """Whether the process that wrote ``run`` (its recorded host and pid) is alive: True
-    (alive, or its pid was reused), False (gone: the run was killed), None (another host,
-    or a file from before they were recorded). With HDF5 file locking on, a file being
-    written does not open at all; with it off (NFS), this tells a live run from a killed
-    one."""
-    if run.get("pid") is None or run.get("host") != socket.gethostname():
+def _writer_record(attrs: Any) -> dict[str, Any]:
+    """The writing process a run recorded (``host``, ``pid``, ``boot_id``,
+    ``pid_start_ticks``; None where absent or unreadable: a file from before session 44,
+    another tool's, a hand-edited one; readers ignore what they do not know)."""
+    def number(key: str) -> int | None:
+        try:
+            value = int(attrs[key])
+        except (KeyError, TypeError, ValueError, OverflowError):
+            return None
+        return value if value > 0 else None
+
+    return {"host": _text(attrs.get("host", "")) or None, "pid": number("pid"),
+            "boot_id": _text(attrs.get("boot_id", "")) or None,
+            "pid_start_ticks": number("pid_start_ticks")}
+
+
+def _writer_alive(run: Mapping[str, Any], path: Path | str) -> bool | None:
+    """Whether the process that wrote ``run`` is still running: True only when this machine
+    (same host and boot) has a process of that pid started at the recorded time (and, for
+    this very process, a writer of its own has ``path`` open); False when it has ended (the
+    run was killed); None when that cannot be told (another host, no /proc, a file from
+    before the identity was recorded). With HDF5 file locking on, a file being written does
+    not open at all; with it off (NFS), this tells a live run from a killed one. A pid
+    alone does not: after a reboot, or in time, another process holds it (review)."""
+    from pelvislab.acquisition.session import being_written_here, process_identity
+
+    if (run.get("pid") is None or run.get("host") != socket.gethostname()
+            or run.get("boot_id") is None or run.get("pid_start_ticks") is None):
         return None
-    try:
-        os.kill(int(run["pid"]), 0)  # signal 0: nothing sent, only whether it exists
-    except ProcessLookupError:
-        return False
-    except PermissionError:  # another user's process
-        return True
-    except (OSError, OverflowError, ValueError):
-        return None
+    now = process_identity(run["pid"])
+    if now is None:  # gone, or no /proc here any more
+        here = process_identity(os.getpid())
+        return None if here is None else False
+    if now != (run["boot_id"], run["pid_start_ticks"]):
+        return False  # rebooted since, or the pid is another process's now
+    if run["pid"] == os.getpid():
+        return being_written_here(path)
     return True
 
 

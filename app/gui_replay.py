@@ -501,9 +501,9 @@ class ReplayView(QtWidgets.QWidget):
         if status == "running":
             from pelvislab.acquisition.session_info import last_run_writer_alive
 
-            alive = last_run_writer_alive(reader.handle) if hasattr(reader, "handle") \
-                else None
-            shown = ("still being written (its process is alive: these are the steps so "
+            alive = last_run_writer_alive(reader.handle, path) \
+                if hasattr(reader, "handle") else None
+            shown = ("still being written (its process is running: these are the steps so "
                      "far)" if alive else "did not end (the process was killed?)")
         text = f"{Path(path).name}: {len(steps)} steps, run {shown}"
         if isinstance(reader, _FrfOnlyFile):

@@ -16,6 +16,7 @@ import h5py
 import pytest
 
 from pelvislab.acquisition.runner import SetupStarted, prepare_session
+from pelvislab.acquisition.session import process_identity
 from pelvislab.acquisition.session_info import session_info
 from pelvislab.app.cli import main
 
@@ -142,32 +143,67 @@ def test_cli_text_names_outputs_not_confirmed_off_and_the_json_is_the_same(
     assert "may have left an output on: check the bench" in text
 
 
+@pytest.mark.skipif(process_identity(os.getpid()) is None,
+                    reason="needs /proc (Linux) to tell a process from a later one")
 def test_a_run_whose_writer_lives_is_not_called_killed(
         complete_session: Path, tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
     """With HDF5 file locking off (NFS) a file being written opens for reading: its run
-    read "killed?", with a resume command that would have made two writers."""
+    read "killed?", with a resume command that would have made two writers. A pid alone
+    is not the writer (review): after a reboot, or in time, another process holds it."""
     live = tmp_path / "live.h5"
     shutil.copy(complete_session, live)
+    writer = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(120)"])
+    try:
+        boot, ticks = process_identity(writer.pid)
+        with h5py.File(live, "r+") as handle:
+            run = handle["runs/000"].attrs
+            assert run["host"] == socket.gethostname() and run["pid"] == os.getpid()
+            run["status"] = "running"
+            run["pid"], run["boot_id"], run["pid_start_ticks"] = writer.pid, boot, ticks
+            del run["outputs_confirmed_off"]
+            del handle["steps"][sorted(handle["steps"])[-1]]  # short of its plan
+        info = session_info(live)
+        assert info["writer_alive"] is True and info["runs"][0]["pid"] == writer.pid
+        assert main(["session", "info", str(live)]) == 0
+        text = capsys.readouterr().out
+        assert "is still running: being written" in text and "killed" not in text
+        assert "(the run is under way)" in text and "--resume" not in text
+        with h5py.File(live, "r+") as handle:  # the pid now another process's
+            handle["runs/000"].attrs["pid_start_ticks"] = ticks + 1
+        assert session_info(live)["writer_alive"] is False
+        with h5py.File(live, "r+") as handle:  # written on another machine: cannot tell
+            handle["runs/000"].attrs["pid_start_ticks"] = ticks
+            handle["runs/000"].attrs["host"] = "bench-pc-7"
+        assert session_info(live)["writer_alive"] is None
+        assert main(["session", "info", str(live)]) == 0
+        text = capsys.readouterr().out
+        assert (f"killed, unless its process {writer.pid} on bench-pc-7 is still running"
+                in text)
+        assert "check the bench" in text
+        assert f"to complete it, once process {writer.pid} on bench-pc-7 has ended: " in text
+    finally:
+        writer.kill()
+        writer.wait()
     with h5py.File(live, "r+") as handle:
-        assert handle["runs/000"].attrs["host"] == socket.gethostname()
-        handle["runs/000"].attrs["status"] = "running"
-        handle["runs/000"].attrs["pid"] = os.getpid()  # this process: alive
-        del handle["runs/000"].attrs["outputs_confirmed_off"]
-        del handle["steps"][sorted(handle["steps"])[-1]]  # short of its plan
-    info = session_info(live)
-    assert info["writer_alive"] is True and info["runs"][0]["pid"] == os.getpid()
-    assert main(["session", "info", str(live)]) == 0
-    text = capsys.readouterr().out
-    assert "is alive: still being written" in text and "killed" not in text
-    assert "--resume" not in text
-    with h5py.File(live, "r+") as handle:  # written on another machine: cannot tell
-        handle["runs/000"].attrs["host"] = "bench-pc-7"
-    assert session_info(live)["writer_alive"] is None
-    assert main(["session", "info", str(live)]) == 0
-    text = capsys.readouterr().out
-    assert f"killed, unless its process {os.getpid()} on bench-pc-7 is still running" in text
-    assert "check the bench" in text
+        handle["runs/000"].attrs["host"] = socket.gethostname()
+    assert session_info(live)["writer_alive"] is False  # ended: killed
+    for pid in ("n/a", 0, -1):  # unreadable or impossible: not known, no error
+        with h5py.File(live, "r+") as handle:
+            handle["runs/000"].attrs["pid"] = pid
+        info = session_info(live)
+        assert info["writer_alive"] is None and info["runs"][0]["pid"] is None
 
+
+def test_this_processes_own_closed_file_is_not_being_written(
+        complete_session: Path, tmp_path: Path) -> None:
+    """The run of a file this very process wrote and closed without an end (a notebook,
+    the GUI) read "still being written": the process lives, its writer does not."""
+    own = tmp_path / "own.h5"
+    shutil.copy(complete_session, own)
+    with h5py.File(own, "r+") as handle:
+        handle["runs/000"].attrs["status"] = "running"
+    expected = None if process_identity(os.getpid()) is None else False
+    assert session_info(own)["writer_alive"] is expected
 
 def test_an_frf_only_file_and_a_foreign_file(tmp_path: Path, capsys) -> None:
     info = session_info(DATA / "chain_fk_seed3.h5")

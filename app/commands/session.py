@@ -60,20 +60,25 @@ def info_text(info: dict[str, Any]) -> str:
         # no resume advice while its writer lives: two writers would corrupt the file
         if info["status"] != "completed" and planned is not None and \
                 info["steps"]["acquired"] < planned and not info.get("writer_alive"):
+            last = info["runs"][-1] if info["runs"] else {}
+            # written elsewhere (NFS, file locking off): its writer may still run there
+            once = (f", once process {last['pid']} on {last['host']} has ended"
+                    if info["status"] == "running" and info.get("writer_alive") is None
+                    and last.get("host") and last.get("pid") else "")
             if info["reprocessed_from"]:
                 lines.append(f"  to complete it: resume its source session "
                              f"{info['reprocessed_from']} and reprocess that (a reprocessed "
                              "file is not resumed)")
             elif info["protocol_source_state"] == "matches":
-                lines.append(f"  to complete it: pelvislab run {info['protocol_source']} "
-                             f"--out {info['file']} --resume")
+                lines.append(f"  to complete it{once}: pelvislab run "
+                             f"{info['protocol_source']} --out {info['file']} --resume")
             else:
                 # resume refuses a protocol file whose text is not the stored one
                 source = info["protocol_source"]
                 why = {"missing": f"{source} is not found from here",
                        "differs": f"{source} differs from it: edited since the run?"}.get(
                     info["protocol_source_state"], "no protocol file is recorded")
-                lines.append(f"  to complete it: pelvislab run PROTOCOL.toml --out "
+                lines.append(f"  to complete it{once}: pelvislab run PROTOCOL.toml --out "
                              f"{info['file']} --resume, PROTOCOL.toml holding the "
                              f"session's /protocol text exactly ({why})")
         for run in info["runs"]:
@@ -161,7 +166,7 @@ def _status_line(info: dict[str, Any]) -> str:
         last = info["runs"][-1] if info["runs"] else {}
         if info.get("writer_alive"):
             reason = (f" (no end recorded, and its process {last.get('pid')} on this host "
-                      "is alive: still being written, with HDF5 file locking off?)")
+                      "is still running: being written, with HDF5 file locking off?)")
         elif info.get("writer_alive") is None and last.get("host"):
             reason = (f" (no end recorded: killed, unless its process {last.get('pid')} on "
                       f"{last['host']} is still running)")
@@ -176,8 +181,8 @@ def _status_line(info: dict[str, Any]) -> str:
         said = (f"outputs confirmed off at the end of the runs that recorded it; not "
                 f"recorded for run {', '.join(unrecorded)}")
     if info["status"] == "running" and off is not False:
-        said += (" (a killed run may have left an output on: check the bench)"
-                 if not info.get("writer_alive") else "")
+        said += (" (the run is under way)" if info.get("writer_alive")
+                 else " (a killed run may have left an output on: check the bench)")
     return f"status: {info['status']}{reason}; {said}"
 
 
