@@ -758,9 +758,13 @@ class ReplayView(QtWidgets.QWidget):
             std = entry.get("std")
             cell = QtWidgets.QTableWidgetItem("" if std is None else f"{std:.2g}")
             interval = entry.get("interval_95")
-            if interval:  # a weak parameter's is a factor, not value +- 2 std
+            if std is not None and std > abs(entry["value"]):
+                cell.setToolTip("undetermined: std above the value (the data do not "
+                                "determine it)")
+            elif interval:  # a weak parameter's is a factor, not value +- 2 std
                 cell.setToolTip(f"95 % interval {interval[0]:.3g} to {interval[1]:.3g}"
-                                + ("" if name.startswith("f_") else " (the fit's log space)"))
+                                + ("" if name.startswith("f_") else
+                                   " (a factor either way: the fit runs in log p)"))
             self.param_table.setItem(r, 2, cell)
         # as wide as its contents (the std column sat behind a horizontal scrollbar)
         table = self.param_table

@@ -226,3 +226,16 @@ def test_modal_updating_gets_the_model_files_frequency_dependence(tmp_path: Path
     main(["identify", str(data), "--method", "modal", "--model", str(model),
           "--json", str(tmp_path / "m.json")])
     assert (seen["f_k"], seen["f_c"]) == (0.5, 0.2)
+
+
+def test_the_summary_calls_an_undetermined_parameter_so() -> None:
+    """Modal updating of the demo session left parameters with std 200 e-folds: printed
+    "95 % 4.774e-125 to 1.801e+136" N/m (review)."""
+    from pelvislab.app.commands.identify import summary_text
+
+    doc = {"method": "modal", "converged": False, "units": {"k_": "N/m"},
+           "parameters": {"k_a": {"value": 1e5, "std": 2e7, "interval_95": [1e-165, 1e175]},
+                          "k_b": {"value": 1e5, "std": 1e3, "interval_95": [9.8e4, 1.02e5]}}}
+    text = summary_text(doc)
+    assert "k_a  1e+05 N/m  (std 2e+07, undetermined: std above the value)" in text
+    assert "k_b  1e+05 N/m  (std 1e+03, 95 % 9.8e+04 to 1.02e+05)" in text

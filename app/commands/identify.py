@@ -419,7 +419,11 @@ def summary_text(document: dict[str, Any]) -> str:
         std = entry.get("std")
         interval = entry.get("interval_95")
         spread = "std n/a" if std is None else f"std {std:.2g}"
-        if interval:
+        if std is not None and std > abs(entry["value"]):
+            # the data do not determine it (modal updating's rule): its interval spans
+            # decades either way (1e-125 to 1e136 N/m read as numbers: review)
+            spread += ", undetermined: std above the value"
+        elif interval:
             spread += f", 95 % {interval[0]:.4g} to {interval[1]:.4g}"
         lines.append(f"  {name:<{width}}  {entry['value']:.4g}{unit}  ({spread})")
     return "\n".join(lines)
