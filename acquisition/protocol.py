@@ -951,11 +951,11 @@ def parse_protocol(text: str, source: str = "<string>", limits: BenchLimits | No
                 if side:
                     span = (f"{side[0]:g} Hz" if len(side) == 1
                             else f"{min(side):g}-{max(side):g} Hz")
-                    # a table written in kHz (0.005-0.3 for 5-300 Hz) lies wholly below
+                    # a table written in kHz (0.005-0.3 for 5-300 Hz; 0.001-20 overlaps
+                    # the sweep's start: review) covers the sweep x 1000
                     hint = ("; its rows x 1000 would cover the sweep: kHz in its "
-                            "frequency_hz column?" if hi < min(freqs)
-                            and lo * 1e3 <= min(freqs) + tol and max(freqs) <= hi * 1e3 + tol
-                            else "")
+                            "frequency_hz column?" if lo * 1e3 <= min(freqs) + tol
+                            and max(freqs) <= hi * 1e3 + tol else "")
                     p.add(f"sweep.{key}" if key in sw else "sweep.frequencies_hz",
                           f"{len(side)} of {len(freqs)} frequencies ({span}) {where}, "
                           f"outside the drive calibration of {limits.name} "

@@ -178,6 +178,11 @@ def test_a_sweep_beyond_the_calibration_is_refused_before_anything_opens(tmp_pat
     with pytest.raises(ProtocolError, match=r"\(0.005-0.4 Hz\).*its rows x 1000 would cover "
                                             r"the sweep: kHz in its frequency_hz column\?"):
         load_protocol(protocol, BenchLimits.from_config(khz))
+    overlapping = BenchConfig.load(write_bench(tmp_path, "frequency_hz,newton_per_volt_re,"
+                                               "newton_per_volt_im\n0.001,8,0\n20,7,-1\n"))
+    with pytest.raises(ProtocolError, match=r"3 of 4 frequencies \(40-300 Hz\) above 20 Hz"
+                                            r".*kHz in its frequency_hz column\?"):
+        load_protocol(protocol, BenchLimits.from_config(overlapping))
     bench_path = tmp_path / "bench.toml"
     with pytest.raises(ProtocolError, match="outside the drive calibration"):
         prepare_session(protocol, tmp_path / "s.h5", bench_path=bench_path)
