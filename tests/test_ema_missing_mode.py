@@ -165,3 +165,16 @@ def test_misfit_beyond_noise_on_fewer_lines_than_its_window():
     # every line's neighbourhood holds line 3; those at the edges average fewer lines
     assert f_worst in (0.0, 4.0)
     assert local == pytest.approx(9 / 4)
+
+
+def test_an_added_pole_whose_band_holds_no_line_away_from_the_others_explains_nothing():
+    """_region_explained passed vacuously when no line of the new pole's band lay away from
+    the earlier poles (review): it explained nothing it was added for."""
+    from pelvislab.model.ema import _region_explained
+
+    H, std = _heavily_damped_middle_mode(0)
+    wide = poles_from_modal(np.array([150.0]), np.array([0.3]))  # reaches every line
+    new = complex(poles_from_modal(np.array([150.0]), np.array([0.25]))[0])
+    assert not _region_explained(F_HZ, H, H, std, wide, new)  # a perfect fit, nowhere
+    light = poles_from_modal(np.array([60.0, 240.0]), np.array([0.01, 0.01]))
+    assert _region_explained(F_HZ, H, H, std, light, new)
