@@ -733,7 +733,12 @@ class OperatorWindow(QtWidgets.QMainWindow):
         if self.control is None:
             return
         for channel in self.control.runner.gates:
-            self.control.runner.set_gate(channel, None)
+            try:
+                self.control.runner.set_gate(channel, None)
+            except ValueError as exc:  # the setup ended meanwhile: its gates went with it
+                self._say(f"gate not reset: {exc}")
+                self.statusBar().showMessage(f"gate not reset: {exc}")
+                return
         self._pending_gates = {}
         self._say("automatic gates")
 

@@ -287,14 +287,16 @@ class BenchConfig:
             return None
         given = [r for r, section in (("trigger", self.trigger), ("drive", self.drive),
                                       ("digitizer", self.digitizer)) if section is not None]
-        if self.pulsers:
-            given.append("pulsers")
-        if not given:
+        names = [f"[{r}]" for r in given] + (["[[pulsers]]"] if self.pulsers else [])
+        if not names:
             return None
-        unused = " ([digitizer] not at all)" if self.digitizer is not None else ""
-        return (f"simulated = true: {', '.join(f'[{r}]' for r in given)} not opened, "
-                "the simulator answers instead; a generator's load_ohm, max_vpp, timeout_s "
-                f"and external_reference apply{unused}")
+        unused = [part for part, present in (
+            ("[digitizer] not at all", self.digitizer is not None),
+            ("of [[pulsers]] only the resources, as names", bool(self.pulsers)))
+            if present]
+        return (f"simulated = true: {', '.join(names)} not opened, the simulator answers "
+                "instead; a generator's load_ohm, max_vpp, timeout_s and external_reference "
+                "apply" + (f" ({'; '.join(unused)})" if unused else ""))
 
     def instrument_models(self) -> tuple[InstrumentModel, ...]:
         """The instruments this bench file opens, by their driver classes (imported here,

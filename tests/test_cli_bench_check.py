@@ -37,6 +37,13 @@ def test_a_simulated_bench_file_with_instrument_sections_says_they_are_not_opene
     assert ("  note: simulated = true: [drive], [digitizer] not opened, the simulator answers "
             "instead; a generator's load_ohm, max_vpp, timeout_s and external_reference "
             "apply ([digitizer] not at all)\n") in out
+    bench.write_text(bench.read_text().replace('[digitizer]\nresource = "PCI::INSTR0"\n',
+                                               '[[pulsers]]\nresource = "COM3"\n'))
+    assert main(["bench", "check", str(bench)]) == 0
+    assert ("  note: simulated = true: [drive], [[pulsers]] not opened, the simulator "
+            "answers instead; a generator's load_ohm, max_vpp, timeout_s and "
+            "external_reference apply (of [[pulsers]] only the resources, as names)\n"
+            ) in capsys.readouterr().out
     assert main(["bench", "check", str(_dry(tmp_path))]) == 0
     assert "note:" not in capsys.readouterr().out  # no sections, nothing to say
 
