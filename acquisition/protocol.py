@@ -650,27 +650,26 @@ def _point(name: str, entry: Mapping[str, Any], where: str, p: _Problems,
         pos = None
     if pos is not None:
         distance = math.sqrt(sum(v * v for v in pos))
+        key = "position_mm" if "position_mm" in entry else "position_m"
+
+        def listed(factor: float = 1.0) -> str:
+            return "[" + ", ".join(f"{v * factor:g}" for v in entry[key]) + "]"
+
+        rule = ""
         if distance > MAX_POINT_DISTANCE_M:
-            key = "position_mm" if "position_mm" in entry else "position_m"
-            given = "[" + ", ".join(f"{v:g}" for v in entry[key]) + "]"
-            rule = (f"{given} is {distance:.3g} m from the model origin (between the SIAS), "
-                    f"where no pelvis is (at most {MAX_POINT_DISTANCE_M:g} m)")
+            rule = (f"{listed()} is {distance:.3g} m from the model origin (between the "
+                    f"SIAS), where no pelvis is (at most {MAX_POINT_DISTANCE_M:g} m)")
             if key == "position_m":
-                in_m = "[" + ", ".join(f"{v / 1000.0:g}" for v in entry[key]) + "]"
                 rule += (f": position_m is in metres, so if these are millimetres write "
-                         f"position_m = {in_m} or position_mm = {given}")
-            p.add(f"{where}.{key}", rule)
-            pos = None
+                         f"position_m = {listed(1e-3)} or position_mm = {listed()}")
         elif bone and distance < MIN_BONE_POINT_DISTANCE_M:
-            key = "position_mm" if "position_mm" in entry else "position_m"
-            given = "[" + ", ".join(f"{v:g}" for v in entry[key]) + "]"
-            rule = (f"{given} is {distance * 1e3:.3g} mm from the model origin (between the "
-                    f"SIAS, in front of the abdomen), where no bone is (a point on {bone} "
-                    f"lies at least {MIN_BONE_POINT_DISTANCE_M * 1e3:g} mm from it)")
+            rule = (f"{listed()} is {distance * 1e3:.3g} mm from the model origin (between "
+                    f"the SIAS, in front of the abdomen), where no bone is (a point on "
+                    f"{bone} lies at least {MIN_BONE_POINT_DISTANCE_M * 1e3:g} mm from it)")
             if key == "position_mm":
-                in_mm = "[" + ", ".join(f"{v * 1000.0:g}" for v in entry[key]) + "]"
                 rule += (f": position_mm is in millimetres, so if these are metres write "
-                         f"position_mm = {in_mm} or position_m = {given}")
+                         f"position_mm = {listed(1e3)} or position_m = {listed()}")
+        if rule:
             p.add(f"{where}.{key}", rule)
             pos = None
     if pos is not None and bone in ("innominate_right", "innominate_left"):
