@@ -187,15 +187,19 @@ def test_spring_between_bones_screened_behind_another_joint_is_found():
 
 def test_global_search_finds_a_spring_between_bones_that_the_joint_fits_missed(monkeypatch):
     """The search of the springs between bones along their lines, run when no candidate
-    has come near the noise (``_line_search_stage(between_bones=True)``), on the set above
-    with the joint fits' springs between bones taken away (as they were before a026161:
-    no local start reached the spring). The springs to ground and their search stay; the
-    pair search must find the spring at its joint."""
+    has come near the noise (``_line_search_stage(between_bones=True)``), on every other
+    line of the set above (99 lines: 49 -> 28 s of CPU) with the joint fits' springs
+    between bones taken away (as they were before a026161: no local start reached the
+    spring). The springs to ground and their search stay; the pair search must find the
+    spring at its joint (gap 0.34; with the pair search returning nothing the verdict is
+    ``unexplained``, a spring to ground leading at 1.76)."""
     from pelvislab.model import gap
     from pelvislab.tests.benchmarks.bench_gap import make_generator
 
     case = make_generator("sim", 31337)[0]("missing_ligament", 1)
-    data = prepare_data(case.frequency_hz, case.H, case.H_std, case.outputs, case.inputs)
+    lines = slice(None, None, 2)
+    data = prepare_data(case.frequency_hz[lines], case.H[lines], case.H_std[lines],
+                        case.outputs, case.inputs)
     joint_fit_stage, searches = gap._joint_fit_stage, []
 
     def without_springs_between_bones(*args, **kwargs):

@@ -19,9 +19,11 @@ def test_spring_to_ground_from_axis_starts_on_the_damping_refitted_base(tmp_path
     truth = jl.write_set(jl.make_set(np.random.default_rng([7272, 1])), path)
     assert truth["effect"] == "missing_ligament" and truth["place"]["ligament"] == "iliolumbar"
 
-    # the effects that competed (whole library, CLI: the same verdict)
+    # the spring and the bed contact on its line that was named (whole library, CLI: the
+    # same verdict; an added mass, fitted here too before, came third at 0.48 and changed
+    # nothing either way: 28 -> 23 s of CPU without it)
     report = diagnose_in_fresh_process(
-        path, effects=["missing_ligament", "support_resonance", "added_mass"])
+        path, effects=["missing_ligament", "support_resonance"])
     assert report["verdict"] == "missing_ligament", report["verdict_reason"]
     spring = next(c for c in report["candidates"] if c["effect"] == "missing_ligament")
     assert jl.place_hit(truth, spring)

@@ -122,11 +122,13 @@ def test_tilt_absorbed_by_a_distorted_base_fit_is_found_from_the_undistorted_sta
     # The base fit absorbs it with 9 parameters at the updating bounds and moves the
     # residual to SIPS_R_x (56 %); fitted from that base, the tilt at SIPS_L_x was never
     # reached (verdict added_mass on the right innominate, 0.88 -> 0.47). From the
-    # undistorted start (stiffness and mass at nominal, damping refitted) it reaches gap 0
+    # undistorted start (stiffness and mass at nominal, damping refitted) it reaches gap 0.
+    # The tilt and the mass that was named instead suffice (a spring to ground, also
+    # fitted before, changes neither: 25 -> 15 s of CPU)
     from pelvislab.tests.test_gap_support_contacts import judge_like_data
 
     rep = diagnose(judge_like_data(8642, 7, tmp_path), default_model(), GapOptions(
-        effects=("sensor_misorientation", "added_mass", "missing_ligament"))).report
+        effects=("sensor_misorientation", "added_mass"))).report
     best = rep["candidates"][0]
     assert rep["verdict"] == "sensor_misorientation", rep["verdict_reason"]
     assert best["place"] == "SIPS_L_x" and best["variant"] == "tilted axis"
