@@ -1573,7 +1573,8 @@ def _ema(
                      "explain their region to the noise and pass the significance check): "
                      + ", ".join(f"{x:.4g} Hz (zeta {z:.2%})" for x, z in zip(fa, za,
                                                                              strict=True))
-                     + "; judge them with the stabilisation diagram")
+                     + "; judge them with the stabilisation diagram (their frequency is "
+                     "known to a few % only: --refine gives its std)")
     refit = False
     dropped, _ = pole_frequency_damping(selected[~np.isin(selected, poles)])
     if dropped.size:
