@@ -26,6 +26,8 @@ from pelvislab.acquisition.session import (
     STATUS_COMPLETE,
     STATUS_COMPLETE_ALIASES,
     SessionReader,
+    being_written_here,
+    process_identity,
 )
 
 #: Session log lines kept in the summary (the latest warnings and errors).
@@ -276,8 +278,6 @@ def _writer_alive(run: Mapping[str, Any], path: Path | str) -> bool | None:
     before the identity was recorded). With HDF5 file locking on, a file being written does
     not open at all; with it off (NFS), this tells a live run from a killed one. A pid
     alone does not: after a reboot, or in time, another process holds it (review)."""
-    from pelvislab.acquisition.session import being_written_here, process_identity
-
     if (run.get("pid") is None or run.get("host") != socket.gethostname()
             or run.get("boot_id") is None or run.get("pid_start_ticks") is None):
         return None
