@@ -29,6 +29,7 @@ import os
 import re
 import socket
 import time
+import weakref
 from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -367,6 +368,9 @@ class SessionWriter:
         self._h5 = handle
         self.path = path
         _WRITING.add(str(Path(path).resolve()))
+        # a writer dropped without close() (a notebook) leaves the set too; its file is
+        # closed by h5py then
+        weakref.finalize(self, _WRITING.discard, str(Path(path).resolve()))
         self._t0 = started_monotonic
         self._offset_s = offset_s
         self._largest_step_bytes = 0  # file growth of the largest step written, bytes

@@ -341,3 +341,18 @@ def test_the_replay_shows_the_summary_in_its_file_tab(complete_session: Path, qt
     view.tabs.setCurrentWidget(view.file_info)
     text = view.file_info.toPlainText()
     assert "steps: 6 acquired of 6 planned" in text and "status: completed" in text
+
+
+def test_a_writer_dropped_without_close_is_no_longer_writing(tmp_path: Path) -> None:
+    import gc
+
+    from pelvislab.acquisition.protocol import parse_protocol
+    from pelvislab.acquisition.session import SessionWriter, being_written_here
+    from pelvislab.tests.test_session_format import BENCH, POINTS, TEXT
+
+    path = tmp_path / "dropped.h5"
+    writer = SessionWriter.create(path, parse_protocol(TEXT, "t.toml", None, POINTS), BENCH)
+    assert being_written_here(path)
+    del writer
+    gc.collect()
+    assert not being_written_here(path)
