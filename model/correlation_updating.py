@@ -39,7 +39,7 @@ from scipy.optimize import least_squares
 
 from pelvislab.model.correlation import correlation_shapes, mac_cost
 from pelvislab.model.frf import Points, rows_for
-from pelvislab.model.identification import covariance_report, one_blas_thread
+from pelvislab.model.identification import covariance_report, interval_95, one_blas_thread
 from pelvislab.model.modal import complex_modes, mac, pair_modes
 from pelvislab.model.parameters import ParameterSpace, parameter_space
 from pelvislab.model.pelvis import PelvisModel
@@ -117,15 +117,20 @@ class MacUpdateResult:
     wall_time_s: float
     weak_directions: list[dict[str, object]] = field(default_factory=list)
     model: PelvisModel | None = None
+    log_mask: np.ndarray | None = None  # (n_p,) fitted in log p (else linearly: coordinates)
 
     def as_dict(self) -> dict[str, object]:
         """JSON-ready summary (NaN as None)."""
         def num(x: float) -> float | None:
             return None if not np.isfinite(x) else float(x)
 
+        log = (np.ones(len(self.names), bool) if self.log_mask is None
+               else np.asarray(self.log_mask, bool))
         return {
-            "parameters": {n: {"value": float(v), "std": num(s)}
-                           for n, v, s in zip(self.names, self.values, self.std, strict=True)},
+            "parameters": {n: {"value": float(v), "std": num(s),
+                               "interval_95": interval_95(n, float(v), float(s), bool(g))}
+                           for n, v, s, g in zip(self.names, self.values, self.std, log,
+                                                 strict=True)},
             "converged": self.converged, "message": self.message,
             "cost_eq14_1": self.cost_eq14_1,
             "pairs": [{"measured": a, "model": b, "mac": num(self.mac[a]),
@@ -509,5 +514,5 @@ def update_by_mac(
         mac=macs, frequency_error=ferr, damping_error=zerr, unpaired=unpaired,
         model_frequency_hz=f_model, starts=starts, start_costs=start_costs,
         evaluations=n_eval[0], wall_time_s=time.perf_counter() - t0, weak_directions=weak,
-        model=space.apply(values),
+        model=space.apply(values), log_mask=np.asarray(log, bool),
     )

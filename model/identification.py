@@ -377,16 +377,20 @@ class FitResult:
 Z_95 = 1.959963984540054
 
 
-def interval_95(name: str, value: float, std: float) -> list[float] | None:
+def interval_95(name: str, value: float, std: float, log: bool | None = None
+                ) -> list[float] | None:
     """The 95 % interval [low, high] of a fitted parameter, in its SI unit, in the space the
     fit ran in: ``value x/÷ exp(1.96 std / value)`` for the log-fitted masses, stiffnesses
     and dampings (their ``std`` is the linearised ``value x std(log p)``), ``value +- 1.96
     std`` for the linear f_k, f_c (eq. 7.1-7.3). A weak parameter's linear ``value +- 2 std``
     reached below zero, a value no mass or spring can take, and hid that the fit's
-    uncertainty is a factor (calibration audit, session 43). None without a finite std."""
+    uncertainty is a factor (calibration audit, session 43). ``log``: whether the fit ran
+    in log p (None: by the name, as above; MAC updating fits coordinates linearly). None
+    without a finite std."""
     if not (np.isfinite(std) and np.isfinite(value)) or std < 0:
         return None
-    if name in ("f_k", "f_c") or value <= 0:
+    linear = name in ("f_k", "f_c") if log is None else not log
+    if linear or value <= 0:
         return [value - Z_95 * std, value + Z_95 * std]
     # capped below float's range (value x e^300 stays finite for any SI value here): a std
     # of many e-folds says "undetermined" as well

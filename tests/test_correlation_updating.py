@@ -129,6 +129,18 @@ def test_noisy_modes_recovered_within_standard_errors() -> None:
     assert np.all(np.isfinite(rel_std))
     assert np.all(np.abs(err) < 4 * rel_std), (err, rel_std)  # calibrated standard errors
     assert np.all(res.mac > 0.99)
+    # each parameter's 95 % interval in the space the fit ran in: a factor for the
+    # stiffnesses and dampings, value +- 1.96 std for the coordinates (metres; they may be
+    # negative), as identify's
+    params = res.as_dict()["parameters"]
+    for name, log in zip(PARAMS, space.log_mask, strict=True):
+        value, std = params[name]["value"], params[name]["std"]
+        low, high = params[name]["interval_95"]
+        if log:
+            assert low * high == pytest.approx(value**2, rel=1e-9)
+        else:
+            assert (low, high) == pytest.approx((value - 1.96 * std, value + 1.96 * std),
+                                                rel=1e-3, abs=1e-12)
 
 
 def test_pooled_standard_errors_without_stds_still_finite() -> None:
