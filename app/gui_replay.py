@@ -745,20 +745,22 @@ class ReplayView(QtWidgets.QWidget):
 
     def show_identification(self, report: Any) -> None:
         """Parameters with their standard errors; measured vs model FRFs."""
+        from pelvislab.app.commands.identify import parameter_unit, undetermined
+
         document = report.to_json()
         self.ident_summary.setText(identification_summary(document))
         params = document.get("parameters", {})
         self.param_table.setRowCount(len(params))
         units = document.get("units", {})  # by prefix: m_ kg, k_ N/m, c_ N s/m, f_ 1
         for r, (name, entry) in enumerate(sorted(params.items())):
-            unit = next((u for prefix, u in units.items() if name.startswith(prefix)), "")
+            unit = parameter_unit(name, units)
             label = f"{name} ({unit})" if unit and unit != "1" else name
             self.param_table.setItem(r, 0, QtWidgets.QTableWidgetItem(label))
             self.param_table.setItem(r, 1, QtWidgets.QTableWidgetItem(f"{entry['value']:.4g}"))
             std = entry.get("std")
             cell = QtWidgets.QTableWidgetItem("" if std is None else f"{std:.2g}")
             interval = entry.get("interval_95")
-            if std is not None and std > abs(entry["value"]):
+            if undetermined(entry):
                 cell.setToolTip("undetermined: std above the value (the data do not "
                                 "determine it)")
             elif interval:  # a weak parameter's is a factor, not value +- 2 std

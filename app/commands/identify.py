@@ -400,6 +400,19 @@ def recorded_calibration_std(path: str | Path, frequency_hz: Any
     return float(np.sqrt(np.mean(at_lines ** 2))), "bench", None
 
 
+def parameter_unit(name: str, units: dict[str, str]) -> str:
+    """The SI unit of parameter ``name`` from the JSON's ``units`` (by name prefix: m_ kg,
+    k_ N/m, c_ N s/m, f_ 1); "" when none applies."""
+    return next((u for prefix, u in units.items() if name.startswith(prefix)), "")
+
+
+def undetermined(entry: dict[str, Any]) -> bool:
+    """Whether a JSON parameter entry's std exceeds its value: the data do not determine
+    it (modal updating's rule), and its interval spans decades either way."""
+    std = entry.get("std")
+    return std is not None and std > abs(entry["value"])
+
+
 def summary_text(document: dict[str, Any]) -> str:
     """The identification's JSON (design 4.5) as a few lines: converged or not, the misfit,
     and each parameter with its unit, standard error and 95 % interval."""
@@ -414,14 +427,12 @@ def summary_text(document: dict[str, Any]) -> str:
     params = document.get("parameters", {})
     width = max((len(n) for n in params), default=0)
     for name, entry in params.items():
-        unit = next((u for prefix, u in units.items() if name.startswith(prefix)), "")
+        unit = parameter_unit(name, units)
         unit = "" if unit == "1" else f" {unit}"
         std = entry.get("std")
         interval = entry.get("interval_95")
         spread = "std n/a" if std is None else f"std {std:.2g}"
-        if std is not None and std > abs(entry["value"]):
-            # the data do not determine it (modal updating's rule): its interval spans
-            # decades either way (1e-125 to 1e136 N/m read as numbers: review)
+        if undetermined(entry):  # 1e-125 to 1e136 N/m read as numbers (review)
             spread += ", undetermined: std above the value"
         elif interval:
             spread += f", 95 % {interval[0]:.4g} to {interval[1]:.4g}"
