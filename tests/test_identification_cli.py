@@ -70,6 +70,45 @@ def test_identify_with_h_std_uses_chi_square(tmp_path: Path, capsys) -> None:
         f"JSON: {out}"]
 
 
+@pytest.mark.parametrize("f_k", [0.0, 0.002])
+def test_a_fit_that_version_b_beats_is_not_converged(tmp_path: Path, f_k: float) -> None:
+    """Noise 1 % of |H| on face-up lines: stiffness 0.05 % higher at 300 Hz (eq. 7.3, f_k
+    0.002) leaves a version-A fit at the noise floor (chi2/dof 0.99), but version B's f_k
+    fits it significantly better: not converged, saying so; without f_k converged."""
+    outs, ins, mask = layout_channels(FACE_UP)
+    problem, space = pelvis_problem(default_model(), outs, ins)
+    f = np.arange(5.0, 300.0, 5.0)
+    H, _ = frf_with_jacobian(problem.assemble(space.values()), problem.outputs,
+                             problem.inputs, f, f_k=f_k,
+                             omega_max_rad_s=problem.omega_max_rad_s, jacobian=False)
+    std = 0.01 * np.abs(H)
+    rng = np.random.default_rng(0)
+    H = H + std / np.sqrt(2) * (rng.standard_normal(H.shape)
+                                + 1j * rng.standard_normal(H.shape))
+    src = tmp_path / "frf.h5"
+    write_frf(src, FrfSet(f, np.where(mask[None], H, np.nan), outs, ins,
+                          H_std=np.where(mask[None], std, np.nan)))
+    out = tmp_path / "out.json"
+    main(["identify", str(src), "--params", "k_pubh,k_io_R,k_io_L,k_asd_R,k_asd_L",
+          "--json", str(out)])
+    doc = json.loads(out.read_text())
+    assert doc["chi2_per_dof"] < 1.05  # at the noise floor either way
+    test = doc["frequency_dependence"]
+    assert test["significant"] is (f_k > 0)
+    assert doc["converged"] is (f_k == 0)
+    if f_k:
+        assert test["f_k"] == pytest.approx(f_k, abs=5e-4) and test["p_value"] < 1e-6
+        assert "version B" in doc["message"] and "--version-b" in doc["message"]
+    else:
+        assert "version B" not in doc["message"]
+    # version B itself and the relative residuals are not tested
+    for flags in (["--version-b"], ["--residual", "log"]):
+        other = tmp_path / f"{flags[-1]}.json"
+        main(["identify", str(src), "--params", "k_pubh", *flags, "--starts", "1",
+              "--json", str(other)])
+        assert "frequency_dependence" not in json.loads(other.read_text())
+
+
 def test_bad_file_gives_one_line_error(tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
     bad = tmp_path / "bad.h5"
     bad.write_bytes(b"not hdf5 at all")
