@@ -1110,7 +1110,9 @@ def frequency_dependence_test(
     44). The fit from version A's minimum takes 0.1-0.2 s on a 15-FRF pelvis file.
 
     Returns ``{"delta_chi2", "f_statistic", "dof", "p_value", "significant", "p_limit",
-    "f_k", "f_c"}`` (f_k, f_c: version B's fit; ``significant``: ``p_value < p_limit``).
+    "f_k", "f_c", "chi2_per_dof", "at_noise_floor"}`` (f_k, f_c, chi2_per_dof: version B's
+    fit; ``significant``: ``p_value < p_limit``; ``at_noise_floor``: version B's misfit
+    within :func:`noise_floor_rms`).
     """
     from scipy.stats import f as f_dist
 
@@ -1138,7 +1140,10 @@ def frequency_dependence_test(
     s2 = max(chi2_b / dof, 1.0)
     f_statistic = delta / 2.0 / s2
     p_value = float(f_dist.sf(f_statistic, 2, dof))
+    floor = noise_floor_rms(dof + len(extended.names), len(extended.names))
     return {"delta_chi2": float(delta), "f_statistic": float(f_statistic), "dof": int(dof),
             "p_value": p_value, "p_limit": float(p_limit),
             "significant": bool(p_value < p_limit),
-            "f_k": float(extended.values[-2]), "f_c": float(extended.values[-1])}
+            "f_k": float(extended.values[-2]), "f_c": float(extended.values[-1]),
+            "chi2_per_dof": float(chi2_b / dof),
+            "at_noise_floor": bool(float(extended.extra["rms_residual"]) <= floor)}

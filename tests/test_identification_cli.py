@@ -70,11 +70,13 @@ def test_identify_with_h_std_uses_chi_square(tmp_path: Path, capsys) -> None:
         f"JSON: {out}"]
 
 
-@pytest.mark.parametrize("f_k", [0.0, 0.002])
+@pytest.mark.parametrize("f_k", [0.0, 0.002, 0.008])
 def test_a_fit_that_version_b_beats_is_not_converged(tmp_path: Path, f_k: float) -> None:
     """Noise 1 % of |H| on face-up lines: stiffness 0.05 % higher at 300 Hz (eq. 7.3, f_k
     0.002) leaves a version-A fit at the noise floor (chi2/dof 0.99), but version B's f_k
-    fits it significantly better: not converged, saying so; without f_k converged."""
+    fits it significantly better: not converged, saying so; without f_k converged. With
+    f_k 0.008 version A misses the floor (chi2/dof 2.3) and version B reaches it: the
+    message says to fit version B."""
     outs, ins, mask = layout_channels(FACE_UP)
     problem, space = pelvis_problem(default_model(), outs, ins)
     f = np.arange(5.0, 300.0, 5.0)
@@ -92,13 +94,16 @@ def test_a_fit_that_version_b_beats_is_not_converged(tmp_path: Path, f_k: float)
     main(["identify", str(src), "--params", "k_pubh,k_io_R,k_io_L,k_asd_R,k_asd_L",
           "--json", str(out)])
     doc = json.loads(out.read_text())
-    assert doc["chi2_per_dof"] < 1.05  # at the noise floor either way
+    assert (doc["chi2_per_dof"] < 1.05) is (f_k < 0.005)  # at the noise floor or not
     test = doc["frequency_dependence"]
     assert test["significant"] is (f_k > 0)
     assert doc["converged"] is (f_k == 0)
+    assert test["at_noise_floor"] and test["chi2_per_dof"] < 1.05
     if f_k:
         assert test["f_k"] == pytest.approx(f_k, abs=5e-4) and test["p_value"] < 1e-6
         assert "version B" in doc["message"] and "--version-b" in doc["message"]
+        assert ("carry a model error" in doc["message"]) is (f_k < 0.005)
+        assert ("to the noise" in doc["message"]) is (f_k > 0.005)
     else:
         assert "version B" not in doc["message"]
     # version B itself and the relative residuals are not tested
@@ -107,6 +112,18 @@ def test_a_fit_that_version_b_beats_is_not_converged(tmp_path: Path, f_k: float)
         main(["identify", str(src), "--params", "k_pubh", *flags, "--starts", "1",
               "--json", str(other)])
         assert "frequency_dependence" not in json.loads(other.read_text())
+
+
+def test_a_fit_with_a_parameter_on_its_bound_is_not_tested_for_frequency_dependence():
+    """Version B would stand in for the bound too (a set without frequency dependence,
+    two springs on their x10 bound: f_k 4.8 at p 0.0005)."""
+    from pelvislab.app.commands.identify import _tested_for_frequency_dependence
+    from pelvislab.model.identification import FitResult
+
+    fit = FitResult(["k_io_R"], np.array([1e7]), np.array([np.nan]), np.eye(1), 1.0, False,
+                    10, 0.1, "std", np.ones(1), [], extra={"on_bound": ["k_io_R"]})
+    assert _tested_for_frequency_dependence(None, None, None, fit, (0.0, 0.0), 0.003,
+                                            None) == (fit, None)
 
 
 def test_bad_file_gives_one_line_error(tmp_path: Path, capsys: pytest.CaptureFixture) -> None:

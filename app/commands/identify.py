@@ -280,16 +280,23 @@ def identify_file(path: str | Path, method: str = "frf", params: list[str] | Non
 def _tested_for_frequency_dependence(problem: Any, frf: Any, H_std: Any, result: Any,
                                      held_freq_dep: tuple[float, float], gain_std: float,
                                      progress: Callable[[str], None] | None
-                                     ) -> tuple[Any, dict[str, Any]]:
+                                     ) -> tuple[Any, dict[str, Any] | None]:
     """``result`` (a version-A FRF fit with the std residual) and the JSON of its
     frequency-dependence test (:func:`pelvislab.model.identification.
-    frequency_dependence_test`); a significant test makes the fit not converged, saying why:
-    its parameters carry a model error that version B's two parameters explain (judge-like
-    f_k sets had passed as converged at the noise floor with k_pubh 30 std off)."""
+    frequency_dependence_test`; None, not run, when a parameter is on its bound: version B
+    then also stands in for the bound, e.g. f_k 4.8 for two springs at start x 10 on a set
+    without frequency dependence, p 0.0005). A fit that converged otherwise is not
+    converged when the test is significant, saying why: its parameters carry a model error
+    that version B's two parameters explain (judge-like f_k sets had passed as converged
+    at the noise floor with k_pubh 30 std off). A fit that did not converge is told to fit
+    version B only when version B reaches the noise floor (from a local minimum, chi2/dof
+    35, version B lowered the chi2 by 4e4 and stayed far from it)."""
     from dataclasses import replace
 
     from pelvislab.model.identification import frequency_dependence_test
 
+    if result.extra.get("on_bound"):
+        return result, None
     test = frequency_dependence_test(problem, frf.frequency_hz, frf.H, H_std, result,
                                      start_freq_dep=held_freq_dep, gain_std=gain_std)
     said = (f"frequency-dependent stiffness and damping (version B, eq. 7.1-7.3) fit "
@@ -300,10 +307,16 @@ def _tested_for_frequency_dependence(problem: Any, frf: Any, H_std: Any, result:
         progress(said)
     if not test["significant"]:
         return result, test
-    message = (f"{result.message}; {said}: the parameters carry a model error that two "
-               "parameters explain; fit with --version-b, or run 'pelvislab gap diagnose' "
-               "to tell it from other unmodelled effects")
-    return replace(result, converged=False, message=message.lstrip("; ")), test
+    if result.converged:
+        return replace(result, converged=False, message=(
+            f"{result.message}; {said}: the parameters carry a model error that two "
+            "parameters explain; fit with --version-b, or run 'pelvislab gap diagnose' to "
+            "tell it from other unmodelled effects").lstrip("; ")), test
+    if test["at_noise_floor"]:
+        return replace(result, message=(
+            f"{result.message}; {said}, to the noise (chi2/dof {test['chi2_per_dof']:.3g}): "
+            "fit with --version-b").lstrip("; ")), test
+    return result, test
 
 
 def modelled_channels(frf: Any, path: str | Path) -> tuple[Any, str | None]:
