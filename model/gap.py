@@ -925,6 +925,23 @@ def fit_base(fit: _Lines, start: np.ndarray, names: Sequence[str], options: GapO
                    time.perf_counter() - t0, starts[0])
 
 
+def global_base_fit(data: GapData, model: PelvisModel, options: GapOptions | None = None,
+                    progress: Progress | None = None) -> BaseFit:
+    """The base model's parameters (design 4.5 names, SI) fitted to every line of ``data``
+    by the diagnosis' global strategy (:func:`fit_base`: a grid over a common damping
+    decade and stiffness and mass scales, each damping group scanned over its decades,
+    random restarts around the best), under ``model``'s own dashpot reading, with the
+    updating range of ``options``. For other commands that need a global start:
+    ``identify`` falls back on it when its own starts miss the noise floor (a judge-like
+    set without effect: identify's four starts and its damping rescue ended at rms 28.4
+    and 5.95 in a local minimum, k_pss_L 10x low; this fit reached the floor at its first
+    start, stiffnesses within 4 %, in ~1 s; session 45)."""
+    opt = options or GapOptions()
+    ctx = _context(model, data)
+    every_line = _Lines.build(ctx, data, np.ones(data.frequency_hz.size, bool))
+    return fit_base(every_line, ctx.base.nominal.copy(), ctx.base.names, opt, progress)
+
+
 @dataclass
 class CandidateResult:
     """One fitted candidate (best variant and place of an effect)."""
