@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 from dataclasses import replace
 from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -348,3 +349,29 @@ def test_the_summary_calls_an_undetermined_parameter_so() -> None:
     text = summary_text(doc)
     assert "k_a  1e+05 N/m  (std 2e+07, undetermined: std above the value)" in text
     assert "k_b  1e+05 N/m  (std 1e+03, 95 % 9.8e+04 to 1.02e+05)" in text
+
+
+@pytest.mark.parametrize("held", [(0.0, 0.0), (0.3, 0.2)])
+def test_the_frequency_dependence_message_says_from_what_f_k_f_c_were_released(
+        monkeypatch: pytest.MonkeyPatch, held: tuple[float, float]) -> None:
+    """With the model file's f_k 0.3, f_c 0.2 held, a simulated face-down session without
+    frequency dependence fitted version B at f_k 0.007, f_c -0.0003, p 0: the message said
+    "frequency-dependent stiffness and damping fit significantly better" (review 45)."""
+    import pelvislab.model.identification as identification
+    from pelvislab.app.commands.identify import _tested_for_frequency_dependence
+
+    test = {"delta_chi2": 2.6e4, "p_value": 0.0, "p_limit": 1e-3, "significant": True,
+            "f_k": 0.00668, "f_c": -0.0003, "chi2_per_dof": 0.85, "at_noise_floor": True}
+    monkeypatch.setattr(identification, "frequency_dependence_test",
+                        lambda *_a, **_k: test)
+    fit = FitResult(["k_io_R"], np.array([1e6]), np.array([1e4]), np.eye(1), 1.0, False,
+                    10, 0.1, "std", np.ones(1), [], message="best rms residual 3.8",
+                    extra={"on_bound": []})
+    frf = SimpleNamespace(frequency_hz=np.array([5.0]), H=np.ones((1, 1, 1), complex))
+    result, said = _tested_for_frequency_dependence(None, frf, None, fit, held, 0.003, None)
+    assert said is test and "fit with --version-b" in result.message
+    if any(held):
+        assert "released from the model file's 0.3, 0.2" in result.message
+        assert "frequency-dependent stiffness and damping" not in result.message
+    else:
+        assert "frequency-dependent stiffness and damping (version B" in result.message
