@@ -375,3 +375,26 @@ def test_the_frequency_dependence_message_says_from_what_f_k_f_c_were_released(
         assert "frequency-dependent stiffness and damping" not in result.message
     else:
         assert "frequency-dependent stiffness and damping (version B" in result.message
+
+
+def test_a_symmetric_fit_does_not_run_the_global_base_fit(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    """--symmetric has names of its own (k_io, c_sij, ...) that the gap diagnosis' base
+    fit (design 4.5's) cannot start: it ran for nothing, ~0.9 s of 3 on a simulated demo
+    session without its H_std, before being dropped (review 45)."""
+    import pelvislab.model.gap as gap
+    from pelvislab.app.commands.identify import _from_the_global_base_fit
+
+    monkeypatch.setattr(gap, "prepare_data", lambda *_a, **_k: None)
+    monkeypatch.setattr(gap, "global_base_fit",
+                        lambda *_a, **_k: pytest.fail("base fit run for a symmetric fit"))
+    outs, ins, _mask = layout_channels(FACE_UP)
+    problem, _ = pelvis_problem(default_model(), outs, ins, symmetric=True)
+    n = len(problem.names)
+    missed = FitResult(list(problem.names), problem.nominal.copy(), problem.nominal, np.eye(n),
+                       1.0, False, 7, 1.0, "std", np.ones(n), [], starts=4,
+                       extra={"rms_residual": 6.0})
+    frf = SimpleNamespace(frequency_hz=np.arange(5.0, 20.0), H=np.ones((15, 1, 1), complex))
+    assert _from_the_global_base_fit(
+        problem, frf, np.ones((15, 1, 1)), default_model(), missed,
+        lambda _s: pytest.fail("fitted again"), None) == (missed, None)
