@@ -165,19 +165,22 @@ def test_a_fit_that_misses_the_noise_floor_is_fitted_again_from_the_global_base_
     np.testing.assert_allclose(start, truth, rtol=0.02)
     assert result.extra["rms_residual"] == 0.9 and (result.evaluations, result.starts) == (12, 5)
     assert "global base fit" in note and "6 from the model file's values, 0.9 from it" in note
-    # not better: the first fit stays, without a note
-    worse = replace(stuck, extra={"rms_residual": 7.0})
-    assert _from_the_global_base_fit(problem, frf, frf.H_std, model, stuck,
-                                     lambda _s: worse, None) == (stuck, None)
+    # not better: the first fit stays, without a note, but the base fit's and the second
+    # fit's effort count (wall_time_s left out 1-2.7 s of base fit: review 45)
+    worse = replace(stuck, evaluations=5, starts=1, extra={"rms_residual": 7.0})
+    kept, note = _from_the_global_base_fit(problem, frf, frf.H_std, model, stuck,
+                                           lambda _s: worse, None)
+    assert note is None and kept.extra == stuck.extra and kept.values is stuck.values
+    assert (kept.evaluations, kept.starts) == (12, 5) and kept.wall_time_s > 1.0
     # at the noise floor, or where the base fit is no better a start: no second fit
     at_floor = replace(stuck, extra={"rms_residual": 1.0})
     assert _from_the_global_base_fit(problem, frf, frf.H_std, model, at_floor,
                                      lambda _s: pytest.fail("fitted again"), None) == (
         at_floor, None)
     near = replace(stuck, values=truth)  # the noise-free data's own values
-    assert _from_the_global_base_fit(problem, frf, frf.H_std, model, near,
-                                     lambda _s: pytest.fail("fitted again"), None) == (
-        near, None)
+    kept, note = _from_the_global_base_fit(problem, frf, frf.H_std, model, near,
+                                           lambda _s: pytest.fail("fitted again"), None)
+    assert note is None and kept.values is truth and kept.wall_time_s > near.wall_time_s
 
 
 def test_bad_file_gives_one_line_error(tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
