@@ -164,7 +164,7 @@ def test_a_fit_that_misses_the_noise_floor_is_fitted_again_from_the_global_base_
     # the diagnosis' base fit found the subject, dampings 40-400x appendix E's included
     np.testing.assert_allclose(start, truth, rtol=0.02)
     assert result.extra["rms_residual"] == 0.9 and (result.evaluations, result.starts) == (12, 5)
-    assert "global base fit" in note and "6 from the model file's values, 0.9 from it" in note
+    assert "global base fit" in note and "6 from identify's own starts, 0.9 from it" in note
     # not better: the first fit stays, without a note, but the second fit's effort counts
     # (its time too: identify_file's wall_time_s is the whole identification's; review 45)
     worse = replace(stuck, evaluations=5, starts=1, extra={"rms_residual": 7.0})

@@ -354,7 +354,7 @@ def _from_the_global_base_fit(problem: Any, frf: Any, H_std: Any, model: Any, re
     if not (_weighted_chi2(problem, frf, H_std, gain_std, start, held)
             < _weighted_chi2(problem, frf, H_std, gain_std,
                              np.array([ours[name] for name in problem.names]), held)):
-        return spent(result), None  # no better a start: a second fit is not worth its time
+        return result, None  # no better a start: a second fit is not worth its time
     if progress:
         progress(f"rms residual {rms:.3g} above the noise floor: fitted again from the gap "
                  f"diagnosis' global base fit (fitted-line gap {base.gap_fit:.3g})")
@@ -365,7 +365,7 @@ def _from_the_global_base_fit(problem: Any, frf: Any, H_std: Any, model: Any, re
     return spent(again, result), (
         f"fitted from the gap diagnosis' global base fit (its grid over damping decades and "
         f"stiffness and mass scales; bounds x/÷ 10 around it): rms residual {rms:.3g} from "
-        f"the model file's values, {rms_again:.3g} from it")
+        f"identify's own starts, {rms_again:.3g} from it")
 
 
 def _tested_for_frequency_dependence(problem: Any, frf: Any, H_std: Any, result: Any,
