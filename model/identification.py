@@ -776,6 +776,30 @@ def _solve_stage(ev: _Evaluator, x: np.ndarray, lo: np.ndarray, hi: np.ndarray,
     return full(sol.x), sol
 
 
+def gain_floored_std(H: np.ndarray, H_std: np.ndarray, gain_std: float) -> np.ndarray:
+    """The FRF fit's standard uncertainty per value (m/N): sqrt(H_std^2 + (gain_std |H|)^2)
+    where ``H_std`` is known (finite, > 0); elsewhere ``H_std`` as it is (unknown: such
+    values are left out of the fit). ``gain_std`` relative (:func:`identify_frf`)."""
+    known = np.isfinite(H_std) & (H_std > 0)
+    return np.where(known, np.sqrt(np.square(np.where(known, H_std, 0.0))
+                                   + np.square(gain_std * np.abs(H))), H_std)
+
+
+def weighted_chi2(problem: FrfProblem, frequency_hz: np.ndarray, H: np.ndarray,
+                  H_std: np.ndarray, values: np.ndarray, *, gain_std: float = 0.0,
+                  freq_dep: tuple[float, float] = (0.0, 0.0)) -> float:
+    """sum |H_model - H|^2 / sigma^2 over the measured values with a known ``H_std``, sigma
+    the FRF fit's weights (:func:`gain_floored_std`), at ``values`` (``problem``'s order)
+    and ``freq_dep`` (f_k, f_c): the std misfit of :func:`identify_frf` at a given point,
+    without fitting (identify compares candidate starts with it)."""
+    H_model, _ = frf_with_jacobian(problem.assemble(values), problem.outputs, problem.inputs,
+                                   frequency_hz, f_k=freq_dep[0], f_c=freq_dep[1],
+                                   omega_max_rad_s=problem.omega_max_rad_s, jacobian=False)
+    ok = np.isfinite(H) & np.isfinite(H_std) & (H_std > 0)
+    sigma = gain_floored_std(H, H_std, gain_std)
+    return float(np.sum(np.abs(H_model[ok] - H[ok]) ** 2 / np.square(sigma[ok])))
+
+
 def one_blas_thread(fn: Callable) -> Callable:
     """Decorator: run ``fn`` inside :func:`single_blas_thread`."""
     @functools.wraps(fn)
@@ -843,9 +867,7 @@ def identify_frf(
         # only where H_std is known: a zero or NaN there means "unknown" and leaves the
         # line out (_Target); floored, such lines came back at the gain's weight alone
         # (half the lines zero: chi2/dof 979, k_io_R 4 % off: review of session 40)
-        known = np.isfinite(H_std) & (H_std > 0)
-        H_std = np.where(known, np.sqrt(np.square(np.where(known, H_std, 0.0))
-                                        + np.square(gain_std * np.abs(H))), H_std)
+        H_std = gain_floored_std(H, H_std, gain_std)
     strategy = strategy or Strategy()
     names = list(problem.names)
     free_names = list(free) if free is not None else names

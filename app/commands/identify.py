@@ -289,23 +289,6 @@ def identify_file(path: str | Path, method: str = "frf", params: list[str] | Non
     return IdentificationReport(doc, frf, model_H, bool(result.converged), str(result.message))
 
 
-def _weighted_chi2(problem: Any, frf: Any, H_std: Any, gain_std: float, values: Any,
-                   freq_dep: tuple[float, float]) -> float:
-    """sum |H_model - H|^2 / sigma^2 over the measured lines with a known H_std, sigma^2 =
-    H_std^2 + (gain_std |H|)^2 (the FRF fit's weights), at ``values`` (problem order) and
-    ``freq_dep`` (f_k, f_c)."""
-    import numpy as np
-
-    from pelvislab.model.identification import frf_with_jacobian
-
-    H_model, _ = frf_with_jacobian(problem.assemble(values), problem.outputs, problem.inputs,
-                                   frf.frequency_hz, f_k=freq_dep[0], f_c=freq_dep[1],
-                                   omega_max_rad_s=problem.omega_max_rad_s, jacobian=False)
-    ok = np.isfinite(frf.H) & np.isfinite(H_std) & (H_std > 0)
-    var = np.square(H_std[ok]) + np.square(gain_std * np.abs(frf.H[ok]))
-    return float(np.sum(np.abs(H_model[ok] - frf.H[ok]) ** 2 / var))
-
-
 def _from_the_global_base_fit(problem: Any, frf: Any, H_std: Any, model: Any, result: Any,
                               fit_from: Callable[[Any], Any],
                               progress: Callable[[str], None] | None, *,
@@ -324,7 +307,7 @@ def _from_the_global_base_fit(problem: Any, frf: Any, H_std: Any, model: Any, re
 
     from pelvislab.model.gap import global_base_fit, prepare_data
     from pelvislab.model.gap_effects import base_structure
-    from pelvislab.model.identification import noise_floor_rms
+    from pelvislab.model.identification import noise_floor_rms, weighted_chi2
 
     known = np.isfinite(frf.H) & np.isfinite(H_std) & (H_std > 0)
     rms = float(result.extra["rms_residual"])
@@ -351,9 +334,11 @@ def _from_the_global_base_fit(problem: Any, frf: Any, H_std: Any, model: Any, re
     start = np.array([fitted[name] for name in problem.names])
     ours = dict(zip(result.names, result.values, strict=True))
     held = (ours.get("f_k", held_freq_dep[0]), ours.get("f_c", held_freq_dep[1]))
-    if not (_weighted_chi2(problem, frf, H_std, gain_std, start, held)
-            < _weighted_chi2(problem, frf, H_std, gain_std,
-                             np.array([ours[name] for name in problem.names]), held)):
+    def chi2_at(values: Any) -> float:
+        return weighted_chi2(problem, frf.frequency_hz, frf.H, H_std, values,
+                             gain_std=gain_std, freq_dep=held)
+
+    if not chi2_at(start) < chi2_at(np.array([ours[name] for name in problem.names])):
         return result, None  # no better a start: a second fit is not worth its time
     if progress:
         progress(f"rms residual {rms:.3g} above the noise floor: fitted again from the gap "
