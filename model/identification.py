@@ -1218,9 +1218,16 @@ def profile_parameter(
     best one), and gives the interval where Δχ² stays within
     :data:`PROFILE_DELTA_CHI2_95` (Venzon & Moolgavkar 1988's profile interval) without the
     linearisation. Δχ² is scaled by max(χ²/dof, 1) of ``fit`` (the misfit counts as noise
-    where it exceeds the declared one, as the std's Birge ratio does).
+    where it exceeds the declared one, as the std's Birge ratio does). The profile is
+    conditional on the chain's gains: ``gain_std`` enters the weights as in the fit, but
+    the per-FRF gains and a calibration common to all FRFs are not marginalised as the
+    std's are (``identify_frf(gain_std=, chain_gain_std=)``), so with a sizeable
+    calibration uncertainty it is narrower than the std's interval for that reason alone.
+    The refits' bounds are ×/÷ 10 around each start (their neighbour's point): the walk
+    may take the others beyond the fit's own range; a fit with a parameter on its bound
+    is not profiled by ``pelvislab identify`` (its first refit would release it).
 
-    The step is the linearised std(log p), within 0.02-0.5 (0.25 where the std is
+    The step is the linearised std(log p), within 1e-4-0.5 (0.25 where the std is
     undetermined); the walk goes ``max_steps`` steps each way and stops earlier where Δχ²
     passes ``stop_delta_chi2`` (25: five standard deviations; far enough to pass a barrier
     to a second minimum such as the audit's, 14 above) or the parameter leaves
@@ -1228,9 +1235,11 @@ def profile_parameter(
     value, the fit's own point included at 0), ``"interval_95"`` ([low, high], an end null
     where the walk did not reach the limit), ``"linearised_interval_95"``,
     ``"lower_minimum"`` (the lowest point when Δχ² < -:data:`PROFILE_LOWER_TOL` there,
-    else None), ``"second_minimum"`` (the lowest local minimum of the profile apart from
-    the fit's own, with its Δχ²; one within the limit lies inside ``interval_95``; else
-    None) and ``"fits"``.
+    with every parameter's value there, ``"parameters"``; ``interval_95`` is then [None,
+    None]; else None), ``"second_minimum"`` (the lowest local minimum of the profile
+    apart from the fit's own, at least :data:`PROFILE_BARRIER` below the highest point on
+    each side of it, with its Δχ²; one within the limit lies inside ``interval_95``; else
+    None) and ``"fits"``. A refit the model cannot be evaluated at ends the walk.
     """
     if fit.residual_kind != "std":
         raise ValueError("the profile needs a fit with the std residual (chi2 in units of "
@@ -1250,12 +1259,12 @@ def profile_parameter(
     freq_dep = (fitted["f_k"], fitted["f_c"]) if version_b else start_freq_dep
     value = fitted[name]
     std = float(fit.std[fit.names.index(name)])
-    step = float(np.clip(std / value, 0.02, 0.5)) if np.isfinite(std) else 0.25
+    step = float(np.clip(std / value, 1e-4, 0.5)) if np.isfinite(std) else 0.25
     chi2_best = 2.0 * fit.cost
     measured = np.isfinite(H) & np.isfinite(H_std) & (H_std > 0)
     dof = max(2 * int(measured.sum()) - len(fit.names), 1)
     scale = max(chi2_best / dof, 1.0)
-    points: list[tuple[float, float]] = [(value, 0.0)]
+    points: list[tuple[float, float, dict[str, float]]] = [(value, 0.0, dict(fitted))]
     fits = 0
     for direction in (-1.0, 1.0):
         here, dep = start.copy(), freq_dep
@@ -1272,20 +1281,27 @@ def profile_parameter(
                 strategy=Strategy(max_starts=1, hold_freq_dep_first=False), gain_std=gain_std)
             fits += 1
             delta = (2.0 * refit.cost - chi2_best) / scale
-            points.append((held, float(delta)))
+            if not np.isfinite(delta):
+                break  # the model could not be evaluated there: the walk ends
+            refitted = dict(zip(refit.names, refit.values, strict=True))
+            points.append((held, float(delta), {**refitted, name: held}))
             if progress:
                 progress(f"profile of {name}: {held:.4g} -> delta chi2 {delta:.3g}")
-            refitted = dict(zip(refit.names, refit.values, strict=True))
             for n in free:
                 here[names.index(n)] = refitted[n]
             if version_b:
                 dep = (refitted["f_k"], refitted["f_c"])
             if delta > stop_delta_chi2:
                 break
-    points.sort()
-    return {**profile_summary(np.array([p[0] for p in points]),
-                              np.array([p[1] for p in points]), value),
-            "linearised_interval_95": interval_95(name, value, std), "fits": fits}
+    points.sort(key=lambda p: p[0])
+    summary = profile_summary(np.array([p[0] for p in points]),
+                              np.array([p[1] for p in points]), value)
+    if summary["lower_minimum"] is not None:
+        # every parameter there, so that the fit can be started from that point
+        lowest = next(p for p in points if p[0] == summary["lower_minimum"]["value"])
+        summary["lower_minimum"]["parameters"] = {n: float(v) for n, v in lowest[2].items()}
+    return {**summary, "linearised_interval_95": interval_95(name, value, std),
+            "fits": fits}
 
 
 def profile_summary(values: np.ndarray, delta_chi2: np.ndarray, fitted: float
@@ -1295,25 +1311,38 @@ def profile_summary(values: np.ndarray, delta_chi2: np.ndarray, fitted: float
     (one of ``values``, at Δχ² 0). Returns ``{"values", "delta_chi2", "interval_95",
     "lower_minimum", "second_minimum"}`` as :func:`profile_parameter` describes them."""
     values, deltas = np.asarray(values, float), np.asarray(delta_chi2, float)
+    keep = np.isfinite(deltas)  # a point the model could not be evaluated at says nothing
+    values, deltas = values[keep], deltas[keep]
     i0 = int(np.flatnonzero(values == fitted)[0])
     lowest = int(np.argmin(deltas))
     lower = ({"value": float(values[lowest]), "delta_chi2": float(deltas[lowest])}
              if deltas[lowest] < -PROFILE_LOWER_TOL else None)
     second = None
     for i in range(1, values.size - 1):
-        # a local minimum apart from the fit's (its neighbours are the fit's own basin)
-        if abs(i - i0) > 1 and deltas[i] < deltas[i - 1] and deltas[i] < deltas[i + 1]:
-            if second is None or deltas[i] < second["delta_chi2"]:
-                second = {"value": float(values[i]), "delta_chi2": float(deltas[i])}
+        if abs(i - i0) <= 1 or not (deltas[i] < deltas[i - 1] and deltas[i] < deltas[i + 1]):
+            continue
+        # a local minimum apart from the fit's, behind a barrier of at least
+        # PROFILE_BARRIER on both sides (a flat profile's ripples of a few 0.01 are the
+        # refits' tolerance, not minima: review 59)
+        between = deltas[min(i, i0):max(i, i0) + 1]
+        beyond = deltas[i + 1:] if i > i0 else deltas[:i]
+        if (between.max() - deltas[i] >= PROFILE_BARRIER
+                and beyond.max() - deltas[i] >= PROFILE_BARRIER
+                and (second is None or deltas[i] < second["delta_chi2"])):
+            second = {"value": float(values[i]), "delta_chi2": float(deltas[i])}
+    # an interval about a minimum the profile went below is no 95 % interval: none given
+    interval = ([None, None] if lower is not None else
+                [_profile_end(values, deltas, i0, -1), _profile_end(values, deltas, i0, 1)])
     return {"values": [float(v) for v in values], "delta_chi2": [float(d) for d in deltas],
-            "interval_95": [_profile_end(values, deltas, i0, -1),
-                            _profile_end(values, deltas, i0, 1)],
-            "lower_minimum": lower, "second_minimum": second}
+            "interval_95": interval, "lower_minimum": lower, "second_minimum": second}
 
 
 #: Δχ² below which a profile point counts as a lower minimum than the fit's (a rounding
 #: margin: the refits stop at a relative tolerance).
 PROFILE_LOWER_TOL = 0.05
+
+#: Δχ² a second minimum of a profile must lie below the highest point on each side of it.
+PROFILE_BARRIER = 1.0
 
 
 def _profile_end(values: np.ndarray, deltas: np.ndarray, i0: int, direction: int
@@ -1321,14 +1350,17 @@ def _profile_end(values: np.ndarray, deltas: np.ndarray, i0: int, direction: int
     """The end of the 95 % profile interval on one side (``direction`` -1: below the fit's
     point at index ``i0``, +1: above): where the profile rises through
     :data:`PROFILE_DELTA_CHI2_95` beyond the outermost point still within it (a second
-    minimum within the limit is inside), interpolated linearly in log value; None when
-    the walk ended within the limit (the end lies further out)."""
+    minimum within the limit is inside), interpolated between the two points linearly in
+    sqrt(Δχ²) against log value (exact where the profile is the parabola the linearised
+    std assume: linear in Δχ² it put the end of a well-determined mass, 120 above the
+    limit one step out, 5.6x too close: review 59); None when the walk ended within the
+    limit (the end lies further out)."""
     side = range(i0, values.size) if direction > 0 else range(i0, -1, -1)
     inside = [i for i in side if deltas[i] <= PROFILE_DELTA_CHI2_95]
     i = inside[-1]
     j = i + direction
     if not 0 <= j < values.size:
         return None
-    d0, d1 = max(deltas[i], 0.0), deltas[j]
-    t = (PROFILE_DELTA_CHI2_95 - d0) / (d1 - d0) if d1 > d0 else 1.0
+    r0, r1 = np.sqrt(max(deltas[i], 0.0)), np.sqrt(deltas[j])
+    t = (np.sqrt(PROFILE_DELTA_CHI2_95) - r0) / (r1 - r0) if r1 > r0 else 1.0
     return float(np.exp(np.log(values[i]) + t * (np.log(values[j]) - np.log(values[i]))))

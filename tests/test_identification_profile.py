@@ -75,6 +75,9 @@ def test_a_fit_that_stopped_short_of_its_minimum_is_found_out_by_the_profile(cha
     assert prof["lower_minimum"] is not None
     assert prof["lower_minimum"]["value"] < start[fit.names.index("k0")]
     assert prof["lower_minimum"]["delta_chi2"] < -10
+    # every parameter at that point, to start a fit from
+    at = prof["lower_minimum"]["parameters"]
+    assert set(at) == set(fit.names) and at["k0"] == prof["lower_minimum"]["value"]
     # identify then calls the fit not converged, saying where the lower minimum lies
     from pelvislab.app.commands.identify import _profiled
 
@@ -83,6 +86,11 @@ def test_a_fit_that_stopped_short_of_its_minimum_is_found_out_by_the_profile(cha
                                (0.0, 0.0), 0.0, None)
     assert not said.converged and "went below the fit's minimum" in said.message
     assert profiles["k0"]["lower_minimum"] == prof["lower_minimum"]
+    # a fit with a parameter on its bound is not profiled (a refit would release it)
+    bound = replace(stopped, extra={**stopped.extra, "on_bound": ["m2"]})
+    said, profiles = _profiled(p, frf, sigma, bound, ["k0", "weak"], (0.0, 0.0), 0.0, None)
+    assert profiles and all(v is None for v in profiles.values())
+    assert "not profiled: m2 on the bound" in said.message
 
 
 def test_a_second_minimum_and_open_ends_are_reported():
@@ -94,11 +102,29 @@ def test_a_second_minimum_and_open_ends_are_reported():
     assert summary["lower_minimum"] is None
     low, high = summary["interval_95"]
     assert 1.0 < low < 2.0 and high is None  # the second well lies inside, the end beyond
-    # on the parabola's side: where the rise crosses the limit (in log value)
-    assert np.log(low) == pytest.approx(np.log(2.0) + (PROFILE_DELTA_CHI2_95 - 2.0) / 7.0
-                                        * (np.log(1.0) - np.log(2.0)))
+    # where the rise crosses the limit, linearly in sqrt(delta chi2) against log value
+    t = (np.sqrt(PROFILE_DELTA_CHI2_95) - np.sqrt(2.0)) / (3.0 - np.sqrt(2.0))
+    assert np.log(low) == pytest.approx(np.log(2.0) + t * (np.log(1.0) - np.log(2.0)))
     below = profile_summary(values, np.array([9.0, 2.0, 0.0, -4.0, 5.0, 9.0, 12.0]), 3.0)
     assert below["lower_minimum"] == {"value": 4.0, "delta_chi2": -4.0}
+    assert below["interval_95"] == [None, None]  # no 95 % interval about the fit's point
+    # ripples of a flat profile (the refits' tolerance) are no second minimum; a point
+    # the model could not be evaluated at hides no lower minimum
+    flat = profile_summary(values, np.array([0.3, 0.2, 0.0, 0.1, 0.05, 0.08, 0.2]), 3.0)
+    assert flat["second_minimum"] is None and flat["interval_95"] == [None, None]
+    gap_in_it = profile_summary(values, np.array([9.0, np.nan, 0.0, -6.0, 5.0, 9, 12]), 3.0)
+    assert gap_in_it["lower_minimum"]["value"] == 4.0 and 2.0 not in gap_in_it["values"]
+
+
+def test_the_interval_of_a_parabolic_profile_is_exact_from_coarse_points():
+    # a well-determined parameter whose first step is already far above the limit
+    # (review 59: a mass 120 above it one step out got an interval 5.6x too narrow)
+    values = np.exp(np.array([-2.0, -1.0, 0.0, 1.0, 2.0]) * 0.02)
+    sigma_log = 0.002
+    deltas = (np.log(values) / sigma_log) ** 2
+    low, high = profile_summary(values, deltas, 1.0)["interval_95"]
+    half = np.sqrt(PROFILE_DELTA_CHI2_95) * sigma_log
+    assert np.log(high) == pytest.approx(half) and np.log(low) == pytest.approx(-half)
 
 
 def test_weak_parameters_are_those_with_a_wide_or_undetermined_std(chain_fit):
@@ -140,3 +166,21 @@ def test_cli_refuses_a_profile_that_cannot_run_before_fitting(tmp_path: Path, ca
     err = capsys.readouterr().err
     assert match in err and "Traceback" not in err
     assert not (tmp_path / "o.json").exists()
+
+
+def test_the_summary_says_what_each_profile_found() -> None:
+    from pelvislab.app.commands.identify import summary_text
+
+    doc = {"converged": False, "method": "frf", "parameters": {}, "profile": {
+        "k0": {"values": [1.0, 2.0], "delta_chi2": [0.0, -3.0], "interval_95": [None, None],
+               "lower_minimum": {"value": 2.0, "delta_chi2": -3.0}, "second_minimum": None,
+               "fits": 1},
+        "k1": {"values": [1.0, 2.0, 3.0], "delta_chi2": [0.0, 1.0, 2.0],
+               "interval_95": [1.0, None], "lower_minimum": None, "second_minimum": None,
+               "fits": 2},
+        "m2": None}}
+    text = summary_text(doc)
+    assert "profile of k0: a LOWER minimum than the fit's at 2" in text
+    assert "profile of k1: 95 % 1 to above 3 (2 fits)" in text
+    assert "profile of m2: not run (a parameter on the bound" in text
+    assert "no weak parameter" in summary_text({**doc, "profile": {}})

@@ -446,15 +446,19 @@ def _profiled(problem: Any, frf: Any, H_std: Any, result: Any, profile: list[str
 
     names = list(dict.fromkeys(  # in the order given, 'weak' expanded in its place
         m for n in profile for m in (weak_parameters(result) if n == "weak" else [n])))
-    on_bound = set(result.extra.get("on_bound", ()))
+    on_bound = list(result.extra.get("on_bound", ()))
+    if on_bound:
+        # the refits' ranges are centred on each start: the first would release the
+        # parameter on its bound and credit the profiled one with the drop (review 59: a
+        # chain with k0 on its bound had every point of m1's profile below the fit)
+        return replace(result, message="; ".join([
+            result.message, f"not profiled: {', '.join(on_bound)} on the bound of its "
+            "range"]).lstrip("; ")), {name: None for name in names}
+    if progress and not names:
+        progress("profile: no weak parameter (std under 10 % of the value) to profile")
     profiles: dict[str, Any] = {}
     said = []
     for name in names:
-        if name in on_bound:
-            # no minimum in it to walk from; the JSON says why it has no profile
-            profiles[name] = None
-            said.append(f"{name} is on the bound of its range: not profiled")
-            continue
         prof = profile_parameter(problem, frf.frequency_hz, frf.H, H_std, result, name,
                                  start_freq_dep=held_freq_dep, gain_std=gain_std,
                                  progress=progress)
@@ -463,8 +467,8 @@ def _profiled(problem: Any, frf: Any, H_std: Any, result: Any, profile: list[str
             low = prof["lower_minimum"]
             said.append(f"the profile of {name} went below the fit's minimum (chi2 "
                         f"{-low['delta_chi2']:.3g} lower at {name} {low['value']:.4g}): the "
-                        "fit is not the best one; fit again from there (--model with that "
-                        "value)")
+                        "fit is not the best one; fit again from there (every parameter's "
+                        f"value in the JSON's profile.{name}.lower_minimum.parameters)")
         elif prof["second_minimum"] is not None:
             second = prof["second_minimum"]
             said.append(f"the profile of {name} has a second minimum at {second['value']:.4g}"
@@ -640,22 +644,26 @@ def summary_text(document: dict[str, Any]) -> str:
         elif interval:
             spread += f", 95 % {interval[0]:.4g} to {interval[1]:.4g}"
         lines.append(f"  {name:<{width}}  {entry['value']:.4g}{unit}  ({spread})")
-    for name, prof in (document.get("profile") or {}).items():
+    profiles = document.get("profile")
+    if profiles == {}:
+        lines.append("  profile: no weak parameter (std under 10 % of every value)")
+    for name, prof in (profiles or {}).items():
         if prof is None:
-            lines.append(f"  profile of {name}: not run (on the bound of its range)")
+            lines.append(f"  profile of {name}: not run (a parameter on the bound of its "
+                         "range)")
             continue
         low, high = prof["interval_95"]
         # an open end: the walk stayed within the limit up to its last point
         low_txt = f"below {min(prof['values']):.4g}" if low is None else f"{low:.4g}"
         high_txt = f"above {max(prof['values']):.4g}" if high is None else f"{high:.4g}"
-        ends = f"{low_txt} to {high_txt}"
-        extra = ""
+        said = f"95 % {low_txt} to {high_txt}"
         if prof["lower_minimum"] is not None:
-            extra = f"; LOWER minimum at {prof['lower_minimum']['value']:.4g}"
+            said = (f"a LOWER minimum than the fit's at {prof['lower_minimum']['value']:.4g} "
+                    f"(delta chi2 {prof['lower_minimum']['delta_chi2']:.3g}; no interval)")
         elif prof["second_minimum"] is not None:
-            extra = (f"; second minimum at {prof['second_minimum']['value']:.4g} "
+            said += (f"; second minimum at {prof['second_minimum']['value']:.4g} "
                      f"(delta chi2 {prof['second_minimum']['delta_chi2']:.3g})")
-        lines.append(f"  profile of {name}: 95 % {ends} ({prof['fits']} fits){extra}")
+        lines.append(f"  profile of {name}: {said} ({prof['fits']} fits)")
     return "\n".join(lines)
 
 
