@@ -69,6 +69,13 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                    help="standard uncertainty of the drive chain's calibration (N/V), one "
                    "gain common to every FRF (e.g. 0.02), added to the std; default: the "
                    "one the session's bench file stated, else 0")
+    p.add_argument("--profile", metavar="NAMES",
+                   help="profile likelihood of these masses, springs or dampings "
+                   "(comma-separated design 4.5 names, or 'weak': those whose std is at "
+                   "least 10 %% of their value or undetermined): the chi2 with each held "
+                   "over a walk of values, the others refitted; its 95 %% interval without "
+                   "the linearisation, and any second or lower minimum (JSON 'profile'; "
+                   "std misfit, --method frf)")
     p.add_argument("--json", required=True, metavar="OUT",
                    help="write the result JSON here ('-' for stdout)")
     p.set_defaults(handler=_identify)
@@ -107,7 +114,8 @@ def identify_file(path: str | Path, method: str = "frf", params: list[str] | Non
                   a_b: float | None = None,
                   starts: int | None = None, seed: int | None = None,
                   gain_std: float | None = None,
-                  calibration_std: float | None = None) -> IdentificationReport:
+                  calibration_std: float | None = None,
+                  profile: list[str] | None = None) -> IdentificationReport:
     """Identify the pelvis model's parameters from the /frf of ``path`` (session or FRF-only).
 
     The one entry point of the CLI and the GUI's replay view; the numerics are
@@ -120,6 +128,9 @@ def identify_file(path: str | Path, method: str = "frf", params: list[str] | Non
     ``calibration_std``: relative standard uncertainty of the drive chain's calibration,
     one gain common to every FRF (``identify_frf(chain_gain_std=)``); None: the session's
     recorded one (:func:`recorded_calibration_std`), else 0.
+    ``profile``: masses, springs or dampings (``"weak"`` among them: those of
+    :func:`pelvislab.model.identification.weak_parameters`) whose profile likelihood is
+    added (:func:`_profiled`); FRF fit with the std misfit only.
     """
     import numpy as np
 
@@ -150,6 +161,9 @@ def identify_file(path: str | Path, method: str = "frf", params: list[str] | Non
         if unknown:
             raise ValueError(f"unknown parameter(s) {unknown}; choose from "
                              f"{', '.join(problem.names)}")
+    if profile:
+        _check_profile_names(profile, free if free is not None else list(problem.names),
+                             method, residual)
     try:
         require_response(frf.H)
     except ValueError as exc:
@@ -263,6 +277,12 @@ def identify_file(path: str | Path, method: str = "frf", params: list[str] | Non
         if kind == "std" and not version_b:
             result, extra["frequency_dependence"] = _tested_for_frequency_dependence(
                 problem, frf, H_std, result, (f_k, f_c), gain_std, progress)
+        if profile:
+            if kind != "std":
+                raise ValueError("--profile needs the std misfit (chi2 in units of the "
+                                 f"noise), not --residual {kind}")
+            result, extra["profile"] = _profiled(problem, frf, H_std, result, profile,
+                                                 (f_k, f_c), gain_std, progress)
         # the whole identification's time, the fallback's and the test's fits included
         result = replace(result, wall_time_s=time.perf_counter() - t_fit)
         if kind in ("eq610", "log"):  # the weights of the std residual are its H_std
@@ -397,6 +417,67 @@ def _tested_for_frequency_dependence(problem: Any, frf: Any, H_std: Any, result:
             f"{result.message}; {said}, to the noise (chi2/dof {test['chi2_per_dof']:.3g}): "
             "fit with --version-b").lstrip("; ")), test
     return result, test
+
+
+def _check_profile_names(profile: list[str], free: list[str], method: str,
+                         residual: str | None) -> None:
+    """Refuses a ``--profile`` that cannot run, before any fit: modal updating, a misfit
+    other than std, names not among the fitted masses, springs and dampings."""
+    if method != "frf":
+        raise ValueError("--profile applies to --method frf (the FRF fit's chi2)")
+    if residual not in (None, "auto", "std"):
+        raise ValueError(f"--profile needs the std misfit (chi2 in units of the noise), not "
+                         f"--residual {residual}")
+    wrong = [n for n in profile if n != "weak" and (n not in free or n in ("f_k", "f_c"))]
+    if wrong:
+        raise ValueError(f"--profile {','.join(wrong)}: not a fitted mass, spring or damping; "
+                         f"choose from {', '.join(free)} or 'weak'")
+
+
+def _profiled(problem: Any, frf: Any, H_std: Any, result: Any, profile: list[str],
+              held_freq_dep: tuple[float, float], gain_std: float,
+              progress: Callable[[str], None] | None) -> tuple[Any, dict[str, Any]]:
+    """``result`` and the profile likelihood of each name in ``profile`` (``"weak"`` among
+    them: the fit's weak parameters) as :func:`pelvislab.model.identification.profile_parameter`
+    gives it, by name. A profile that finds a minimum below the fit's makes the fit not
+    converged, saying where (the multi-start did not reach the best minimum); a second
+    minimum is said in the message."""
+    from pelvislab.model.identification import profile_parameter, weak_parameters
+
+    names = list(dict.fromkeys(  # in the order given, 'weak' expanded in its place
+        m for n in profile for m in (weak_parameters(result) if n == "weak" else [n])))
+    on_bound = list(result.extra.get("on_bound", ()))
+    if on_bound:
+        # the refits' ranges are centred on each start: the first would release the
+        # parameter on its bound and credit the profiled one with the drop (review 59: a
+        # chain with k0 on its bound had every point of m1's profile below the fit)
+        return replace(result, message="; ".join([
+            result.message, f"not profiled: {', '.join(on_bound)} on the bound of its "
+            "range"]).lstrip("; ")), {name: None for name in names}
+    if progress and not names:
+        progress("profile: no weak parameter (std under 10 % of the value) to profile")
+    profiles: dict[str, Any] = {}
+    said = []
+    for name in names:
+        prof = profile_parameter(problem, frf.frequency_hz, frf.H, H_std, result, name,
+                                 start_freq_dep=held_freq_dep, gain_std=gain_std,
+                                 progress=progress)
+        profiles[name] = prof
+        if prof["lower_minimum"] is not None:
+            low = prof["lower_minimum"]
+            said.append(f"the profile of {name} went below the fit's minimum (chi2 "
+                        f"{-low['delta_chi2']:.3g} lower at {name} {low['value']:.4g}): the "
+                        "fit is not the best one; fit again from there (every parameter's "
+                        f"value in the JSON's profile.{name}.lower_minimum.parameters)")
+        elif prof["second_minimum"] is not None:
+            second = prof["second_minimum"]
+            said.append(f"the profile of {name} has a second minimum at {second['value']:.4g}"
+                        f" (chi2 {second['delta_chi2']:.3g} above the fit's)")
+    if not said:
+        return result, profiles
+    lower = any(p is not None and p["lower_minimum"] is not None for p in profiles.values())
+    message = "; ".join([result.message, *said]).lstrip("; ")
+    return replace(result, converged=result.converged and not lower, message=message), profiles
 
 
 def modelled_channels(frf: Any, path: str | Path) -> tuple[Any, str | None]:
@@ -563,6 +644,26 @@ def summary_text(document: dict[str, Any]) -> str:
         elif interval:
             spread += f", 95 % {interval[0]:.4g} to {interval[1]:.4g}"
         lines.append(f"  {name:<{width}}  {entry['value']:.4g}{unit}  ({spread})")
+    profiles = document.get("profile")
+    if profiles == {}:
+        lines.append("  profile: no weak parameter (std under 10 % of every value)")
+    for name, prof in (profiles or {}).items():
+        if prof is None:
+            lines.append(f"  profile of {name}: not run (a parameter on the bound of its "
+                         "range)")
+            continue
+        low, high = prof["interval_95"]
+        # an open end: the walk stayed within the limit up to its last point
+        low_txt = f"below {min(prof['values']):.4g}" if low is None else f"{low:.4g}"
+        high_txt = f"above {max(prof['values']):.4g}" if high is None else f"{high:.4g}"
+        said = f"95 % {low_txt} to {high_txt}"
+        if prof["lower_minimum"] is not None:
+            said = (f"a LOWER minimum than the fit's at {prof['lower_minimum']['value']:.4g} "
+                    f"(delta chi2 {prof['lower_minimum']['delta_chi2']:.3g}; no interval)")
+        elif prof["second_minimum"] is not None:
+            said += (f"; second minimum at {prof['second_minimum']['value']:.4g} "
+                     f"(delta chi2 {prof['second_minimum']['delta_chi2']:.3g})")
+        lines.append(f"  profile of {name}: {said} ({prof['fits']} fits)")
     return "\n".join(lines)
 
 
@@ -591,7 +692,8 @@ def _identify(args: argparse.Namespace) -> int:
         version_b=args.version_b, residual=args.residual,
         a_b=None if args.a_b is None else float(args.a_b),
         starts=args.starts, seed=args.seed, gain_std=args.gain_std,
-        calibration_std=args.calibration_std)
+        calibration_std=args.calibration_std,
+        profile=comma_list(args.profile) if args.profile else None)
     if out is None:
         print_json(report.to_json())
     else:
