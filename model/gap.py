@@ -2705,6 +2705,11 @@ class _Significance:
         test = self._test(res, s.chi2_base, s.chi2_base_fitted)
         if not test.significant:
             return test
+        # a pass that relied on a global one-parameter effect's allowance (held-out chi2
+        # rising) against any of the nulls below is judged as such (its pooled shrink, a
+        # held-out drop > 0 chosen first): review 60 found passes through the own-starts or
+        # refit null labelled by the base fit's test alone, and named at gap 0
+        relied = test.pooled_alone
         if s.chi2_own_starts is not None and s.chi2_own_starts[1] < s.chi2_base:
             # the base refit that replaced the base fit was chosen on the fitted lines and
             # fits the held-out lines worse: a pass must hold against the base fit from
@@ -2713,15 +2718,18 @@ class _Significance:
             test_own = self._test(res, own_held, own_fitted)
             if not test_own.significant:
                 return replace(test_own, null_kind="own_starts", null_chi2_fitted=own_fitted)
+            relied = relied or test_own.pooled_alone
         # a candidate that passes is tested again against the base refitted from its own
         # parameters when that refit fits the fitted lines better than the base fit did:
         # the base fit stopped in a poorer minimum, and that refit is the null (chosen on
         # the fitted lines alone; it can only make a pass harder, never easier)
         _theta, refit_fitted, refit_held = _base_refit(s, res)
         if refit_fitted >= s.chi2_base_fitted:
-            return test
-        return replace(self._test(res, refit_held, refit_fitted), null_kind="refit",
-                       null_chi2_fitted=refit_fitted)
+            return replace(test, pooled_alone=relied)
+        test_refit = self._test(res, refit_held, refit_fitted)
+        return replace(test_refit, null_kind="refit", null_chi2_fitted=refit_fitted,
+                       pooled_alone=test_refit.significant and (
+                           relied or test_refit.pooled_alone))
 
     def _test(self, res: CandidateResult, chi2_base: float,
               chi2_base_fitted: float) -> _Test:
@@ -2748,16 +2756,20 @@ class _Significance:
         alone = null is None and _global_one_parameter(res, n_own)
         by_pooled = (crit_h >= drop and _held_out_allows_pooled(drop, crit_h, alone)
                      and drop_pooled > crit_p)
+        relied_on = drop <= 0  # the allowance, if the pooled test decides
         if by_pooled:
             # against the better of the base fit and its refit from the candidate's point
             _theta, refit_fitted, refit_held = _base_refit(self.s, res)
             pooled_base = min(chi2_base + chi2_base_fitted, refit_fitted + refit_held)
             drop_pooled = pooled_base - res.chi2_heldout - res.chi2_fitted
             by_pooled = drop_pooled > crit_p
-            if alone and drop <= 0 and refit_fitted + refit_held < chi2_base + chi2_base_fitted:
-                # the held-out veto against the null the pooled drop is taken from (a
-                # refit better on the held-out lines would otherwise escape it: review 59)
-                by_pooled = by_pooled and refit_held - res.chi2_heldout >= -crit_h
+            if alone and refit_fitted + refit_held < chi2_base + chi2_base_fitted:
+                # the held-out veto against the null the pooled drop is taken from, whatever
+                # the sign of the drop against the base fit (a refit better on the held-out
+                # lines would otherwise escape it: reviews 59 and 60)
+                drop_null = refit_held - res.chi2_heldout
+                by_pooled = by_pooled and drop_null >= -crit_h
+                relied_on = relied_on or drop_null <= 0
         # significant against updating alone and against updating + calibration tolerance
         ok = (drop > crit_h or by_pooled) and (drop_cal > crit_h or not self.cal.evident)
         failed_beyond_null = None
@@ -2771,9 +2783,13 @@ class _Significance:
             if ok and not beyond.significant:
                 failed_beyond_null = beyond
             ok = ok and beyond.significant
+            # passed beyond the extension through the allowance (held-out chi2 rising)
+            beyond_alone = beyond.drop <= 0.0
+        else:
+            beyond_alone = False
         return _Test(drop, drop_cal, crit_h, drop_pooled, crit_p, by_pooled, ok,
                      failed_beyond_null=failed_beyond_null,
-                     pooled_alone=by_pooled and drop <= 0)
+                     pooled_alone=ok and ((by_pooled and relied_on) or beyond_alone))
 
 
 def _pooled_gain(res: CandidateResult, test: _Test) -> float:
@@ -2802,8 +2818,9 @@ def _held_out_miss(s: _Stages, nameable: Sequence[CandidateResult],
     (held out, or pooled over fitted and held-out lines with a held-out drop > 0, or not a
     significant rise for a global one-parameter effect), those
     that bring the fitted-line gap near the noise or shrink it by ``min_shrink``; the one
-    with the largest pooled χ² drop less 2 per parameter (as the switch in
-    :func:`_verdict_stage`); ``gap_fit_before`` is the base fit's fitted-line gap.
+    chosen as the switch in :func:`_verdict_stage` chooses (:func:`_choice_key`: a held-out
+    drop > 0 first, then the largest pooled χ² drop less 2 per parameter);
+    ``gap_fit_before`` is the base fit's fitted-line gap.
     Returns it, its test and its fitted-line gap, or None."""
     opt = s.opt
     passing = []
@@ -2819,7 +2836,7 @@ def _held_out_miss(s: _Stages, nameable: Sequence[CandidateResult],
             passing.append((res, test, gap_fit_after))
     if not passing:
         return None
-    return max(passing, key=lambda p: _pooled_gain(p[0], p[1]))
+    return max(passing, key=lambda p: _choice_key(p[0], p[1]))
 
 
 @dataclass
@@ -2841,7 +2858,7 @@ def _pooled_gaps(s: _Stages, best: CandidateResult | None, test: _Test
     held-out χ² rose), the gap over fitted and held-out lines together before it (the
     test's own null) and after it, and that gap's shrink, which the verdict judges such a
     candidate by; None otherwise (the held-out gap and shrink are what is judged)."""
-    if best is None or not test.pooled_alone:
+    if best is None or not (test.pooled_alone and test.significant):
         return None
     n_all = s.fit.n + s.held.n
     chi2_after = best.chi2_heldout + best.chi2_fitted
@@ -2864,6 +2881,7 @@ def _verdict_stage(s: _Stages, ranked: Sequence[CandidateResult], cal: _Calibrat
     verdict = "unexplained"
     reason = ""
     switched_from: CandidateResult | None = None
+    switched_test: _Test | None = None  # switched_from's test
     not_significant_first: CandidateResult | None = None  # the best-scoring, if passed over
     below_noise = False  # "none" because the held-out gap is at or below the noise
     if best is None:
@@ -2902,7 +2920,7 @@ def _verdict_stage(s: _Stages, ranked: Sequence[CandidateResult], cal: _Calibrat
             if passing:
                 alt, t_alt = max(passing, key=lambda rt: _choice_key(*rt))
                 if alt is not best and _choice_key(alt, t_alt) > _choice_key(best, test):
-                    switched_from = best
+                    switched_from, switched_test = best, test
                     best = alt
                     test = t_alt
         shrink = 1.0 - best.gap_after / gap_before if gap_before > 0 else 0.0
@@ -3004,12 +3022,14 @@ def _verdict_stage(s: _Stages, ranked: Sequence[CandidateResult], cal: _Calibrat
             verdict = "none"
             reason = null_reason + "; before it: " + reason
     gap_fit_before = excess_gap(s.chi2_base_fitted, s.fit.n)
+    judged_by_fitted_lines = False
     if below_noise and gap_fit_before > opt.near_noise_gap:
         missed = _held_out_miss(s, nameable, significance, gap_fit_before)
         if missed is not None:
             best, test, gap_fit_after = missed
             best_name = best.candidate.effect
             switched_from = not_significant_first = None  # chosen here on the pooled drop
+            judged_by_fitted_lines = True  # no pooled shrink judged it
             verdict = "none" if best_name in NULL_EXTENSIONS else best_name
             reason = (f"the held-out lines read near the noise (gap {gap_before:.3g}) but "
                       f"the fitted lines do not (base gap {gap_fit_before:.3g} there): a "
@@ -3039,7 +3059,11 @@ def _verdict_stage(s: _Stages, ranked: Sequence[CandidateResult], cal: _Calibrat
                    f"{_less_than(s.chi2_own_starts[1], s.chi2_base)})")
     if switched_from is not None and verdict == best_name:
         reason += (f"; chosen over {switched_from.candidate.effect} (first on held-out "
-                   f"lines alone) on the pooled chi2 drop less 2 per parameter")
+                   f"lines alone) "
+                   + ("for its held-out chi2 drop > 0 (the other's held-out chi2 rose)"
+                      if switched_test is not None and switched_test.pooled_alone
+                      and not test.pooled_alone else
+                      "on the pooled chi2 drop less 2 per parameter"))
     if not_significant_first is not None and verdict == best_name:
         reason += (f"; {not_significant_first.candidate.effect}, first on held-out lines "
                    f"alone, is not significant")
@@ -3047,7 +3071,7 @@ def _verdict_stage(s: _Stages, ranked: Sequence[CandidateResult], cal: _Calibrat
         reason += (f" [not named (within the chain's tolerance, or another effect's form): "
                    f"{skip_txt}]")
     return _Verdict(verdict, reason, best, best_name, test, null_entry,
-                    _pooled_gaps(s, best, test))
+                    None if judged_by_fitted_lines else _pooled_gaps(s, best, test))
 
 
 def _other_reading_stage(s_o: _Stages, results: Sequence[CandidateResult]

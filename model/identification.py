@@ -1238,8 +1238,10 @@ def profile_parameter(
     with every parameter's value there, ``"parameters"``; ``interval_95`` is then [None,
     None]; else None), ``"second_minimum"`` (the lowest local minimum of the profile
     apart from the fit's own, at least :data:`PROFILE_BARRIER` below the highest point on
-    each side of it, with its Δχ²; one within the limit lies inside ``interval_95``; else
-    None) and ``"fits"``. A refit the model cannot be evaluated at ends the walk.
+    each side of it, with its Δχ²; one within the limit lies inside ``interval_95``; None
+    when there is none or a lower minimum) and ``"fits"``. A refit the model cannot be
+    evaluated at ends the walk (that side's end is then null, as where the walk ended
+    within the limit: the data say nothing beyond it).
     """
     if fit.residual_kind != "std":
         raise ValueError("the profile needs a fit with the std residual (chi2 in units of "
@@ -1308,17 +1310,20 @@ def profile_summary(values: np.ndarray, delta_chi2: np.ndarray, fitted: float
                     ) -> dict[str, object]:
     """What a profile likelihood says (:func:`profile_parameter`): ``values`` ascending (SI,
     > 0), ``delta_chi2`` the χ² rise at each over the fit's, ``fitted`` the fit's own value
-    (one of ``values``, at Δχ² 0). Returns ``{"values", "delta_chi2", "interval_95",
-    "lower_minimum", "second_minimum"}`` as :func:`profile_parameter` describes them."""
+    (the point of ``values`` nearest to it in log value, at Δχ² 0). Returns ``{"values",
+    "delta_chi2", "interval_95", "lower_minimum", "second_minimum"}`` as
+    :func:`profile_parameter` describes them."""
     values, deltas = np.asarray(values, float), np.asarray(delta_chi2, float)
     keep = np.isfinite(deltas)  # a point the model could not be evaluated at says nothing
     values, deltas = values[keep], deltas[keep]
-    i0 = int(np.flatnonzero(values == fitted)[0])
+    # the fit's own point (the nearest in log value: not only its bit-exact value)
+    i0 = int(np.argmin(np.abs(np.log(values) - np.log(fitted))))
     lowest = int(np.argmin(deltas))
     lower = ({"value": float(values[lowest]), "delta_chi2": float(deltas[lowest])}
              if deltas[lowest] < -PROFILE_LOWER_TOL else None)
     second = None
-    for i in range(1, values.size - 1):
+    # a second minimum is one above the fit's: below it, it is the lower minimum (review 60)
+    for i in range(1, values.size - 1) if lower is None else ():
         if abs(i - i0) <= 1 or not (deltas[i] < deltas[i - 1] and deltas[i] < deltas[i + 1]):
             continue
         # a local minimum apart from the fit's, behind a barrier of at least

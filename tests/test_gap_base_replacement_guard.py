@@ -32,7 +32,8 @@ def _stages(chi2_held: float, chi2_fitted: float, own: tuple[float, float] | Non
 
 def _candidate(chi2_held: float, chi2_fitted: float) -> SimpleNamespace:
     return SimpleNamespace(
-        candidate=SimpleNamespace(n_params=1, effect="added_mass"), screened_places=1,
+        candidate=SimpleNamespace(n_params=1, effect="added_mass", place_kind="bone"),
+        screened_places=1,
         chi2_heldout=chi2_held, chi2_fitted=chi2_fitted, chi2_calibrated=chi2_held,
         beyond_null=None)
 

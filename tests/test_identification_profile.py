@@ -91,6 +91,9 @@ def test_a_fit_that_stopped_short_of_its_minimum_is_found_out_by_the_profile(cha
     said, profiles = _profiled(p, frf, sigma, bound, ["k0", "weak"], (0.0, 0.0), 0.0, None)
     assert profiles and all(v is None for v in profiles.values())
     assert "not profiled: m2 on the bound" in said.message
+    # 'weak' alone leaves the bound parameter out: the JSON still names why nothing ran
+    _said, profiles = _profiled(p, frf, sigma, bound, ["weak"], (0.0, 0.0), 0.0, None)
+    assert profiles == {"m2": None}
 
 
 def test_a_second_minimum_and_open_ends_are_reported():
@@ -184,3 +187,15 @@ def test_the_summary_says_what_each_profile_found() -> None:
     assert "profile of k1: 95 % 1 to above 3 (2 fits)" in text
     assert "profile of m2: not run (a parameter on the bound" in text
     assert "no weak parameter" in summary_text({**doc, "profile": {}})
+
+
+def test_review_60_edge_cases_of_the_summary():
+    values = np.array([1.0, 2.0, 3.0, 4.0, 5.0, 6.0, 7.0])
+    # falling steadily from the fit: one lower minimum, not also a "second" one
+    falling = profile_summary(values, np.array([-0.5, -2.0, -1.5, -1.0, -0.5, 0.0, 5.0]),
+                              6.0)
+    assert falling["lower_minimum"]["value"] == 2.0 and falling["second_minimum"] is None
+    # the fit's value need not be bit-equal to the walk's point
+    near = profile_summary(values, np.array([9.0, 2.0, 0.0, 3.0, 5.0, 9.0, 12.0]),
+                           3.0 + 1e-12)
+    assert near["interval_95"][0] < 2.0 < 4.0 < near["interval_95"][1]

@@ -453,7 +453,7 @@ def _profiled(problem: Any, frf: Any, H_std: Any, result: Any, profile: list[str
         # chain with k0 on its bound had every point of m1's profile below the fit)
         return replace(result, message="; ".join([
             result.message, f"not profiled: {', '.join(on_bound)} on the bound of its "
-            "range"]).lstrip("; ")), {name: None for name in names}
+            "range"]).lstrip("; ")), {name: None for name in (names or on_bound)}
     if progress and not names:
         progress("profile: no weak parameter (std under 10 % of the value) to profile")
     profiles: dict[str, Any] = {}
