@@ -2620,12 +2620,12 @@ def _global_one_parameter(res: CandidateResult, n_own: int) -> bool:
             and res.screened_places <= 1)
 
 
-def _held_out_allows_pooled(drop: float, crit_h: float, pooled_alone: bool) -> bool:
+def _held_out_allows_pooled(drop: float, crit_h: float, global_one_parameter: bool) -> bool:
     """Whether the held-out χ² drop ``drop`` lets the pooled test decide: positive, or,
-    for a global one-parameter effect (``pooled_alone``), not a significant rise (≥
-    −``crit_h``): held-out lines that reject the fitted effect outright veto it (no-effect
-    judge-like set 4242_021: f_k pooled drop 88 with a held-out rise of 155)."""
-    return drop > 0 or (pooled_alone and drop >= -crit_h)
+    for a global one-parameter effect (``global_one_parameter``), not a significant rise
+    (≥ −``crit_h``): held-out lines that reject the fitted effect outright veto it
+    (no-effect judge-like set 4242_021: f_k pooled drop 88 with a held-out rise of 155)."""
+    return drop > 0 or (global_one_parameter and drop >= -crit_h)
 
 
 @dataclass(frozen=True)
@@ -2636,14 +2636,15 @@ class _PlainTest:
     crit_h: float
     drop_pooled: float  # held-out plus fitted-line χ² drop
     crit_p: float
-    pooled_alone: bool = False  # a global one-parameter effect (_global_one_parameter)
+    # the allowance of a global one-parameter effect applies (_global_one_parameter)
+    global_one_parameter: bool = False
 
     @property
     def significant(self) -> bool:
         """Held-out drop above its critical value, or, pooled with the fitted lines, above
         the pooled one with a held-out drop that allows it (:func:`_held_out_allows_pooled`)."""
         return self.drop > self.crit_h or (
-            _held_out_allows_pooled(self.drop, self.crit_h, self.pooled_alone)
+            _held_out_allows_pooled(self.drop, self.crit_h, self.global_one_parameter)
             and self.drop_pooled > self.crit_p)
 
     @property
@@ -2672,8 +2673,9 @@ class _Test:
     # for an effect fitted with one damping per dashpot: it passed against the null but
     # not this test beyond that extension alone
     failed_beyond_null: _PlainTest | None = None
-    # decided by the pooled test with a held-out drop <= 0 (a global one-parameter
-    # effect that updating absorbs on the held-out lines: _global_one_parameter)
+    # passed through the allowance of a global one-parameter effect (a held-out chi2
+    # rising within its critical value: _global_one_parameter) against any of the
+    # verdict's nulls or beyond one damping per dashpot; judged by its pooled shrink
     pooled_alone: bool = False
 
     @property
@@ -2986,7 +2988,7 @@ def _verdict_stage(s: _Stages, ranked: Sequence[CandidateResult], cal: _Calibrat
         if gap_before == 0.0:
             reason = (f"{best.candidate.effect} lowers the held-out chi2 by {improvement:.3g} "
                       f"(> {crit:.3g}, significant) although the base model is within the "
-                      f"noise in gap terms (gap 0)")
+                      f"noise in gap terms (gap 0){pooled_txt}")
         held_txt = (f"held out {improvement:.3g} > 0" if not test.pooled_alone else
                     f"held out {improvement:.3g}, no significant rise (>= -{crit:.3g}): a "
                     f"global one-parameter effect that updating absorbs on the held-out "
@@ -3178,22 +3180,24 @@ def _test_against_base_fit(s: _Stages, res: CandidateResult) -> _PlainTest:
 
 
 def _none_unless_beyond_null(v: _Verdict, null_txt: str, chi2_h: float, chi2_f: float,
-                             crit_h: float, crit_p: float, pooled_alone: bool) -> _Verdict:
+                             crit_h: float, crit_p: float,
+                             global_one_parameter: bool) -> _Verdict:
     """``v`` when its effect is significant beyond a null near the noise (held-out χ²
     ``chi2_h``, fitted-line χ² ``chi2_f``): held-out χ² drop above ``crit_h``, or, pooled
     with the fitted lines, above ``crit_p`` with a held-out drop that allows it (positive;
-    for a global one-parameter effect, ``pooled_alone``, not a significant rise); else
+    for a global one-parameter effect, ``global_one_parameter``, not a significant rise); else
     ``none``, the reason starting with ``null_txt`` (what brings the held-out gap where)."""
     best = v.best
     assert best is not None
     drop = chi2_h - best.chi2_heldout
-    test = _PlainTest(drop, crit_h, drop + chi2_f - best.chi2_fitted, crit_p, pooled_alone)
+    test = _PlainTest(drop, crit_h, drop + chi2_f - best.chi2_fitted, crit_p,
+                      global_one_parameter)
     if test.significant:
         return v
     reason = (f"{null_txt}, and {v.verdict} is not significant beyond it (held-out chi2 "
               f"drop {drop:.3g} <= {crit_h:.3g}"
               + (f", with the fitted lines {test.drop_pooled:.3g} <= {crit_p:.3g}"
-                 if _held_out_allows_pooled(drop, crit_h, pooled_alone) else "")
+                 if _held_out_allows_pooled(drop, crit_h, global_one_parameter) else "")
               + f"); before it: {v.reason}")
     return replace(v, verdict="none", reason=reason)
 

@@ -46,13 +46,13 @@ def test_held_out_lines_that_reject_the_effect_veto_the_pooled_test():
     # no-effect judge-like set 4242_021 (one damping per dashpot in the subject): f_k
     # drops the pooled chi2 by 88 while the held-out chi2 rises by 155
     veto = gap._PlainTest(drop=-155.0, crit_h=10.83, drop_pooled=88.0, crit_p=10.83,
-                          pooled_alone=True)
+                          global_one_parameter=True)
     assert not veto.significant
     # a held-out rise within the noise lets the pooled test decide, for a global
     # one-parameter effect only (other effects need a held-out drop > 0)
     absorbed = dict(drop=-1.4, crit_h=10.83, drop_pooled=19.6, crit_p=10.83)
-    assert gap._PlainTest(**absorbed, pooled_alone=True).significant
-    assert not gap._PlainTest(**absorbed, pooled_alone=False).significant
+    assert gap._PlainTest(**absorbed, global_one_parameter=True).significant
+    assert not gap._PlainTest(**absorbed, global_one_parameter=False).significant
 
 
 def test_an_effect_the_held_out_lines_do_not_show_is_judged_by_its_pooled_shrink(tmp_path):
