@@ -9,6 +9,8 @@ innominate (held-out 239.2, pooled drop 91.5 > 20.9) was named instead, a false
 
 from types import SimpleNamespace
 
+import pytest
+
 from pelvislab.model import gap
 
 
@@ -30,27 +32,28 @@ def _named(best):
                         best.candidate.effect, test, {})
 
 
+TILT = "tilt {:.2g} deg at sacrum_x <= 1 deg (probe mounting tolerance)"
+
+
+def _verdict(mass_chi2, tilt_chi2, tilt_deg=0.25):
+    """The verdict after the stage, for a point mass named (4 parameters, 3 places) and a
+    tilt within tolerance (2 parameters, 7 places), each with (held-out, fitted) chi2."""
+    mass = _result("added_mass", *mass_chi2, 4, 3)
+    tilt = _result("sensor_misorientation", *tilt_chi2, 2, 7, note=TILT.format(tilt_deg))
+    return gap._tolerance_null_stage(_stages(), _named(mass), [tilt, mass])
+
+
 def test_an_effect_not_beyond_a_probe_within_tolerance_is_not_named():
-    mass = _result("added_mass", 239.198, 734.375, 4, 3)
-    tilt = _result("sensor_misorientation", 236.253, 692.076, 2, 7,
-                   note="tilt 0.25 deg at sacrum_x <= 1 deg (probe mounting tolerance)")
-    v = gap._tolerance_null_stage(_stages(), _named(mass), [tilt, mass])
+    v = _verdict((239.198, 734.375), (236.253, 692.076))
     assert v.verdict == "none"
     assert v.reason.startswith("a probe within the chain's tolerance (tilt 0.25 deg")
 
 
-def test_an_effect_well_beyond_the_probe_is_still_named():
-    mass = _result("added_mass", 190.0, 600.0, 4, 3)
-    tilt = _result("sensor_misorientation", 236.253, 692.076, 2, 7,
-                   note="tilt 0.25 deg at sacrum_x <= 1 deg (probe mounting tolerance)")
-    assert gap._tolerance_null_stage(_stages(), _named(mass), [tilt, mass]).verdict == (
-        "added_mass")
-
-
-def test_a_probe_the_data_do_not_ask_for_is_no_null():
-    # the tilt lowers the base fit's chi2 by 0.5: not significant, so not part of the null
-    mass = _result("added_mass", 239.198, 734.375, 4, 3)
-    tilt = _result("sensor_misorientation", 256.2, 808.4, 2, 7,
-                   note="tilt 0.1 deg at sacrum_x <= 1 deg (probe mounting tolerance)")
-    assert gap._tolerance_null_stage(_stages(), _named(mass), [tilt, mass]).verdict == (
-        "added_mass")
+@pytest.mark.parametrize("mass_chi2, tilt_chi2, tilt_deg", [
+    ((190.0, 600.0), (236.253, 692.076), 0.25),  # the effect well beyond the probe
+    # a tilt lowering the base fit's chi2 by 0.5: not significant, not part of the null
+    ((239.198, 734.375), (256.2, 808.4), 0.1),
+])
+def test_an_effect_beyond_the_probe_or_a_probe_not_asked_for_keeps_the_verdict(
+        mass_chi2, tilt_chi2, tilt_deg):
+    assert _verdict(mass_chi2, tilt_chi2, tilt_deg).verdict == "added_mass"
