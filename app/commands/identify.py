@@ -709,6 +709,26 @@ def undetermined(entry: dict[str, Any]) -> bool:
     return std is not None and std > abs(entry["value"])
 
 
+def profile_said(prof: dict[str, Any] | None) -> str:
+    """What one profile of the JSON's ``profile`` found, in a few words: its 95 % interval
+    (an open end as "below"/"above" the walk's last point), a lower minimum than the fit's
+    or a second minimum; "not run" for a parameter's profile left out (``None``)."""
+    if prof is None:
+        return "not run (a parameter on the bound of its range)"
+    if prof["lower_minimum"] is not None:
+        return (f"a LOWER minimum than the fit's at {prof['lower_minimum']['value']:.4g} "
+                f"(delta chi2 {prof['lower_minimum']['delta_chi2']:.3g}; no interval)")
+    low, high = prof["interval_95"]
+    # an open end: the walk stayed within the limit up to its last point
+    low_txt = f"below {min(prof['values']):.4g}" if low is None else f"{low:.4g}"
+    high_txt = f"above {max(prof['values']):.4g}" if high is None else f"{high:.4g}"
+    said = f"95 % {low_txt} to {high_txt}"
+    if prof["second_minimum"] is not None:
+        said += (f"; second minimum at {prof['second_minimum']['value']:.4g} "
+                 f"(delta chi2 {prof['second_minimum']['delta_chi2']:.3g})")
+    return said
+
+
 def summary_text(document: dict[str, Any]) -> str:
     """The identification's JSON (design 4.5) as a few lines: converged or not, the misfit,
     and each parameter with its unit, standard error and 95 % interval."""
@@ -737,22 +757,8 @@ def summary_text(document: dict[str, Any]) -> str:
     if profiles == {}:
         lines.append("  profile: no weak parameter (std under 10 % of every value)")
     for name, prof in (profiles or {}).items():
-        if prof is None:
-            lines.append(f"  profile of {name}: not run (a parameter on the bound of its "
-                         "range)")
-            continue
-        low, high = prof["interval_95"]
-        # an open end: the walk stayed within the limit up to its last point
-        low_txt = f"below {min(prof['values']):.4g}" if low is None else f"{low:.4g}"
-        high_txt = f"above {max(prof['values']):.4g}" if high is None else f"{high:.4g}"
-        said = f"95 % {low_txt} to {high_txt}"
-        if prof["lower_minimum"] is not None:
-            said = (f"a LOWER minimum than the fit's at {prof['lower_minimum']['value']:.4g} "
-                    f"(delta chi2 {prof['lower_minimum']['delta_chi2']:.3g}; no interval)")
-        elif prof["second_minimum"] is not None:
-            said += (f"; second minimum at {prof['second_minimum']['value']:.4g} "
-                     f"(delta chi2 {prof['second_minimum']['delta_chi2']:.3g})")
-        lines.append(f"  profile of {name}: {said} ({prof['fits']} fits)")
+        lines.append(f"  profile of {name}: {profile_said(prof)}"
+                     + ("" if prof is None else f" ({prof['fits']} fits)"))
     for refit in document.get("profile_refits", []):
         lines.append(f"  fitted again from the lower minimum of {refit['profile']}'s profile: "
                      f"chi2 {refit['chi2_before']:.6g} -> {refit['chi2_after']:.6g}"
