@@ -284,11 +284,14 @@ def identify_file(path: str | Path, method: str = "frf", params: list[str] | Non
                                  f"noise), not --residual {kind}")
 
             def polish_from(start: Any, freq_dep: tuple[float, float]) -> Any:
-                # one local fit from the profile's point, no continuation: the minimum the
-                # profile walked into is the question, not a global search
+                # one start at the profile's point, no continuation: the minimum the
+                # profile walked into is the question, not a global search; judged as
+                # identify's own fit, at the noise floor (without the target any fit that
+                # stopped was converged: review 61), with its damping rescue below it
                 return identify_frf(
                     problem, frf.frequency_hz, frf.H, H_std, free=free, residual=spec,
-                    strategy=Strategy(max_starts=1, hold_freq_dep_first=False),
+                    strategy=Strategy(max_starts=1, hold_freq_dep_first=False,
+                                      stop_at_noise_floor=True),
                     version_b=version_b, start_freq_dep=freq_dep, progress=progress,
                     gain_std=gain_std, chain_gain_std=calibration_std, start=start)
 
@@ -458,12 +461,12 @@ def _check_profile_names(profile: list[str], free: list[str], method: str,
 
 def _profiled(problem: Any, frf: Any, H_std: Any, result: Any, profile: list[str],
               held_freq_dep: tuple[float, float], gain_std: float,
-              progress: Callable[[str], None] | None) -> tuple[Any, dict[str, Any]]:
+              progress: Callable[[str], None] | None, refits: int = 0
+              ) -> tuple[Any, dict[str, Any]]:
     """``result`` and the profile likelihood of each name in ``profile`` (``"weak"`` among
     them: the fit's weak parameters) as :func:`pelvislab.model.identification.profile_parameter`
-    gives it, by name. A profile that finds a minimum below the fit's makes the fit not
-    converged, saying where (the multi-start did not reach the best minimum); a second
-    minimum is said in the message."""
+    gives it, by name; ``result`` as :func:`_profile_verdict` judges it (not profiled, each
+    profile ``None``, when a parameter is on its bound, saying so)."""
     from pelvislab.model.identification import profile_parameter, weak_parameters
 
     names = list(dict.fromkeys(  # in the order given, 'weak' expanded in its place
@@ -478,28 +481,40 @@ def _profiled(problem: Any, frf: Any, H_std: Any, result: Any, profile: list[str
             "range"]).lstrip("; ")), {name: None for name in (names or on_bound)}
     if progress and not names:
         progress("profile: no weak parameter (std under 10 % of the value) to profile")
-    profiles: dict[str, Any] = {}
+    profiles = {name: profile_parameter(problem, frf.frequency_hz, frf.H, H_std, result, name,
+                                        start_freq_dep=held_freq_dep, gain_std=gain_std,
+                                        progress=progress)
+                for name in names}
+    return _profile_verdict(result, profiles, refits), profiles
+
+
+def _profile_verdict(result: Any, profiles: dict[str, Any], refits: int = 0) -> Any:
+    """``result`` as its ``profiles`` judge it: a profile that went below the fit's minimum
+    makes it not converged, saying where (the multi-start did not reach the best minimum)
+    and, after ``refits`` fits from such points (:func:`_profiled_and_refitted`), that
+    they were made; a second minimum is said in the message."""
     said = []
-    for name in names:
-        prof = profile_parameter(problem, frf.frequency_hz, frf.H, H_std, result, name,
-                                 start_freq_dep=held_freq_dep, gain_std=gain_std,
-                                 progress=progress)
-        profiles[name] = prof
+    for name, prof in profiles.items():
+        if prof is None:
+            continue
         if prof["lower_minimum"] is not None:
             low = prof["lower_minimum"]
+            advice = ("fit again from there" if not refits else
+                      f"identify fitted again from such a point {refits} time(s) "
+                      "(profile_refits) and stopped")
             said.append(f"the profile of {name} went below the fit's minimum (chi2 "
                         f"{-low['delta_chi2']:.3g} lower at {name} {low['value']:.4g}): the "
-                        "fit is not the best one; fit again from there (every parameter's "
-                        f"value in the JSON's profile.{name}.lower_minimum.parameters)")
+                        f"fit is not the best one; {advice} (every parameter's value there "
+                        f"in the JSON's profile.{name}.lower_minimum.parameters)")
         elif prof["second_minimum"] is not None:
             second = prof["second_minimum"]
             said.append(f"the profile of {name} has a second minimum at {second['value']:.4g}"
                         f" (chi2 {second['delta_chi2']:.3g} above the fit's)")
     if not said:
-        return result, profiles
+        return result
     lower = any(p is not None and p["lower_minimum"] is not None for p in profiles.values())
     message = "; ".join([result.message, *said]).lstrip("; ")
-    return replace(result, converged=result.converged and not lower, message=message), profiles
+    return replace(result, converged=result.converged and not lower, message=message)
 
 
 #: Fits from a profile's lower minimum that ``identify --profile`` makes before it leaves
@@ -514,9 +529,10 @@ def _profiled_and_refitted(problem: Any, frf: Any, H_std: Any, result: Any,
                            retested: Callable[[Any], Any]
                            ) -> tuple[Any, dict[str, Any], list[dict[str, Any]]]:
     """:func:`_profiled`, and where a profile went below the fit's minimum, the fit again
-    from the lowest such point (``polish_from(start, (f_k, f_c))``: one local fit, every
-    parameter of ``result`` free) and that fit tested (``retested``: version B's test) and
-    profiled again, up to :data:`PROFILE_REFITS` times. The thesis' optimiser stopped in
+    from the lowest such point (``polish_from(start, (f_k, f_c))``: one start, every
+    parameter of ``result`` free, judged at the noise floor as identify's own fit) and that
+    fit tested (``retested``: version B's test) and profiled again, up to
+    :data:`PROFILE_REFITS` times. The thesis' optimiser stopped in
     minima it could not tell from the best one (ch. 6-7); a profile that walks into a lower
     one has shown the way out of it, so the product takes it rather than only saying so.
     Returns the final fit (not converged, as :func:`_profiled` says, when a profile of it
@@ -529,7 +545,7 @@ def _profiled_and_refitted(problem: Any, frf: Any, H_std: Any, result: Any,
     refits: list[dict[str, Any]] = []
     while True:
         profiled, profiles = _profiled(problem, frf, H_std, result, profile, held_freq_dep,
-                                       gain_std, progress)
+                                       gain_std, progress, refits=len(refits))
         lows = [(prof["lower_minimum"]["delta_chi2"], name, prof["lower_minimum"])
                 for name, prof in profiles.items()
                 if prof is not None and prof["lower_minimum"] is not None]
@@ -551,8 +567,10 @@ def _profiled_and_refitted(problem: Any, frf: Any, H_std: Any, result: Any,
         if not kept:
             # the local fit did not stay below the fit it would replace (it can only
             # when its bounds or free set differ from the profile's): keep the fit, which
-            # the profile calls not converged
-            return profiled, profiles, refits
+            # the profile calls not converged; its effort counts (as _from_the_global_base_fit's)
+            kept_fit = replace(result, evaluations=result.evaluations + again.evaluations,
+                               starts=result.starts + again.starts)
+            return _profile_verdict(kept_fit, profiles, len(refits)), profiles, refits
         result = retested(replace(again, evaluations=again.evaluations + result.evaluations,
                                   starts=again.starts + result.starts))
 
