@@ -197,15 +197,19 @@ def identification_summary(document: dict[str, Any]) -> str:
     return head + (f" — {misfit}" if misfit else "") + std + notes
 
 
-def _profile_cell(profiles: dict[str, Any], name: str) -> QtWidgets.QTableWidgetItem:
+def _profile_cell(profiles: dict[str, Any], name: str,
+                  on_bound: list[str] | tuple[str, ...] = ()) -> QtWidgets.QTableWidgetItem:
     """The identification table's profile cell of ``name``: its profile's 95 % interval
     (or what else it found, in red when it went below the fit) with the whole finding as a
-    tooltip; empty for a parameter not profiled (well determined)."""
+    tooltip; empty for a parameter not profiled (well determined, or on the bound of its
+    range: ``on_bound``, the JSON's)."""
     from pelvislab.app.commands.identify import profile_said
 
     if name not in profiles:
         cell = QtWidgets.QTableWidgetItem("")
-        cell.setToolTip("not profiled: its std is under 10 % of its value")
+        cell.setToolTip("not profiled: on the bound of its range (std null), no minimum to "
+                        "walk from" if name in on_bound else
+                        "not profiled: its std is under 10 % of its value")
         return cell
     prof = profiles[name]
     whole = profile_said(prof)
@@ -809,7 +813,8 @@ class ReplayView(QtWidgets.QWidget):
                                    " (a factor either way: the fit runs in log p)"))
             self.param_table.setItem(r, 2, cell)
             if profiles is not None:
-                self.param_table.setItem(r, 3, _profile_cell(profiles, name))
+                self.param_table.setItem(r, 3, _profile_cell(
+                    profiles, name, document.get("on_bound") or ()))
         # as wide as its contents (the std column sat behind a horizontal scrollbar)
         table = self.param_table
         table.resizeColumnsToContents()

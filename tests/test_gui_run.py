@@ -318,6 +318,9 @@ def test_replay_identification_profiles_the_weak_parameters(operator_window, qtb
     assert cell.text() == "LOWER minimum at 2"
     assert cell.foreground().color().name() == "#b71c1c"
     assert _profile_cell({"k0": lower, "m1": None}, "m1").text() == "not run"
+    # the parameter on its bound is not profiled for that reason, not for a narrow std
+    on_bound = _profile_cell({"m1": None}, "k0", on_bound=["k0"])
+    assert on_bound.text() == "" and "on the bound of its range" in on_bound.toolTip()
 
 
 def test_replay_gap_diagnosis_shows_verdict_map_and_candidates(operator_window, qtbot,
