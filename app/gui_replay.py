@@ -19,7 +19,7 @@ from typing import Any
 
 import numpy as np
 import pyqtgraph as pg
-from PySide6 import QtCore, QtWidgets
+from PySide6 import QtCore, QtGui, QtWidgets
 
 from pelvislab.app.gui_dialogs import GuiError, alert
 from pelvislab.app.gui_plots import (
@@ -197,6 +197,36 @@ def identification_summary(document: dict[str, Any]) -> str:
     return head + (f" — {misfit}" if misfit else "") + std + notes
 
 
+def _profile_cell(profiles: dict[str, Any], name: str,
+                  on_bound: list[str] | tuple[str, ...] = ()) -> QtWidgets.QTableWidgetItem:
+    """The identification table's profile cell of ``name``: its profile's 95 % interval
+    (or what else it found, in red when it went below the fit) with the whole finding as a
+    tooltip; empty for a parameter not profiled (well determined, or on the bound of its
+    range: ``on_bound``, the JSON's)."""
+    from pelvislab.app.commands.identify import profile_said
+
+    if name not in profiles:
+        cell = QtWidgets.QTableWidgetItem("")
+        cell.setToolTip("not profiled: on the bound of its range (std null), no minimum to "
+                        "walk from" if name in on_bound else
+                        "not profiled: its std is under 10 % of its value")
+        return cell
+    prof = profiles[name]
+    whole = profile_said(prof)
+    if prof is None:
+        text = "not run"
+    elif prof["lower_minimum"] is not None:
+        text = f"LOWER minimum at {prof['lower_minimum']['value']:.3g}"
+    else:
+        text = whole.removeprefix("95 % ").split(";")[0]
+    cell = QtWidgets.QTableWidgetItem(text)
+    cell.setToolTip(f"profile likelihood: {whole}"
+                    + ("" if prof is None else f" ({prof['fits']} fits)"))
+    if prof is not None and prof["lower_minimum"] is not None:
+        cell.setForeground(QtGui.QColor("#b71c1c"))
+    return cell
+
+
 def _summary_page(text: str) -> tuple[QtWidgets.QWidget, QtWidgets.QVBoxLayout,
                                       QtWidgets.QLabel]:
     """A result page: a vertical layout that starts with a word-wrapped summary line."""
@@ -308,6 +338,15 @@ class ReplayView(QtWidgets.QWidget):
         gain_row.addWidget(gain_label)
         gain_row.addWidget(self.gain_std_box, 1)
         analysis_layout.addLayout(gain_row)
+        # identify --profile weak: the linearised std is least trusted where it is wide
+        # (the thesis' untrusted optimiser; docs/identification.md)
+        self.profile_box = QtWidgets.QCheckBox("profile weak parameters")
+        self.profile_box.setToolTip(
+            "also walk each weak parameter (std at least 10 % of its value) out from the "
+            "fit, refitting the others: its 95 % interval without the linearisation, and "
+            "any second or lower minimum (a lower one is fitted again from); seconds to a "
+            "minute more (identify --profile weak)")
+        analysis_layout.addWidget(self.profile_box)
         analysis_layout.addWidget(self.gap_button)
         analysis_layout.addWidget(self.ema_button)
         self.analysis_status = QtWidgets.QLabel("")
@@ -733,12 +772,13 @@ class ReplayView(QtWidgets.QWidget):
             return
         path = self.path
         gain_std = self.gain_std_box.value() / 100.0
+        profile = ["weak"] if self.profile_box.isChecked() else None
         note = self._progress_for("identification")
 
         def work() -> Any:
             from pelvislab.app.commands.identify import identify_file
 
-            return identify_file(path, gain_std=gain_std, progress=note)
+            return identify_file(path, gain_std=gain_std, progress=note, profile=profile)
 
         self.submit(work, self.show_identification, "identification", self.identify_button,
                     cancellable=True)
@@ -750,6 +790,10 @@ class ReplayView(QtWidgets.QWidget):
         document = report.to_json()
         self.ident_summary.setText(identification_summary(document))
         params = document.get("parameters", {})
+        profiles = document.get("profile")
+        self.param_table.setColumnCount(3 if profiles is None else 4)
+        self.param_table.setHorizontalHeaderLabels(("parameter", "value", "std",
+                                                    "profile 95 %"))
         self.param_table.setRowCount(len(params))
         units = document.get("units", {})  # by prefix: m_ kg, k_ N/m, c_ N s/m, f_ 1
         for r, (name, entry) in enumerate(sorted(params.items())):
@@ -768,6 +812,9 @@ class ReplayView(QtWidgets.QWidget):
                                 + ("" if name.startswith("f_") else
                                    " (a factor either way: the fit runs in log p)"))
             self.param_table.setItem(r, 2, cell)
+            if profiles is not None:
+                self.param_table.setItem(r, 3, _profile_cell(
+                    profiles, name, document.get("on_bound") or ()))
         # as wide as its contents (the std column sat behind a horizontal scrollbar)
         table = self.param_table
         table.resizeColumnsToContents()

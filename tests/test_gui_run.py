@@ -282,6 +282,47 @@ def test_replay_identification_shows_parameters_and_model_frfs(operator_window, 
                           "calibration &lt;x&gt;")
 
 
+def test_replay_identification_profiles_the_weak_parameters(operator_window, qtbot,
+                                                           demo_session):
+    """identify --profile weak from the replay: a fourth column with each weak
+    parameter's profile interval (the demo's joint dampings: c_sij_R's profile is skewed
+    against its linearised interval), empty for the well-determined ones."""
+    window = operator_window()
+    assert window.open_replay(demo_session)
+    replay = window.replay
+    replay.profile_box.setChecked(True)
+    qtbot.mouseClick(replay.identify_button, QtCore.Qt.MouseButton.LeftButton)
+    table = replay.param_table
+    qtbot.waitUntil(lambda: table.columnCount() == 4 and table.rowCount() > 0,
+                    timeout=120_000)
+    assert table.horizontalHeaderItem(3).text() == "profile 95 %"
+    rows = {table.item(r, 0).text(): r for r in range(table.rowCount())}
+    damping = table.item(rows["c_sij_R (N s/m)"], 3)
+    low, high = (float(v) for v in damping.text().split(" to "))
+    assert low < float(table.item(rows["c_sij_R (N s/m)"], 1).text()) < high
+    assert damping.toolTip().startswith("profile likelihood: 95 % ")
+    assert damping.toolTip().endswith(" fits)")
+    mass = table.item(rows["m_sacrum (kg)"], 3)
+    assert mass.text() == "" and "not profiled" in mass.toolTip()
+    # unticked, the table is the identification's alone again
+    replay.profile_box.setChecked(False)
+    qtbot.mouseClick(replay.identify_button, QtCore.Qt.MouseButton.LeftButton)
+    qtbot.waitUntil(lambda: table.columnCount() == 3, timeout=120_000)
+    # a profile that went below the fit (identify's refits used up) and one not run
+    from pelvislab.app.gui_replay import _profile_cell
+
+    lower = {"values": [1.0, 2.0], "delta_chi2": [0.0, -3.0], "interval_95": [None, None],
+             "lower_minimum": {"value": 2.0, "delta_chi2": -3.0}, "second_minimum": None,
+             "fits": 1}
+    cell = _profile_cell({"k0": lower, "m1": None}, "k0")
+    assert cell.text() == "LOWER minimum at 2"
+    assert cell.foreground().color().name() == "#b71c1c"
+    assert _profile_cell({"k0": lower, "m1": None}, "m1").text() == "not run"
+    # the parameter on its bound is not profiled for that reason, not for a narrow std
+    on_bound = _profile_cell({"m1": None}, "k0", on_bound=["k0"])
+    assert on_bound.text() == "" and "on the bound of its range" in on_bound.toolTip()
+
+
 def test_replay_gap_diagnosis_shows_verdict_map_and_candidates(operator_window, qtbot,
                                                               demo_session):
     window = operator_window()

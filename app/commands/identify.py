@@ -74,8 +74,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                    "(comma-separated design 4.5 names, or 'weak': those whose std is at "
                    "least 10 %% of their value or undetermined): the chi2 with each held "
                    "over a walk of values, the others refitted; its 95 %% interval without "
-                   "the linearisation, and any second or lower minimum (JSON 'profile'; "
-                   "std misfit, --method frf)")
+                   "the linearisation, and any second or lower minimum (the fit is made "
+                   "again from a lower one; JSON 'profile'; std misfit, --method frf)")
     p.add_argument("--json", required=True, metavar="OUT",
                    help="write the result JSON here ('-' for stdout)")
     p.set_defaults(handler=_identify)
@@ -137,6 +137,7 @@ def identify_file(path: str | Path, method: str = "frf", params: list[str] | Non
     from pelvislab.acquisition.frfset import read_frf
     from pelvislab.model.identification import (
         ResidualSpec,
+        Strategy,
         default_strategy,
         frf_with_jacobian,
         identify_frf,
@@ -175,7 +176,7 @@ def identify_file(path: str | Path, method: str = "frf", params: list[str] | Non
         H_std, std_note = None, ("H_std holds no positive finite value on the measured "
                                  "lines: ignored")
     f_k, f_c = model.frequency_dependence.f_k, model.frequency_dependence.f_c
-    calibration_note = restart_note = None
+    calibration_note = restart_note = profile_note = None
     if calibration_std is None:
         calibration_std, calibration_source, calibration_note = recorded_calibration_std(
             path, frf.frequency_hz[np.isfinite(frf.H).any(axis=(1, 2))])
@@ -281,8 +282,32 @@ def identify_file(path: str | Path, method: str = "frf", params: list[str] | Non
             if kind != "std":
                 raise ValueError("--profile needs the std misfit (chi2 in units of the "
                                  f"noise), not --residual {kind}")
-            result, extra["profile"] = _profiled(problem, frf, H_std, result, profile,
-                                                 (f_k, f_c), gain_std, progress)
+
+            def polish_from(start: Any, freq_dep: tuple[float, float]) -> Any:
+                # one start at the profile's point, no continuation: the minimum the
+                # profile walked into is the question, not a global search; judged as
+                # identify's own fit, at the noise floor (without the target any fit that
+                # stopped was converged: review 61), with its damping rescue below it
+                return identify_frf(
+                    problem, frf.frequency_hz, frf.H, H_std, free=free, residual=spec,
+                    strategy=Strategy(max_starts=1, hold_freq_dep_first=False,
+                                      stop_at_noise_floor=True),
+                    version_b=version_b, start_freq_dep=freq_dep, progress=progress,
+                    gain_std=gain_std, chain_gain_std=calibration_std, start=start)
+
+            def retested(fit: Any) -> Any:
+                if version_b:
+                    return fit
+                fit, extra["frequency_dependence"] = _tested_for_frequency_dependence(
+                    problem, frf, H_std, fit, (f_k, f_c), gain_std, progress)
+                return fit
+
+            result, extra["profile"], refits = _profiled_and_refitted(
+                problem, frf, H_std, result, profile, (f_k, f_c), gain_std, progress,
+                polish_from, retested)
+            if refits:
+                extra["profile_refits"] = refits
+                profile_note = _profile_refits_note(refits)
         # the whole identification's time, the fallback's and the test's fits included
         result = replace(result, wall_time_s=time.perf_counter() - t_fit)
         if kind in ("eq610", "log"):  # the weights of the std residual are its H_std
@@ -294,7 +319,7 @@ def identify_file(path: str | Path, method: str = "frf", params: list[str] | Non
     doc["units"] = {"m_": "kg", "k_": "N/m", "c_": "N s/m", "f_": "1"}
     doc["source"] = str(path)
     notes = [n for n in (left_out_note, infinite_note, std_note, noise_note,
-                         calibration_note, restart_note) if n]
+                         calibration_note, restart_note, profile_note) if n]
     if notes:
         doc["notes"] = notes
     doc["model"] = model.name
@@ -436,12 +461,12 @@ def _check_profile_names(profile: list[str], free: list[str], method: str,
 
 def _profiled(problem: Any, frf: Any, H_std: Any, result: Any, profile: list[str],
               held_freq_dep: tuple[float, float], gain_std: float,
-              progress: Callable[[str], None] | None) -> tuple[Any, dict[str, Any]]:
+              progress: Callable[[str], None] | None, refits: int = 0
+              ) -> tuple[Any, dict[str, Any]]:
     """``result`` and the profile likelihood of each name in ``profile`` (``"weak"`` among
     them: the fit's weak parameters) as :func:`pelvislab.model.identification.profile_parameter`
-    gives it, by name. A profile that finds a minimum below the fit's makes the fit not
-    converged, saying where (the multi-start did not reach the best minimum); a second
-    minimum is said in the message."""
+    gives it, by name; ``result`` as :func:`_profile_verdict` judges it (not profiled, each
+    profile ``None``, when a parameter is on its bound, saying so)."""
     from pelvislab.model.identification import profile_parameter, weak_parameters
 
     names = list(dict.fromkeys(  # in the order given, 'weak' expanded in its place
@@ -456,28 +481,110 @@ def _profiled(problem: Any, frf: Any, H_std: Any, result: Any, profile: list[str
             "range"]).lstrip("; ")), {name: None for name in (names or on_bound)}
     if progress and not names:
         progress("profile: no weak parameter (std under 10 % of the value) to profile")
-    profiles: dict[str, Any] = {}
+    profiles = {name: profile_parameter(problem, frf.frequency_hz, frf.H, H_std, result, name,
+                                        start_freq_dep=held_freq_dep, gain_std=gain_std,
+                                        progress=progress)
+                for name in names}
+    return _profile_verdict(result, profiles, refits), profiles
+
+
+def _profile_verdict(result: Any, profiles: dict[str, Any], refits: int = 0) -> Any:
+    """``result`` as its ``profiles`` judge it: a profile that went below the fit's minimum
+    makes it not converged, saying where (the multi-start did not reach the best minimum)
+    and, after ``refits`` fits from such points (:func:`_profiled_and_refitted`), that
+    they were made; a second minimum is said in the message."""
     said = []
-    for name in names:
-        prof = profile_parameter(problem, frf.frequency_hz, frf.H, H_std, result, name,
-                                 start_freq_dep=held_freq_dep, gain_std=gain_std,
-                                 progress=progress)
-        profiles[name] = prof
+    for name, prof in profiles.items():
+        if prof is None:
+            continue
         if prof["lower_minimum"] is not None:
             low = prof["lower_minimum"]
+            advice = ("fit again from there" if not refits else
+                      f"identify fitted again from such a point {refits} time(s) "
+                      "(profile_refits) and stopped")
             said.append(f"the profile of {name} went below the fit's minimum (chi2 "
                         f"{-low['delta_chi2']:.3g} lower at {name} {low['value']:.4g}): the "
-                        "fit is not the best one; fit again from there (every parameter's "
-                        f"value in the JSON's profile.{name}.lower_minimum.parameters)")
+                        f"fit is not the best one; {advice} (every parameter's value there "
+                        f"in the JSON's profile.{name}.lower_minimum.parameters)")
         elif prof["second_minimum"] is not None:
             second = prof["second_minimum"]
             said.append(f"the profile of {name} has a second minimum at {second['value']:.4g}"
                         f" (chi2 {second['delta_chi2']:.3g} above the fit's)")
     if not said:
-        return result, profiles
+        return result
     lower = any(p is not None and p["lower_minimum"] is not None for p in profiles.values())
     message = "; ".join([result.message, *said]).lstrip("; ")
-    return replace(result, converged=result.converged and not lower, message=message), profiles
+    return replace(result, converged=result.converged and not lower, message=message)
+
+
+#: Fits from a profile's lower minimum that ``identify --profile`` makes before it leaves
+#: the fit not converged (each is profiled again).
+PROFILE_REFITS = 2
+
+
+def _profiled_and_refitted(problem: Any, frf: Any, H_std: Any, result: Any,
+                           profile: list[str], held_freq_dep: tuple[float, float],
+                           gain_std: float, progress: Callable[[str], None] | None,
+                           polish_from: Callable[[Any, tuple[float, float]], Any],
+                           retested: Callable[[Any], Any]
+                           ) -> tuple[Any, dict[str, Any], list[dict[str, Any]]]:
+    """:func:`_profiled`, and where a profile went below the fit's minimum, the fit again
+    from the lowest such point (``polish_from(start, (f_k, f_c))``: one start, every
+    parameter of ``result`` free, judged at the noise floor as identify's own fit) and that
+    fit tested (``retested``: version B's test) and profiled again, up to
+    :data:`PROFILE_REFITS` times. The thesis' optimiser stopped in
+    minima it could not tell from the best one (ch. 6-7); a profile that walks into a lower
+    one has shown the way out of it, so the product takes it rather than only saying so.
+    Returns the final fit (not converged, as :func:`_profiled` says, when a profile of it
+    still goes lower), its profiles and one entry per fit from a lower minimum
+    (``profile``: whose profile, ``value``: that parameter's value there,
+    ``chi2_before`` / ``chi2_after``: the fit's chi2 before and after it, ``kept``: whether
+    the fit after it replaced the one before)."""
+    import numpy as np
+
+    refits: list[dict[str, Any]] = []
+    while True:
+        profiled, profiles = _profiled(problem, frf, H_std, result, profile, held_freq_dep,
+                                       gain_std, progress, refits=len(refits))
+        lows = [(prof["lower_minimum"]["delta_chi2"], name, prof["lower_minimum"])
+                for name, prof in profiles.items()
+                if prof is not None and prof["lower_minimum"] is not None]
+        if not lows or len(refits) == PROFILE_REFITS:
+            return profiled, profiles, refits
+        _, name, low = min(lows, key=lambda item: item[0])
+        at = low["parameters"]
+        start = np.array([at.get(n, v) for n, v in zip(problem.names, problem.nominal,
+                                                        strict=True)], dtype=float)
+        freq_dep = (at["f_k"], at["f_c"]) if "f_k" in at else held_freq_dep
+        if progress:
+            progress(f"the profile of {name} went below the fit's minimum: fitting again "
+                     f"from {name} {low['value']:.4g}")
+        again = polish_from(start, freq_dep)
+        chi2_before, chi2_after = 2.0 * float(result.cost), 2.0 * float(again.cost)
+        kept = chi2_after < chi2_before
+        refits.append({"profile": name, "value": float(low["value"]),
+                       "chi2_before": chi2_before, "chi2_after": chi2_after, "kept": kept})
+        if not kept:
+            # the local fit did not stay below the fit it would replace (it can only
+            # when its bounds or free set differ from the profile's): keep the fit, which
+            # the profile calls not converged; its effort counts (as _from_the_global_base_fit's)
+            kept_fit = replace(result, evaluations=result.evaluations + again.evaluations,
+                               starts=result.starts + again.starts)
+            return _profile_verdict(kept_fit, profiles, len(refits)), profiles, refits
+        result = retested(replace(again, evaluations=again.evaluations + result.evaluations,
+                                  starts=again.starts + result.starts))
+
+
+def _profile_refits_note(refits: list[dict[str, Any]]) -> str:
+    """What ``identify --profile``'s fits from a profile's lower minimum did, for the
+    JSON's notes."""
+    steps = "; then ".join(
+        f"the profile of {r['profile']} went below the fit's minimum at {r['value']:.4g}: "
+        f"fitted again from there, chi2 {r['chi2_before']:.6g} -> {r['chi2_after']:.6g}"
+        + ("" if r["kept"] else " (not lower: not kept)") for r in refits)
+    if any(r["kept"] for r in refits):
+        steps += " (the parameters, std and profiles are those of the last fit kept)"
+    return steps
 
 
 def modelled_channels(frf: Any, path: str | Path) -> tuple[Any, str | None]:
@@ -620,6 +727,26 @@ def undetermined(entry: dict[str, Any]) -> bool:
     return std is not None and std > abs(entry["value"])
 
 
+def profile_said(prof: dict[str, Any] | None) -> str:
+    """What one profile of the JSON's ``profile`` found, in a few words: its 95 % interval
+    (an open end as "below"/"above" the walk's last point), a lower minimum than the fit's
+    or a second minimum; "not run" for a parameter's profile left out (``None``)."""
+    if prof is None:
+        return "not run (a parameter on the bound of its range)"
+    if prof["lower_minimum"] is not None:
+        return (f"a LOWER minimum than the fit's at {prof['lower_minimum']['value']:.4g} "
+                f"(delta chi2 {prof['lower_minimum']['delta_chi2']:.3g}; no interval)")
+    low, high = prof["interval_95"]
+    # an open end: the walk stayed within the limit up to its last point
+    low_txt = f"below {min(prof['values']):.4g}" if low is None else f"{low:.4g}"
+    high_txt = f"above {max(prof['values']):.4g}" if high is None else f"{high:.4g}"
+    said = f"95 % {low_txt} to {high_txt}"
+    if prof["second_minimum"] is not None:
+        said += (f"; second minimum at {prof['second_minimum']['value']:.4g} "
+                 f"(delta chi2 {prof['second_minimum']['delta_chi2']:.3g})")
+    return said
+
+
 def summary_text(document: dict[str, Any]) -> str:
     """The identification's JSON (design 4.5) as a few lines: converged or not, the misfit,
     and each parameter with its unit, standard error and 95 % interval."""
@@ -648,22 +775,12 @@ def summary_text(document: dict[str, Any]) -> str:
     if profiles == {}:
         lines.append("  profile: no weak parameter (std under 10 % of every value)")
     for name, prof in (profiles or {}).items():
-        if prof is None:
-            lines.append(f"  profile of {name}: not run (a parameter on the bound of its "
-                         "range)")
-            continue
-        low, high = prof["interval_95"]
-        # an open end: the walk stayed within the limit up to its last point
-        low_txt = f"below {min(prof['values']):.4g}" if low is None else f"{low:.4g}"
-        high_txt = f"above {max(prof['values']):.4g}" if high is None else f"{high:.4g}"
-        said = f"95 % {low_txt} to {high_txt}"
-        if prof["lower_minimum"] is not None:
-            said = (f"a LOWER minimum than the fit's at {prof['lower_minimum']['value']:.4g} "
-                    f"(delta chi2 {prof['lower_minimum']['delta_chi2']:.3g}; no interval)")
-        elif prof["second_minimum"] is not None:
-            said += (f"; second minimum at {prof['second_minimum']['value']:.4g} "
-                     f"(delta chi2 {prof['second_minimum']['delta_chi2']:.3g})")
-        lines.append(f"  profile of {name}: {said} ({prof['fits']} fits)")
+        lines.append(f"  profile of {name}: {profile_said(prof)}"
+                     + ("" if prof is None else f" ({prof['fits']} fits)"))
+    for refit in document.get("profile_refits", []):
+        lines.append(f"  fitted again from the lower minimum of {refit['profile']}'s profile: "
+                     f"chi2 {refit['chi2_before']:.6g} -> {refit['chi2_after']:.6g}"
+                     + ("" if refit["kept"] else " (not lower: not kept)"))
     return "\n".join(lines)
 
 
