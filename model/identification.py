@@ -352,11 +352,6 @@ class FitResult:
     starts: int = 1
     message: str = ""
     extra: dict[str, object] = field(default_factory=dict)
-    #: standard errors (SI) as the χ²'s own curvature gives them, every residual taken as
-    #: independent and the chain's gains held: ``std`` without the gains' share (equal to
-    #: it without ``gain_std`` and ``chain_gain_std``); what a profile likelihood, which
-    #: refits with the gains held, sees (:func:`profile_parameter`). Not in the JSON.
-    std_conditional: np.ndarray | None = None
 
     def as_dict(self) -> dict[str, object]:
         """JSON-ready dict (design 4.5)."""
@@ -1023,13 +1018,11 @@ def identify_frf(
     inner = ~on_bound
     std = np.full(x.size, np.nan)
     corr = np.full((x.size, x.size), np.nan)
-    std_conditional = np.full(x.size, np.nan)
     if inner.any():
         std_in, corr_in, sv, weak = covariance_report(
             J[:, inner], r, [n for n, b in zip(out_names, inner, strict=True) if b],
             scale_vals[inner], absolute_sigma=absolute)
         std[inner] = std_in
-        std_conditional[inner] = std_in
         corr[np.ix_(inner, inner)] = corr_in
         if noise_std is not None:
             # the gain is in the weights (floor): the covariance of that estimator under
@@ -1109,7 +1102,6 @@ def identify_frf(
                                       "pairs": int(pairs),
                                       "structured": bool(structured)},
                "on_bound": bound_names},
-        std_conditional=std_conditional,
     )
 
 
@@ -1226,18 +1218,11 @@ def profile_parameter(
     best one), and gives the interval where Δχ² stays within
     :data:`PROFILE_DELTA_CHI2_95` (Venzon & Moolgavkar 1988's profile interval) without the
     linearisation. Δχ² is scaled by max(χ²/dof, 1) of ``fit`` (the misfit counts as noise
-    where it exceeds the declared one, as the std's Birge ratio does). The refits hold
-    the chain's gains (``gain_std`` enters the weights as in the fit), where the std
-    marginalise the per-FRF gains and a calibration common to all FRFs
-    (``identify_frf(gain_std=, chain_gain_std=)``); the interval and the walk's stop
-    therefore take Δχ² times ``gains_scale`` = (``fit.std_conditional`` / ``fit.std``)² of
-    ``name`` (≤ 1), the ratio of its variance with the gains held to that with them
-    marginalised, which is exact for a model linear in the parameters and gains
-    (marginalising a Gaussian prior widens the χ² parabola by that ratio) and keeps the
-    profile's shape: unscaled, with a sizeable calibration uncertainty, the interval was
-    narrower than the std's for that reason alone (session 46's review: c_pub 1943–2158
-    against the std's 1836–2300). A lower or second minimum is judged on the refits' own
-    Δχ² (the fit's χ² is compared with the gains held, as it was fitted).
+    where it exceeds the declared one, as the std's Birge ratio does). The profile is
+    conditional on the chain's gains: ``gain_std`` enters the weights as in the fit, but
+    the per-FRF gains and a calibration common to all FRFs are not marginalised as the
+    std's are (``identify_frf(gain_std=, chain_gain_std=)``), so with a sizeable
+    calibration uncertainty it is narrower than the std's interval for that reason alone.
     The refits' bounds are ×/÷ 10 around each start (their neighbour's point): the walk
     may take the others beyond the fit's own range; a fit with a parameter on its bound
     is not profiled by ``pelvislab identify`` (its first refit would release it).
@@ -1254,9 +1239,9 @@ def profile_parameter(
     None]; else None), ``"second_minimum"`` (the lowest local minimum of the profile
     apart from the fit's own, at least :data:`PROFILE_BARRIER` below the highest point on
     each side of it, with its Δχ²; one within the limit lies inside ``interval_95``; None
-    when there is none or a lower minimum), ``"gains_scale"`` and ``"fits"``. A refit the
-    model cannot be evaluated at ends the walk (that side's end is then null, as where the
-    walk ended within the limit: the data say nothing beyond it).
+    when there is none or a lower minimum) and ``"fits"``. A refit the model cannot be
+    evaluated at ends the walk (that side's end is then null, as where the walk ended
+    within the limit: the data say nothing beyond it).
     """
     if fit.residual_kind != "std":
         raise ValueError("the profile needs a fit with the std residual (chi2 in units of "
@@ -1281,10 +1266,6 @@ def profile_parameter(
     measured = np.isfinite(H) & np.isfinite(H_std) & (H_std > 0)
     dof = max(2 * int(measured.sum()) - len(fit.names), 1)
     scale = max(chi2_best / dof, 1.0)
-    held_std = (np.nan if fit.std_conditional is None
-                else float(fit.std_conditional[fit.names.index(name)]))
-    # the gains' share of the std, which the refits (gains held) do not see
-    gains_scale = (held_std / std) ** 2 if np.isfinite(held_std) and held_std < std else 1.0
     points: list[tuple[float, float, dict[str, float]]] = [(value, 0.0, dict(fitted))]
     fits = 0
     for direction in (-1.0, 1.0):
@@ -1312,27 +1293,25 @@ def profile_parameter(
                 here[names.index(n)] = refitted[n]
             if version_b:
                 dep = (refitted["f_k"], refitted["f_c"])
-            if delta * gains_scale > stop_delta_chi2:
+            if delta > stop_delta_chi2:
                 break
     points.sort(key=lambda p: p[0])
     summary = profile_summary(np.array([p[0] for p in points]),
-                              np.array([p[1] for p in points]), value, gains_scale)
+                              np.array([p[1] for p in points]), value)
     if summary["lower_minimum"] is not None:
         # every parameter there, so that the fit can be started from that point
         lowest = next(p for p in points if p[0] == summary["lower_minimum"]["value"])
         summary["lower_minimum"]["parameters"] = {n: float(v) for n, v in lowest[2].items()}
     return {**summary, "linearised_interval_95": interval_95(name, value, std),
-            "gains_scale": gains_scale, "fits": fits}
+            "fits": fits}
 
 
-def profile_summary(values: np.ndarray, delta_chi2: np.ndarray, fitted: float,
-                    gains_scale: float = 1.0) -> dict[str, object]:
+def profile_summary(values: np.ndarray, delta_chi2: np.ndarray, fitted: float
+                    ) -> dict[str, object]:
     """What a profile likelihood says (:func:`profile_parameter`): ``values`` ascending (SI,
-    > 0), ``delta_chi2`` the χ² rise at each over the fit's (the refits', gains held),
-    ``fitted`` the fit's own value (the point of ``values`` nearest to it in log value, at
-    Δχ² 0), ``gains_scale`` the factor that takes Δχ² to the gains marginalised (the
-    interval's; a lower or second minimum is one of the refits' χ² itself). Returns
-    ``{"values", "delta_chi2", "interval_95", "lower_minimum", "second_minimum"}`` as
+    > 0), ``delta_chi2`` the χ² rise at each over the fit's, ``fitted`` the fit's own value
+    (the point of ``values`` nearest to it in log value, at Δχ² 0). Returns ``{"values",
+    "delta_chi2", "interval_95", "lower_minimum", "second_minimum"}`` as
     :func:`profile_parameter` describes them."""
     values, deltas = np.asarray(values, float), np.asarray(delta_chi2, float)
     keep = np.isfinite(deltas)  # a point the model could not be evaluated at says nothing
@@ -1357,9 +1336,8 @@ def profile_summary(values: np.ndarray, delta_chi2: np.ndarray, fitted: float,
                 and (second is None or deltas[i] < second["delta_chi2"])):
             second = {"value": float(values[i]), "delta_chi2": float(deltas[i])}
     # an interval about a minimum the profile went below is no 95 % interval: none given
-    marginal = deltas * gains_scale
     interval = ([None, None] if lower is not None else
-                [_profile_end(values, marginal, i0, -1), _profile_end(values, marginal, i0, 1)])
+                [_profile_end(values, deltas, i0, -1), _profile_end(values, deltas, i0, 1)])
     return {"values": [float(v) for v in values], "delta_chi2": [float(d) for d in deltas],
             "interval_95": interval, "lower_minimum": lower, "second_minimum": second}
 

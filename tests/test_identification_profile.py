@@ -58,39 +58,6 @@ def test_the_profile_of_a_well_determined_parameter_is_the_linearised_interval(c
     assert prof["fits"] == values.size - 1
 
 
-def test_the_profile_takes_the_gains_share_of_the_std_as_the_std_do(chain_fit):
-    """With per-FRF and calibration gain uncertainty the std marginalise the gains; the
-    profile's refits hold them, so its Δχ² is scaled by the parameter's variance ratio
-    (gains held / marginalised): its interval is then the std's for a well-determined
-    mass (before: 24x narrower here; on a simulated face_up session with
-    --calibration-std 0.05, m_sacrum 0.3605-0.3607 against the std's 0.3269-0.3977). A
-    fit stopped short is still found out on the refits' own χ²."""
-    p, f, H, sigma, _fit = chain_fit
-    fit = identify_frf(p, f, H, sigma, residual=ResidualSpec("std"),
-                       strategy=default_strategy("std"), gain_std=0.005, chain_gain_std=0.05)
-    k = fit.names.index("m1")
-    prof = profile_parameter(p, f, H, sigma, fit, "m1", gain_std=0.005)
-    assert 0 < prof["gains_scale"] < 0.5
-    assert prof["gains_scale"] == pytest.approx(
-        (fit.std_conditional[k] / fit.std[k]) ** 2)
-    low, high = prof["interval_95"]
-    lin_low, lin_high = prof["linearised_interval_95"]
-    # the std's interval within 2 % at each end (a slight skew of the profile), its
-    # width in log within 5 %
-    assert low == pytest.approx(lin_low, rel=0.02) and high == pytest.approx(lin_high, rel=0.02)
-    assert np.log(high / low) == pytest.approx(np.log(lin_high / lin_low), rel=0.05)
-    # the gains held (the profile before): narrower than the std's by the ratio's root
-    held = profile_parameter(p, f, H, sigma, replace(fit, std_conditional=None), "m1",
-                             gain_std=0.005)
-    assert held["gains_scale"] == 1.0
-    narrow = np.log(held["interval_95"][1] / held["interval_95"][0])
-    assert narrow < 0.1 * np.log(high / low)
-    # a fit held off its minimum: the lower minimum is one of the refits' chi2, unscaled
-    stopped = _stopped_short((p, f, H, sigma, fit))
-    off = profile_parameter(p, f, H, sigma, stopped, "k0", gain_std=0.005)
-    assert off["lower_minimum"] is not None and off["lower_minimum"]["delta_chi2"] < -10
-
-
 def _stopped_short(chain_fit):
     """The chain fit with its k0 held 30 % off the minimum and the others refitted there,
     as a multi-start that stopped in a poorer basin would leave it."""
