@@ -220,7 +220,7 @@ def _profile_cell(profiles: dict[str, Any], name: str,
     else:
         text = whole.removeprefix("95 % ").split(";")[0]
     cell = QtWidgets.QTableWidgetItem(text)
-    cell.setToolTip(f"profile likelihood: {whole}"
+    cell.setToolTip(f"profile likelihood, the chain's gains held: {whole}"
                     + ("" if prof is None else f" ({prof['fits']} fits)"))
     if prof is not None and prof["lower_minimum"] is not None:
         cell.setForeground(QtGui.QColor("#b71c1c"))

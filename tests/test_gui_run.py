@@ -300,7 +300,7 @@ def test_replay_identification_profiles_the_weak_parameters(operator_window, qtb
     damping = table.item(rows["c_sij_R (N s/m)"], 3)
     low, high = (float(v) for v in damping.text().split(" to "))
     assert low < float(table.item(rows["c_sij_R (N s/m)"], 1).text()) < high
-    assert damping.toolTip().startswith("profile likelihood: 95 % ")
+    assert damping.toolTip().startswith("profile likelihood, the chain's gains held: 95 % ")
     assert damping.toolTip().endswith(" fits)")
     mass = table.item(rows["m_sacrum (kg)"], 3)
     assert mass.text() == "" and "not profiled" in mass.toolTip()
