@@ -532,11 +532,11 @@ def _profiled_and_refitted(problem: Any, frf: Any, H_std: Any, result: Any,
     from the lowest such point (``polish_from(start, (f_k, f_c))``: one start, every
     parameter of ``result`` free, judged at the noise floor as identify's own fit) and that
     fit tested (``retested``: version B's test) and profiled again, up to
-    :data:`PROFILE_REFITS` times. The thesis' optimiser stopped in
-    minima it could not tell from the best one (ch. 6-7); a profile that walks into a lower
-    one has shown the way out of it, so the product takes it rather than only saying so.
-    Returns the final fit (not converged, as :func:`_profiled` says, when a profile of it
-    still goes lower), its profiles and one entry per fit from a lower minimum
+    :data:`PROFILE_REFITS` times. The thesis' optimiser stopped in minima it could not
+    tell from the best one (ch. 6-7); a profile that walks into a lower one has shown the
+    way out of it, so the product takes it rather than only saying so. Returns the final
+    fit (not converged, as :func:`_profile_verdict` says, when a profile of it still goes
+    lower), its profiles and one entry per fit from a lower minimum
     (``profile``: whose profile, ``value``: that parameter's value there,
     ``chi2_before`` / ``chi2_after``: the fit's chi2 before and after it, ``kept``: whether
     the fit after it replaced the one before)."""
@@ -567,7 +567,8 @@ def _profiled_and_refitted(problem: Any, frf: Any, H_std: Any, result: Any,
         if not kept:
             # the local fit did not stay below the fit it would replace (it can only
             # when its bounds or free set differ from the profile's): keep the fit, which
-            # the profile calls not converged; its effort counts (as _from_the_global_base_fit's)
+            # the profile calls not converged; the refit's effort counts, as that of
+            # _from_the_global_base_fit's second fit does
             kept_fit = replace(result, evaluations=result.evaluations + again.evaluations,
                                starts=result.starts + again.starts)
             return _profile_verdict(kept_fit, profiles, len(refits)), profiles, refits
