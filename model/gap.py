@@ -251,6 +251,36 @@ def _running_median(x: np.ndarray, half_window: int) -> np.ndarray:
     return run[np.clip(np.arange(x.size) - half_window, 0, run.size - 1)]
 
 
+def _running_median_trended_ends(x: np.ndarray, half_window: int,
+                                 sigmas: float = 3.0) -> np.ndarray:
+    """:func:`_running_median` of the positive values ``x``, with each end's first
+    ``half_window`` values following the trend of log ``x`` over the end's window where
+    that trend is significant (its Theil-Sen slope beyond ``sigmas`` standard errors of
+    an exponential variable's log, 1.28, over the window's positions), instead of holding
+    the window's median: noise proportional to a free-free receptance grows as 1/f² toward
+    the band's low edge, and the held median made σ there up to ~50x too small on 2.5 Hz
+    grids (judge-like 7676_021 at 5 Hz; a no-effect set, 1414_019, came out
+    `unexplained` with 95 % of its residual in 5-54 Hz; session 47)."""
+    run = _running_median(x, half_window)
+    width = 2 * half_window + 1
+    if x.size < width + 2 or half_window < 2:
+        return run
+    positions = np.arange(width, dtype=float)
+    i, j = np.triu_indices(width, 1)
+    standard_error = 1.28 / np.sqrt(np.sum((positions - positions.mean()) ** 2))
+    out = run.copy()
+    for window, before in ((slice(0, width), np.arange(half_window)),
+                           (slice(x.size - width, x.size),
+                            np.arange(x.size - half_window, x.size))):
+        logs = np.log(x[window])
+        slope = float(np.median((logs[j] - logs[i]) / (positions[j] - positions[i])))
+        if abs(slope) <= sigmas * standard_error:
+            continue
+        centre = half_window if window.start == 0 else x.size - half_window - 1
+        out[before] = run[centre] * np.exp(slope * (before - centre))
+    return out
+
+
 def third_differences(h: np.ndarray, frequency_hz: np.ndarray | None = None
                       ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Third differences of the values ``h`` at consecutive lines, their squared
@@ -364,7 +394,8 @@ def estimate_noise(H: np.ndarray, frequency_hz: np.ndarray | None = None, *,
                 k = np.arange(hv.size)
             tiny = 20 * floor**2
             mu_one = np.full(d.size, max(float(np.median(d)), tiny)) / np.log(2)
-            mu_abs = np.maximum(_running_median(d, half_window), tiny) / np.log(2)
+            mu_abs = np.maximum(_running_median_trended_ends(np.maximum(d, tiny),
+                                                             half_window), tiny) / np.log(2)
             mu_rel = np.maximum(w * _running_median(d / w, half_window), tiny) / np.log(2)
 
             n_trim = max(4, int(np.ceil(trim_fraction * d.size)))

@@ -226,6 +226,28 @@ def test_noise_estimate_over_each_frfs_own_lines_and_spacing():
     assert 0.8 < ratio < 1.25, ratio
 
 
+def test_noise_proportional_to_a_falling_receptance_is_followed_to_the_band_edge():
+    """A free-free receptance falls as 1/f²; noise ∝ |H| on a 2.5 Hz grid then grows 16x
+    in σ² per octave toward 5 Hz, and the running median, held at the first full window,
+    gave σ 25-40x too small at the first line (judge-like no-effect set 1414_019:
+    `unexplained`, 95 % of its residual in 5-54 Hz). Each end follows a significant trend
+    of the differences now; noise of constant level keeps the window's median."""
+    f = np.arange(5.0, 300.1, 2.5)
+    mass_line = -1.0 / (0.5 * (2 * np.pi * f) ** 2) * (1 + 0.3j * f / 300)
+    H = np.repeat(mass_line[:, None, None], 2, axis=2)
+    for seed in range(6):
+        rng = np.random.default_rng(seed)
+        sigma = 0.01 * np.abs(H)
+        e = sigma / np.sqrt(2) * (rng.normal(size=H.shape) + 1j * rng.normal(size=H.shape))
+        ratio = (estimate_noise(H + e, f) / sigma)[:, 0, 0]
+        assert ratio[0] > 0.15 and np.all(ratio[2:8] > 0.5), ratio[:8]  # was 0.03, 0.1-0.5
+        assert 0.8 < np.median(ratio) < 1.25
+        constant = 0.01 * np.abs(H).max() * np.ones(H.shape)
+        e = constant / np.sqrt(2) * (rng.normal(size=H.shape) + 1j * rng.normal(size=H.shape))
+        ratio = (estimate_noise(H + e, f) / constant)[:, 0, 0]
+        assert np.ptp(ratio) == 0.0 and 0.75 < ratio[0] < 1.3, ratio[:4]
+
+
 def test_excess_gap_is_zero_at_noise_level_and_grows():
     assert excess_gap(100.0, 100) == 0.0
     assert excess_gap(90.0, 100) == 0.0
