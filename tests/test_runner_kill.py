@@ -323,4 +323,9 @@ def test_eta_leaves_out_the_first_steps_one_off_start(tmp_path):
                 rates[event.n_done] = event.eta_s / sum(estimate[event.n_done:])
         session.runner.subscribe(listen)
         assert session.run().status == "completed"
-    assert rates[2] < 1.6 * rates[6], rates
+    # counted as pace, the 3 s start would make the rate at step 2 at least 3 s over the
+    # first two steps' planned time (~15, and ~5 at step 6) against ~0.2-0.4 here; a ratio
+    # of the two rates, as first written, failed under load when the one step the pace
+    # then rests on ran slow (a clean-clone run, session 47: 0.357 against 0.217 > 1.6x)
+    start_counted = 3.0 / sum(estimate[:2])
+    assert rates[2] < start_counted / 5 and rates[6] < start_counted / 5, rates
