@@ -142,6 +142,12 @@ def run_benchmark(generator: Generator | None, kinds: Sequence[str] | None = Non
                 "n_lines": int(data.frequency_hz.size), "wall_time_s": round(wall, 2),
                 "cpu_time_s": round(cpu, 2), "generate_time_s": round(generate_s, 2),
                 "top3": [(c["effect"], c["gap_after"]) for c in rep["candidates"][:3]],
+                # why: the verdict's reason and its test, so that a rule can be weighed
+                # against the stored runs without running them again
+                "verdict_reason": rep["verdict_reason"],
+                "significance": {k: rep["significance"][k] for k in (
+                    "candidate", "significant", "by", "held_out_chi2_drop",
+                    "pooled_chi2_drop", "shrink_judged")},
             }
             cases.append(entry)
             if progress:

@@ -427,7 +427,11 @@ def test_benchmark_takes_a_null_shrink_of_a_set_named_at_base_gap_0(monkeypatch)
 
     report = {"verdict": "added_mass", "gap_before": 0.0, "thresholds": {"none_gap": 0.5},
               "where": {}, "candidates": [{"effect": "added_mass", "gap_after": 0.0,
-                                           "shrink": None}]}
+                                           "shrink": None}],
+              "verdict_reason": "added_mass lowers the held-out chi2 by 40 (> 18)",
+              "significance": {"candidate": "added_mass", "significant": True,
+                               "by": "held-out lines", "held_out_chi2_drop": 40.0,
+                               "pooled_chi2_drop": 90.0, "shrink_judged": None}}
     monkeypatch.setattr(gap_benchmark, "diagnose",
                         lambda data, model, options: SimpleNamespace(report=report))
     H = np.ones((F_HZ.size, 3, 2), complex)
@@ -437,6 +441,9 @@ def test_benchmark_takes_a_null_shrink_of_a_set_named_at_base_gap_0(monkeypatch)
 
     res = gap_benchmark.run_benchmark(generator, kinds=["added_mass"], cases_per_kind=1)
     assert res["cases"][0]["shrink"] is None
+    # each case says why: the verdict's reason and the test behind it
+    assert res["cases"][0]["verdict_reason"]
+    assert set(res["cases"][0]["significance"]) >= {"candidate", "significant", "by"}
     assert res["shrink_correct"]["undefined_gap_before_0"] == 1
     assert res["shrink_correct"]["values"] == []
 
