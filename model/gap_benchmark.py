@@ -89,6 +89,14 @@ def place_correct(report: dict, truth: BenchCase) -> bool:
     return got == truth.place
 
 
+# the verdict's test as each benchmark case keeps it (the report's "significance" less
+# its note and null): enough to weigh a verdict rule against a stored run
+SIGNIFICANCE_KEPT = ("candidate", "significant", "by", "held_out_chi2_drop",
+                     "held_out_critical", "pooled_chi2_drop", "pooled_critical",
+                     "pooled_gap_before", "pooled_gap_after", "shrink_judged",
+                     "beyond_null_failed")
+
+
 def run_benchmark(generator: Generator | None, kinds: Sequence[str] | None = None,
                   cases_per_kind: int = 2, model: PelvisModel | None = None,
                   options: GapOptions | None = None,
@@ -145,9 +153,7 @@ def run_benchmark(generator: Generator | None, kinds: Sequence[str] | None = Non
                 # why: the verdict's reason and its test, so that a rule can be weighed
                 # against the stored runs without running them again
                 "verdict_reason": rep["verdict_reason"],
-                "significance": {k: rep["significance"][k] for k in (
-                    "candidate", "significant", "by", "held_out_chi2_drop",
-                    "pooled_chi2_drop", "shrink_judged")},
+                "significance": {key: rep["significance"][key] for key in SIGNIFICANCE_KEPT},
             }
             cases.append(entry)
             if progress:
