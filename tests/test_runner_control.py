@@ -280,12 +280,15 @@ def test_abort_from_another_thread_turns_outputs_off_at_once(tmp_path):
         result = {}
         thread = threading.Thread(target=lambda: result.setdefault("f", session.run()))
         thread.start()
+        deadline = time.monotonic() + 60
         while bench.digitizer.n_acquired < 3:
+            assert thread.is_alive() and time.monotonic() < deadline, "no third acquisition"
             time.sleep(0.005)
         t_abort = time.monotonic()
         session.runner.abort("operator pressed STOP")
         thread.join(10)
-    assert not thread.is_alive(), "the run did not end after the abort"
+        # before the session's close, which would abort and end the run too
+        assert not thread.is_alive(), "the run did not end after the abort"
     final = result["f"]
     assert final.status == "aborted" and "STOP" in final.reason
     for gen in (bench.drive, bench.trigger):
