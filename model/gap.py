@@ -3003,9 +3003,9 @@ def _verdict_stage(s: _Stages, ranked: Sequence[CandidateResult], cal: _Calibrat
         below_noise = True
         reason = (f"base gap {gap_before:.3g} <= {opt.near_noise_gap} (below the noise) and "
                   f"the best candidate ({best_name}) "
-                  + (f"removes only {shrink_judged:.0%} of it"
-                     + (" over fitted and held-out lines together" if pooled_gaps else "")
-                     + f" (< {opt.small_shrink:.0%})"
+                  + (f"removes only {shrink_judged:.0%} of it over fitted and held-out "
+                     f"lines together (< {opt.small_shrink:.0%}; a global one-parameter "
+                     f"effect whose held-out chi2 rises is judged by that shrink)"
                      if significant else
                      test.not_significant_txt() or
                      f"is not significant (chi2 drop {improvement:.3g}"
