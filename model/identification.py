@@ -52,9 +52,9 @@ FREQ_DEP_NAMES = ("f_k", "f_c")
 WHITENESS_SIGMAS = 4.0
 #: Fewer neighbour pairs than this: whiteness not judged.
 MIN_WHITENESS_PAIRS = 20
-#: Residuals at or below this rms (relative kinds, log and eq610; ``std`` ones in units of
-#: their standard uncertainty) are an exact fit (synthetic data): rounding, not judged for
-#: structure; also ``default_strategy``'s target for the relative kinds.
+#: Residuals at or below this rms (relative kinds, log and eq610; ``std`` ones relative to
+#: the data's rms in the same weighting) are an exact fit (synthetic data): rounding, not
+#: judged for structure; also ``default_strategy``'s target for the relative kinds.
 EXACT_FIT_RMS = 1e-8
 #: p-value of :func:`frequency_dependence_test` below which version B's f_k, f_c count as
 #: explaining part of a version-A fit's misfit (one false alarm in a thousand fits of data
@@ -1066,13 +1066,18 @@ def identify_frf(
                                    rcond=None)[0]
             r_white = r - A @ step
     r1, pairs = residual_lag1_correlation(r_white, final_target.mask)
-    # an exact fit's residual (1e-8 and below, relative or in noise units) is rounding: not
-    # judged (with no stop target it was: review of session 36's diff). For std residuals
-    # too: exact data with an estimated noise fitted to 1.5e-11 sigma were "not converged"
-    # on one machine at rounding's lag-1 correlation 0.37, and converged on another
-    # (session 48; tests/test_identification_cli.py)
+    # an exact fit's residual (relative rms 1e-8 and below) is rounding: not judged (with no
+    # stop target it was: review of session 36's diff). For std residuals too, relative to
+    # the data in the same weighting: exact data with an estimated noise fitted to 1.5e-11
+    # sigma were "not converged" on one machine at rounding's lag-1 correlation 0.37, and
+    # converged on another (session 48); in noise units alone an H_std overstated ~1e7x
+    # would have hidden a real misfit (review 65)
+    exact_rms = EXACT_FIT_RMS
+    if residual.kind == "std":
+        exact_rms *= float(np.sqrt(np.mean(np.abs(final_target.weight * final_target.H) ** 2)
+                                   / 2.0))
     structured = (pairs >= MIN_WHITENESS_PAIRS and r1 > WHITENESS_SIGMAS / np.sqrt(pairs)
-                  and rms > EXACT_FIT_RMS)
+                  and rms > exact_rms)
     # Converged: the optimiser converged, no parameter on a bound, residuals without
     # structure along frequency, and the misfit reached the target or (without a noise
     # level) a second start reproduced the best minimum. With H_std (std residual) only

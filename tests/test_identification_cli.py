@@ -49,6 +49,21 @@ def test_identify_writes_design_json(tmp_path: Path) -> None:
     assert isinstance(doc["evaluations"], int) and doc["wall_time_s"] > 0
 
 
+def test_a_misfit_hidden_by_an_overstated_noise_is_still_judged(tmp_path: Path) -> None:
+    """Exactness is judged relative to the data, not in noise units: with H_std 1e8 times
+    |H| and k_pubs held 25 % off, the misfit's rms is 3.6e-9 sigma (below the 1e-8 of an
+    exact fit) and its residual is structured along frequency: not converged (review 65)."""
+    frf = _frf_file(tmp_path / "exact.h5", {"k_pubh": 1.3, "k_pubs": 0.8})
+    src = tmp_path / "overstated.h5"
+    write_frf(src, FrfSet(frf.frequency_hz, frf.H, frf.outputs, frf.inputs,
+                          H_std=1e8 * np.abs(frf.H)))
+    out = tmp_path / "out.json"
+    main(["identify", str(src), "--params", "k_pubh", "--json", str(out)])
+    doc = json.loads(out.read_text())
+    assert doc["residual"] == "std" and doc["rms_residual"] < 1e-8
+    assert doc["residual_whiteness"]["structured"] and doc["converged"] is False
+
+
 def test_an_exact_fit_in_noise_units_is_not_judged_for_structure(tmp_path: Path,
                                                                 monkeypatch) -> None:
     """Rounding is all that is left of an exact fit: its lag-1 correlation depends on the
