@@ -3010,9 +3010,12 @@ def _verdict_stage(s: _Stages, ranked: Sequence[CandidateResult], cal: _Calibrat
         below_noise = True
         reason = (f"base gap {gap_before:.3g} <= {opt.near_noise_gap} (below the noise) and "
                   f"the best candidate ({best_name}) "
-                  + (f"removes only {shrink_judged:.0%} of it over fitted and held-out "
-                     f"lines together (< {opt.small_shrink:.0%}; a global one-parameter "
-                     f"effect whose held-out chi2 rises is judged by that shrink)"
+                  + ((f"removes only {shrink_judged:.0%} of the gap over fitted and "
+                      f"held-out lines together, {pooled_gaps[0]:.3g} -> {pooled_gaps[1]:.3g} "
+                      f"(< {opt.small_shrink:.0%}; a global one-parameter effect whose "
+                      f"held-out chi2 rises is judged by that shrink)" if pooled_gaps else
+                      f"removes only {shrink_judged:.0%} of it (< {opt.small_shrink:.0%}) "
+                      f"while the fitted lines are not near the noise")
                      if significant else
                      test.not_significant_txt() or
                      f"is not significant (chi2 drop {improvement:.3g}"

@@ -88,3 +88,4 @@ def test_a_small_held_out_shrink_leaves_a_fitted_line_miss_to_its_own_stage():
     assert 0.0 < 1 - f_k.gap_after / s.gap_before < 0.2  # f_k first, significant, small
     assert verdict.verdict == "support_resonance", verdict.reason
     assert "falls between them" in verdict.reason
+    assert "removes only 10% of it (< 20%) while the fitted lines" in verdict.reason
