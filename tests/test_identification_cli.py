@@ -64,12 +64,13 @@ def test_a_misfit_hidden_by_an_overstated_noise_is_still_judged(tmp_path: Path) 
     assert doc["residual_whiteness"]["structured"] and doc["converged"] is False
 
 
-def test_an_exact_fit_in_noise_units_is_not_judged_for_structure(tmp_path: Path,
-                                                                monkeypatch) -> None:
+def test_an_exact_fit_of_std_residuals_is_not_judged_for_structure(tmp_path: Path,
+                                                                   monkeypatch) -> None:
     """Rounding is all that is left of an exact fit: its lag-1 correlation depends on the
     machine's floating-point kernels (0.37 on one, white on another, for the data of
-    the test above: 'not converged' at rms 1.5e-11 sigma). Made correlated here on any
-    machine; a std residual that small is not judged."""
+    test_identify_writes_design_json: 'not converged' at rms 1.5e-11 sigma). Made
+    correlated here on any machine; a std residual that small against the data is not
+    judged."""
     from pelvislab.model import identification
 
     real = identification.residual_lag1_correlation
