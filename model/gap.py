@@ -96,8 +96,10 @@ class GapOptions:
       ``small_shrink``: when the base gap is already below ``near_noise_gap``, a global
       one-parameter effect passed on the pooled evidence with its held-out χ² rising
       (``_global_one_parameter``) is named only if it removes at least this fraction of
-      the gap over fitted and held-out lines (else ``none``); any other significant
-      effect is named there whatever it removes;
+      the gap over fitted and held-out lines (else ``none``), and where the fitted lines
+      are not near the noise an effect removing less leaves the verdict to the held-out
+      miss (``_held_out_miss``); any other significant effect is named there whatever it
+      removes;
     * ``p_value``: level of the likelihood-ratio test a candidate's held-out χ² drop must
       pass (Bonferroni over the places tried); ``significance_rel``: minimum relative drop
       when σ is estimated from the data;
