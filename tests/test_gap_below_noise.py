@@ -10,14 +10,13 @@ judge-like, 16 of the benchmark), diagnosed again with the rule, it was the reas
 ``tests/judge_like_generator.py`` (written without reading the diagnosis).
 """
 
-from types import SimpleNamespace
-
 import numpy as np
 import pytest
 
 from pelvislab.model import gap
 from pelvislab.tests import judge_like_generator as jl
 from pelvislab.tests.fresh_process import diagnose_in_fresh_process
+from pelvislab.tests.gap_verdict_harness import NO_CALIBRATION, fitted_result, verdict_stages
 
 
 def _diagnosed_right(tmp_path, seed, index, effect, max_gap):
@@ -62,22 +61,7 @@ BASE_HELD, BASE_FITTED = HELD_N * (1 + 0.39**2), FIT_N * (1 + 12.7**2)
 
 
 def _fitted(effect, place_kind, n_params, held, fitted):
-    return SimpleNamespace(
-        candidate=SimpleNamespace(effect=effect, place_kind=place_kind, n_params=n_params,
-                                  variant="", place=""),
-        screened_places=1, chi2_heldout=held, chi2_fitted=fitted, chi2_calibrated=0.0,
-        beyond_null=None, theta=np.ones(2), tolerance_note="", score=held + 2 * n_params,
-        gap_after=gap.excess_gap(held, HELD_N))
-
-
-def _stages(ranked, base_held, base_fitted):
-    """The verdict's view of a diagnosis whose base fit has these χ² (base refits equal)."""
-    return SimpleNamespace(
-        opt=gap.GapOptions(), data=SimpleNamespace(noise_source="H_std"),
-        chi2_base=base_held, chi2_base_fitted=base_fitted, chi2_own_starts=None,
-        base_refits={id(r): (r, np.ones(2), base_fitted, base_held) for r in ranked},
-        fit=SimpleNamespace(n=FIT_N), held=SimpleNamespace(n=HELD_N),
-        gap_before=gap.excess_gap(base_held, HELD_N), base_refitted_from=None, timing={})
+    return fitted_result(effect, place_kind, n_params, held, fitted, HELD_N)
 
 
 @pytest.mark.parametrize(("fitted_drop", "named"), [(150.0, True), (12.0, False)])
@@ -90,9 +74,8 @@ def test_a_global_effect_with_its_held_out_chi2_rising_still_needs_a_fifth_of_th
     base_held, base_fitted = HELD_N * (1 + 0.39**2), 1200.0
     f_k = _fitted("frequency_dependent_stiffness", "global", 1, base_held + 1.0,
                   base_fitted - fitted_drop)
-    s = _stages([f_k], base_held, base_fitted)
-    cal = SimpleNamespace(chi2_base=1e9, evident=False, gap_before=0.0)
-    verdict = gap._verdict_stage(s, [f_k], cal, {})
+    s = verdict_stages([f_k], base_held, base_fitted, HELD_N, FIT_N)
+    verdict = gap._verdict_stage(s, [f_k], NO_CALIBRATION, {})
     assert verdict.test.significant and verdict.test.pooled_alone
     assert (verdict.verdict == "frequency_dependent_stiffness") is named, verdict.reason
     assert ("removes only" in verdict.reason) is not named
@@ -107,9 +90,8 @@ def test_a_small_held_out_shrink_leaves_a_fitted_line_miss_to_its_own_stage():
                   BASE_FITTED - 2000.0)
     armature = _fitted("support_resonance", "input", 3, BASE_HELD - 9.0, FIT_N * 1.05)
     ranked = [f_k, armature]
-    s = _stages(ranked, BASE_HELD, BASE_FITTED)
-    cal = SimpleNamespace(chi2_base=1e9, evident=False, gap_before=0.0)
-    verdict = gap._verdict_stage(s, ranked, cal, {})
+    s = verdict_stages(ranked, BASE_HELD, BASE_FITTED, HELD_N, FIT_N)
+    verdict = gap._verdict_stage(s, ranked, NO_CALIBRATION, {})
     assert 0.0 < 1 - f_k.gap_after / s.gap_before < 0.2  # f_k first, significant, small
     assert verdict.verdict == "support_resonance", verdict.reason
     assert "falls between them" in verdict.reason

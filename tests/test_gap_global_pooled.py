@@ -17,6 +17,7 @@ import pytest
 from pelvislab.app.commands.gap import diagnose_file, format_report
 from pelvislab.model import gap
 from pelvislab.tests import judge_like_generator as jl
+from pelvislab.tests.gap_verdict_harness import NO_CALIBRATION, fitted_result, verdict_stages
 
 
 def test_absorbed_global_effect_is_named_by_the_pooled_test_alone(tmp_path):
@@ -94,26 +95,17 @@ HELD_N, FIT_N = 520, 1050
 
 def _verdict(held, fitted, *, refit=(1000.0, 500.0), own_starts=None, beyond=None,
              extension_fitted=990.0):
-    n_params = 1 if beyond is None else 9
-    res = SimpleNamespace(
-        candidate=SimpleNamespace(place_kind="global", effect="frequency_dependent_stiffness",
-                                  n_params=n_params, variant="eq7.3", place="all springs"),
-        screened_places=1, chi2_heldout=held, chi2_fitted=fitted, chi2_calibrated=0.0,
-        beyond_null=beyond, theta=np.ones(2), tolerance_note="", score=held + 2 * n_params,
-        gap_after=gap.excess_gap(held, HELD_N))
-    s = SimpleNamespace(
-        opt=gap.GapOptions(), data=SimpleNamespace(noise_source="H_std"), chi2_base=500.0,
-        chi2_base_fitted=1000.0, chi2_own_starts=own_starts,
-        base_refits={id(res): (res, np.ones(2), *refit)}, fit=SimpleNamespace(n=FIT_N),
-        held=SimpleNamespace(n=HELD_N), gap_before=gap.excess_gap(500.0, HELD_N),
-        base_refitted_from=None, timing={})
-    cal = SimpleNamespace(chi2_base=1e9, evident=False, gap_before=0.0)
+    res = fitted_result("frequency_dependent_stiffness", "global",
+                        1 if beyond is None else 9, held, fitted, HELD_N, beyond_null=beyond,
+                        variant="eq7.3", place="all springs")
+    s = verdict_stages([res], 500.0, 1000.0, HELD_N, FIT_N, refit=refit,
+                       own_starts=own_starts)
     extension = SimpleNamespace(candidate=SimpleNamespace(n_params=8,
                                                           effect="per_dashpot_damping"),
                                 chi2_fitted=extension_fitted)
     best_by_effect = {"per_dashpot_damping": extension}
-    return (gap._Significance(s, cal, best_by_effect)(res),
-            gap._verdict_stage(s, [res], cal, best_by_effect))
+    return (gap._Significance(s, NO_CALIBRATION, best_by_effect)(res),
+            gap._verdict_stage(s, [res], NO_CALIBRATION, best_by_effect))
 
 
 @pytest.mark.parametrize("case", [
