@@ -2988,9 +2988,9 @@ def _verdict_stage(s: _Stages, ranked: Sequence[CandidateResult], cal: _Calibrat
                         f"+-{opt.calibration_tol:.2%}), not both > " if cal.evident
                         else " <= ")
                      + f"{crit:.3g} (not significant)"))
-    elif gap_before <= opt.near_noise_gap and not (
-            significant and (shrink_judged >= opt.small_shrink or (
-                not test.pooled_alone and (gap_before == 0.0 or not held_out_miss_case)))):
+    elif gap_before <= opt.near_noise_gap and not (significant and (
+            shrink_judged >= opt.small_shrink or
+            (not test.pooled_alone and not (held_out_miss_case and gap_before > 0.0)))):
         # the model error is already below the noise: a significant effect is named
         # whatever part of the gap it removes, as at gap 0, where the shrink is undefined
         # (a seed-31337 probe tilted 24 deg at SIPS_R_x had base gap 0, the noise drew
