@@ -19,11 +19,18 @@ from pelvislab.app.cli import main
     (["ema", "S.h5", "--json", "e.json", "--frequencies", "nan"], "positive frequencies"),
     (["identify", "S.h5", "--json", "i.json", "--starts", "0"], "--starts 0"),
     (["identify", "S.h5", "--json", "i.json", "--params", ","], "got none"),
+    (["identify", "S.h5", "--json", "i.json", "--params", "k_io_R,k_pubh,k_io_R"],
+     "k_io_R named more than once"),
+    (["identify", "S.h5", "--json", "i.json", "--profile", "k_pubh, k_pubh"],
+     "k_pubh named more than once"),
+    (["gap", "diagnose", "S.h5", "--json", "g.json", "--effects", "added_mass,added_mass"],
+     "added_mass named more than once"),
     (["gap", "diagnose", "S.h5", "--json", "g.json", "--effects", ","], "got none"),
     (["gap", "benchmark", "--json", "b.json", "--kinds", "none,nope"], "unknown nope"),
 ])
 def test_meaningless_values_are_refused(argv, message, tmp_path, monkeypatch, capsys):
-    # before: an argmax of an empty sequence, negative damping ratios, NaN-to-integer,
+    # before: a parameter named twice in --params fitted as two (each std n/a,
+    # "converged"), an argmax of an empty sequence, negative damping ratios, NaN-to-integer,
     # a 2 TiB allocation, a pole picked for -5 Hz, "--starts 0" run as 1 start, "," read
     # as "every parameter", min() of an empty sequence, a file named "-", a benchmark
     # whose unknown kind was found only at the end

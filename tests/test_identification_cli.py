@@ -439,3 +439,14 @@ def test_a_symmetric_fit_does_not_run_the_global_base_fit(
     assert _from_the_global_base_fit(
         problem, frf, np.ones((15, 1, 1)), default_model(), missed,
         lambda _s: pytest.fail("fitted again"), None) == (missed, None)
+
+
+def test_a_parameter_named_twice_is_refused(tmp_path: Path) -> None:
+    """The API refuses what the CLI's option parsing does: a name given twice was fitted
+    as two parameters, their sum resolved and each std n/a, "converged" (review 66)."""
+    from pelvislab.app.commands.identify import identify_file
+
+    src = tmp_path / "frf.h5"
+    _frf_file(src, {"k_pubh": 1.3})
+    with pytest.raises(ValueError, match=r"\['k_pubh'\] named more than once"):
+        identify_file(src, params=["k_pubh", "k_pubs", "k_pubh"])

@@ -15,10 +15,15 @@ Handler = Callable[[argparse.Namespace], "int | None"]
 def comma_list(text: str) -> list[str]:
     """The names of a comma-separated option value (``"k_io, k_asa,"`` -> ``["k_io",
     "k_asa"]``): blanks around names and empty items dropped; no name at all is an error
-    (``--effects ,`` is a typo, not "every effect" nor "none")."""
+    (``--effects ,`` is a typo, not "every effect" nor "none"), and so is a name given
+    twice (``--params k_io_R,k_pubh,k_io_R`` was fitted as two parameters, each without
+    a std)."""
     names = [item.strip() for item in text.split(",") if item.strip()]
     if not names:
         raise ValueError(f"{text!r}: expected comma-separated names, got none")
+    repeated = sorted({n for n in names if names.count(n) > 1})
+    if repeated:
+        raise ValueError(f"{text!r}: {', '.join(repeated)} named more than once")
     return names
 
 

@@ -158,6 +158,10 @@ def identify_file(path: str | Path, method: str = "frf", params: list[str] | Non
     problem, _ = pelvis_problem(model, frf.outputs, frf.inputs, symmetric=symmetric)
     free = list(params) if params else None
     if free is not None:
+        repeated = sorted({n for n in free if free.count(n) > 1})
+        if repeated:
+            # fitted as two parameters, the pair unresolved (each std n/a) and "converged"
+            raise ValueError(f"parameter(s) {repeated} named more than once")
         unknown = [n for n in free if n not in problem.names]
         if unknown:
             raise ValueError(f"unknown parameter(s) {unknown}; choose from "
