@@ -450,3 +450,24 @@ def test_a_parameter_named_twice_is_refused(tmp_path: Path) -> None:
     _frf_file(src, {"k_pubh": 1.3})
     with pytest.raises(ValueError, match=r"\['k_pubh'\] named more than once"):
         identify_file(src, params=["k_pubh", "k_pubs", "k_pubh"])
+
+
+@pytest.mark.parametrize(("options", "message"), [
+    (["--a-b", "0.5"], "--a-b applies to --residual eq610 or log"),
+    (["--residual", "std", "--a-b", "2"], "--a-b applies to --residual eq610 or log"),
+    (["--residual", "log", "--a-b", "inf"], "--a-b inf: must be a finite ratio > 0"),
+    (["--residual", "eq610", "--a-b", "0"], "--a-b 0.0: must be a finite ratio > 0"),
+])
+def test_a_b_where_it_means_nothing_is_refused(options: list[str], message: str,
+                                               tmp_path: Path, capsys) -> None:
+    """The std misfit has no a/b (its weights are H_std): --a-b with it ran the default
+    fit and exited 0; an infinite ratio reached scipy ("Residuals are not finite in the
+    initial point"). Both are option errors, before any fit (review 66)."""
+    src = tmp_path / "frf.h5"
+    _frf_file(src, {"k_pubh": 1.3}, with_std=True)
+    out = tmp_path / "out.json"
+    assert main(["identify", str(src), "--params", "k_pubh", "--json", str(out),
+                 *options]) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and message in err[0], err
+    assert not out.exists()

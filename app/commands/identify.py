@@ -251,12 +251,16 @@ def identify_file(path: str | Path, method: str = "frf", params: list[str] | Non
                 f"{n_residuals // 2} FRF value(s), cannot identify {n_free} parameters "
                 "(needs >= 3 lines and at least as many real and imaginary parts as "
                 "parameters); measure more lines or free fewer parameters (--params)")
+        if a_b is not None and kind == "std":
+            # it was dropped without a word (exit 0, the default fit): review 66
+            raise ValueError("--a-b applies to --residual eq610 or log (the std misfit "
+                             "weighs real and imaginary parts by H_std alone)")
         if a_b is None:
             # eq. 6.10 with the thesis' weights a/b = 0.1 (ch. 6.2, used in ch. 7); the
             # default was 1 for every residual (thesis fidelity review, session 36)
             a_b = EQ610_A_OVER_B if kind == "eq610" else 1.0
-        if not a_b > 0:
-            raise ValueError("--a-b must be > 0")
+        if not (np.isfinite(a_b) and a_b > 0):
+            raise ValueError(f"--a-b {a_b}: must be a finite ratio > 0")
         spec = ResidualSpec(kind, a=a_b / (1 + a_b), b=1 / (1 + a_b))
         if gain_std is None:
             gain_std = DEFAULT_GAIN_STD
