@@ -392,6 +392,21 @@ def test_the_summary_calls_an_undetermined_parameter_so() -> None:
     assert "k_b  1e+05 N/m  (std 1e+03, 95 % 9.8e+04 to 1.02e+05)" in text
 
 
+def test_the_summary_shows_a_tight_interval_with_its_digits() -> None:
+    """k_pubh fitted to 2.1 N/m on 1e5 N/m printed "95 % 1e+05 to 1e+05" (review 66):
+    value and interval now carry the digits that show the std's first two."""
+    from pelvislab.app.commands.identify import summary_text
+
+    doc = {"method": "frf", "converged": True, "units": {"k_": "N/m", "m_": "kg"},
+           "parameters": {"k_pubh": {"value": 100000.31, "std": 2.1,
+                                     "interval_95": [99996.2, 100004.4]},
+                          "m_sacrum": {"value": 0.29331, "std": 0.001,
+                                       "interval_95": [0.2913, 0.2953]}}}
+    text = summary_text(doc)
+    assert "k_pubh    100000.3 N/m  (std 2.1, 95 % 99996.2 to 100004.4)" in text
+    assert "m_sacrum  0.2933 kg  (std 0.001, 95 % 0.2913 to 0.2953)" in text
+
+
 @pytest.mark.parametrize("held", [(0.0, 0.0), (0.3, 0.2)])
 def test_the_frequency_dependence_message_says_from_what_f_k_f_c_were_released(
         monkeypatch: pytest.MonkeyPatch, held: tuple[float, float]) -> None:

@@ -58,7 +58,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                    "thesis' choice in ch. 6-7; log residual: log-magnitude to phase, "
                    "default 1)")
     p.add_argument("--starts", type=int, default=None, metavar="N",
-                   help="maximum number of starts of the global strategy")
+                   help="maximum number of starts of the global strategy (the JSON's "
+                   "'starts' counts every fit made, the rescues and refits after them "
+                   "included)")
     p.add_argument("--seed", type=int, default=None,
                    help="random seed of the multi-start (default 0)")
     p.add_argument("--gain-std", type=float, default=None, metavar="FRACTION",
@@ -776,6 +778,19 @@ def profile_said(prof: dict[str, Any] | None) -> str:
     return said
 
 
+def _digits_to_show(value: float, std: float | None) -> int:
+    """Significant digits of a value and its interval in the summary: 4, or as many as
+    show the std's first two digits (a std of 2.1 N/m on 1e5 N/m printed "95 % 1e+05 to
+    1e+05": review 66); at most 12."""
+    import math
+
+    if std is None or not (math.isfinite(std) and std > 0) or not math.isfinite(value) \
+            or value == 0:
+        return 4
+    places = math.floor(math.log10(abs(value))) - math.floor(math.log10(std)) + 2
+    return int(min(max(4, places), 12))
+
+
 def summary_text(document: dict[str, Any]) -> str:
     """The identification's JSON (design 4.5) as a few lines: converged or not, the misfit,
     and each parameter with its unit, standard error and 95 % interval."""
@@ -795,11 +810,12 @@ def summary_text(document: dict[str, Any]) -> str:
         std = entry.get("std")
         interval = entry.get("interval_95")
         spread = "std n/a" if std is None else f"std {std:.2g}"
+        digits = _digits_to_show(entry["value"], std)
         if undetermined(entry):  # 1e-125 to 1e136 N/m read as numbers (review)
             spread += ", undetermined: std above the value"
         elif interval:
-            spread += f", 95 % {interval[0]:.4g} to {interval[1]:.4g}"
-        lines.append(f"  {name:<{width}}  {entry['value']:.4g}{unit}  ({spread})")
+            spread += f", 95 % {interval[0]:.{digits}g} to {interval[1]:.{digits}g}"
+        lines.append(f"  {name:<{width}}  {entry['value']:.{digits}g}{unit}  ({spread})")
     profiles = document.get("profile")
     if profiles == {}:
         lines.append("  profile: no weak parameter (std under 10 % of every value)")
