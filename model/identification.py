@@ -878,7 +878,11 @@ def identify_frf(
     free_idx = np.array([names.index(n) for n in free_names], dtype=int)
     base = np.asarray(problem.nominal if start is None else start, dtype=float).copy()
     if np.any(base[free_idx] <= 0):
-        raise ValueError("start values of identified parameters must be positive")
+        # named: a model file with its dampings at 0 gave no clue which (review 66)
+        bad = [names[i] for i in free_idx if base[i] <= 0]
+        raise ValueError(f"start values of identified parameters must be positive: {bad} "
+                         "are not (give them positive values in the model file, or leave "
+                         "them out of the fit with --params)")
     mapping = _Mapping(free_idx, base, version_b, *start_freq_dep)
     x0 = mapping.pack(base, *start_freq_dep)
     nf = free_idx.size

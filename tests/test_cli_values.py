@@ -25,12 +25,15 @@ from pelvislab.app.cli import main
      "k_pubh named more than once"),
     (["gap", "diagnose", "S.h5", "--json", "g.json", "--effects", "added_mass,added_mass"],
      "added_mass named more than once"),
+    (["identify", "S.h5", "--json", ""], "the output's name is empty"),
+    (["gap", "diagnose", "S.h5", "--json", " "], "the output's name is empty"),
     (["gap", "diagnose", "S.h5", "--json", "g.json", "--effects", ","], "got none"),
     (["gap", "benchmark", "--json", "b.json", "--kinds", "none,nope"], "unknown nope"),
 ])
 def test_meaningless_values_are_refused(argv, message, tmp_path, monkeypatch, capsys):
     # before: a parameter named twice in --params fitted as two (each std n/a,
-    # "converged"), an argmax of an empty sequence, negative damping ratios, NaN-to-integer,
+    # "converged"), an empty --json read as the folder ".", an argmax of an empty
+    # sequence, negative damping ratios, NaN-to-integer,
     # a 2 TiB allocation, a pole picked for -5 Hz, "--starts 0" run as 1 start, "," read
     # as "every parameter", min() of an empty sequence, a file named "-", a benchmark
     # whose unknown kind was found only at the end

@@ -486,3 +486,18 @@ def test_a_b_where_it_means_nothing_is_refused(options: list[str], message: str,
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and message in err[0], err
     assert not out.exists()
+
+
+def test_a_start_that_is_not_positive_is_named(tmp_path: Path) -> None:
+    """A model file with its dampings at 0 failed with "start values of identified
+    parameters must be positive", naming none (review 66)."""
+    from pelvislab.model.identification import identify_frf
+
+    outs, ins, mask = layout_channels(FACE_UP)
+    problem, _ = pelvis_problem(default_model(), outs, ins)
+    start = np.asarray(problem.nominal, float).copy()
+    start[list(problem.names).index("c_pub")] = 0.0
+    f = np.arange(5.0, 100.0, 5.0)
+    H = np.ones((f.size, len(outs.name), len(ins.name)), complex)
+    with pytest.raises(ValueError, match=r"\['c_pub'\] are not .*--params"):
+        identify_frf(problem, f, H, start=start)

@@ -172,6 +172,8 @@ def check_new_output(path: str | Path) -> Path:
 
     if str(path) == "-":  # not a file called "-"; this command writes files only
         raise ValueError("'-' (standard output) is not supported here; give a file name")
+    if not str(path).strip():  # Path("") is "." and read as "the folder ." (review 66)
+        raise ValueError("the output's name is empty; give a file name")
     target = Path(path)
     if target.is_dir():
         raise IsADirectoryError(f"{target} is a folder; give a file name for the output")
