@@ -59,6 +59,9 @@ SPEC_NAMES = {0: "unknown", 1: "general", 2: "stress", 3: "strain", 5: "temperat
 FREQUENCY_ABSCISSAE = (0, 1, SPEC_FREQUENCY)
 # ordinates that are responses (0 "unknown" is taken as displacement, as before)
 RESPONSE_ORDINATES = (0, SPEC_DISPLACEMENT, SPEC_VELOCITY, SPEC_ACCELERATION)
+# denominators read as force: excitation or reaction force, or a type the file leaves open
+# (unknown, general: taken as force, with a note)
+FORCE_DENOMINATORS = (0, 1, 9, SPEC_FORCE)
 STANDARD_GRAVITY_M_S2 = 9.80665  # m/s^2 per g (3rd CGPM, 1901; ISO 80000-3)
 AXES = np.eye(3)
 
@@ -386,8 +389,11 @@ def record_problem(dset: dict) -> str:
     "unknown"/"general"): an rpm (19) or order (20) axis is not one, and was read as Hz.
     Its ordinate (record 9) must be a response: displacement, velocity, acceleration (or 0,
     taken as displacement); a force over force (a force-transmissibility or a reference
-    channel) made the whole import fail. An ordinate units label in g must be that of an
-    acceleration (:func:`ordinate_g_factor`)."""
+    channel) made the whole import fail. Its denominator (record 9's ordinate denominator)
+    must be a force (or unknown/general, taken as force): a response over a response (an
+    acceleration transmissibility) was divided by -w^2 and read as a receptance in m/N.
+    An ordinate units label in g must be that of an acceleration
+    (:func:`ordinate_g_factor`)."""
     abscissa = int(dset.get("abscissa_spec_data_type", 0))
     if abscissa not in FREQUENCY_ABSCISSAE:
         return (f"its abscissa is {_spec_name(abscissa)}, not frequency in Hz (an rpm or "
@@ -396,6 +402,10 @@ def record_problem(dset: dict) -> str:
     if ordinate not in RESPONSE_ORDINATES:
         return (f"its ordinate is {_spec_name(ordinate)}, not a response (displacement, "
                 "velocity or acceleration) over force")
+    denominator = int(dset.get("orddenom_spec_data_type", SPEC_FORCE))
+    if denominator not in FORCE_DENOMINATORS:
+        return (f"its denominator is {_spec_name(denominator)}, not a force (a "
+                "transmissibility is no FRF over force)")
     return ordinate_g_factor(dset)[1]
 
 
@@ -626,7 +636,7 @@ def read_uff(path: str | Path, points: dict[int, PointInfo] | None = None
             raise ValueError(f"{path}: a dataset 58 has {x.size} abscissae, {values.size} values")
         quantity = int(dset.get("ordinate_spec_data_type", 0))
         denom = int(dset.get("orddenom_spec_data_type", SPEC_FORCE))
-        if denom not in (0, SPEC_FORCE):
+        if denom not in (0, SPEC_FORCE):  # record_problem refused what is not a force
             notes.append(f"record {out[0]}/{inp[0]} has denominator type {denom}, taken as force")
         g_m_s2, _ = ordinate_g_factor(dset)  # record_problem refused what it cannot read
         if g_m_s2 != 1.0:

@@ -51,6 +51,27 @@ def test_a_force_ordinate_is_skipped_with_a_note_and_the_rest_imported(tmp_path,
                and "not a response" in n for n in notes), notes
 
 
+@pytest.mark.parametrize("denominator", [12, 11, 8])
+def test_a_transmissibility_is_skipped_with_a_note_not_read_as_receptance(tmp_path,
+                                                                          denominator):
+    """An acceleration over an acceleration was divided by -w^2 and imported as m/N, with
+    only "taken as force" said (review 67)."""
+    path = _write(tmp_path / "t.uff", [{}, {"orddenom_spec_data_type": denominator}])
+    frf, notes = read_uff(path)
+    assert frf.outputs.name == ["node1+Z"]
+    assert any("node 2 / 9" in n and f"(specific data type {denominator}), not a force" in n
+               for n in notes), notes
+
+
+@pytest.mark.parametrize("denominator", [1, 9])
+def test_a_denominator_left_open_or_a_reaction_force_is_taken_as_force(tmp_path,
+                                                                       denominator):
+    path = _write(tmp_path / "o.uff", [{"orddenom_spec_data_type": denominator}])
+    frf, notes = read_uff(path)
+    assert frf.outputs.name == ["node1+Z"]
+    assert any(f"denominator type {denominator}, taken as force" in n for n in notes), notes
+
+
 def test_accelerance_in_g_is_converted_with_standard_gravity(tmp_path):
     si = _write(tmp_path / "si.uff", [{"ordinate_axis_units_lab": "m/s^2"}])
     in_g = _write(tmp_path / "g.uff", [{"ordinate_axis_units_lab": "g"},
