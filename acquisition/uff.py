@@ -303,11 +303,41 @@ def _mode_datasets(frf: FrfSet, modes: UffModes, out_nodes: list[int]) -> list[d
     return sets
 
 
+#: Significant digits of an abscissa in ASCII dataset 58 (E13.5, records 7 and 12 of the
+#: format; the ordinates keep 12: E20.12)
+ASCII_ABSCISSA_DIGITS = 6
+
+
+def ascii_frequency_note(frequency_hz: np.ndarray) -> str | None:
+    """What ASCII dataset 58 does to these frequency lines (Hz): ``None`` when each keeps
+    its value to 1e-12, a note with the largest shift when rounding to
+    :data:`ASCII_ABSCISSA_DIGITS` significant digits moves some, ``ValueError`` when it
+    makes two lines one (a 0.5 mHz grid at 231.9 Hz lost 10 of its 21 lines on import,
+    read as an FRF given twice; review 67)."""
+    f = np.asarray(frequency_hz, float)
+    f = f[np.isfinite(f)]
+    rounded = np.array([float(f"{x:.{ASCII_ABSCISSA_DIGITS - 1}e}") for x in f])
+    if np.unique(rounded).size < np.unique(f).size:
+        raise ValueError(
+            f"ASCII dataset 58 keeps {ASCII_ABSCISSA_DIGITS} significant digits of frequency "
+            "(E13.5), and rounded so some of these lines become one "
+            f"({np.unique(f).size} lines, {np.unique(rounded).size} after rounding): write "
+            "the binary format (without --ascii), which keeps every digit")
+    shift = np.abs(rounded - f)
+    if not np.any(shift > 1e-12 * np.maximum(np.abs(f), 1.0)):
+        return None
+    return (f"ASCII dataset 58 keeps {ASCII_ABSCISSA_DIGITS} significant digits of frequency "
+            f"(E13.5): {int(np.sum(shift > 1e-12 * np.maximum(np.abs(f), 1.0)))} line(s) "
+            f"moved by up to {shift.max():.3g} Hz (the binary format keeps every digit)")
+
+
 def write_uff(path: str | Path, frf: FrfSet, modes: UffModes | None = None,
               binary: bool = True, geometry: int = 2411) -> int:
     """Write ``frf`` (and ``modes``) as a new UFF file; returns the number of datasets.
 
-    ``binary=False`` writes ASCII 58 (12 significant digits: not an exact round trip).
+    ``binary=False`` writes ASCII 58: values with 12 significant digits, frequencies with
+    6 (the format's E13.5; refused where that makes two lines one,
+    :func:`ascii_frequency_note`): not an exact round trip.
     Refuses to overwrite an existing file.
     """
     import pyuff
@@ -315,6 +345,8 @@ def write_uff(path: str | Path, frf: FrfSet, modes: UffModes | None = None,
     path = Path(path)
     if path.exists():
         raise FileExistsError(f"{path} exists; not overwriting")
+    if not binary:
+        ascii_frequency_note(frf.frequency_hz)
     sets = uff_datasets(frf, modes, binary, geometry)
     from pelvislab.acquisition.session import publish_new_file
 

@@ -106,3 +106,56 @@ def test_export_note_on_h_std_says_what_ema_does_without_it(tmp_path, capsys):
     note = next(line for line in capsys.readouterr().err.splitlines() if "H_std" in line)
     assert "`ema` weights each FRF by 1/RMS of its values" in note
     assert "`gap diagnose` estimate the noise" in note
+
+
+def _grid_file(tmp_path, frequency_hz):
+    from pelvislab.acquisition.frfset import FrfSet
+
+    frf = sample_frfset(8)
+    n = frequency_hz.size
+    H = np.resize(frf.H, (n, *frf.H.shape[1:]))
+    path = tmp_path / "g.h5"
+    write_frf(path, FrfSet(frequency_hz, H, frf.outputs, frf.inputs))
+    return path
+
+
+def test_ascii_export_refuses_a_grid_its_six_digits_merge(tmp_path, capsys):
+    """ASCII dataset 58 writes frequencies as E13.5: a 0.5 mHz zoom at 231.9 Hz became 11
+    lines of 21 on import, read as FRFs given twice, and the export said nothing (review
+    67). Refused before writing; the binary format keeps them."""
+    path = _grid_file(tmp_path, 231.9 + 0.0005 * np.arange(21))
+    out = tmp_path / "a.uff"
+    assert main(["export-uff", str(path), str(out), "--ascii"]) == 1
+    err = capsys.readouterr().err
+    assert "6 significant digits of frequency" in err and "21 lines, 11 after" in err
+    assert not out.exists()
+    assert main(["export-uff", str(path), str(tmp_path / "b.uff")]) == 0
+    assert main(["import-uff", str(tmp_path / "b.uff"), "--out", str(tmp_path / "b.h5")]) == 0
+    assert read_frf(tmp_path / "b.h5").frequency_hz.size == 21
+
+
+def test_ascii_export_says_how_far_its_lines_moved(tmp_path, capsys):
+    f = 5.0 + 0.1234567 * np.arange(30)
+    path = _grid_file(tmp_path, f)
+    assert main(["export-uff", str(path), str(tmp_path / "a.uff"), "--ascii"]) == 0
+    err = capsys.readouterr().err
+    assert "line(s) moved by up to" in err
+    assert main(["import-uff", str(tmp_path / "a.uff"), "--out", str(tmp_path / "a.h5")]) == 0
+    back = read_frf(tmp_path / "a.h5").frequency_hz
+    shift = float(err.split("moved by up to ")[1].split(" Hz")[0])
+    assert np.isclose(np.max(np.abs(back - f)), shift, rtol=1e-2)  # what the note says
+
+
+def test_export_with_ema_says_what_ema_says(tmp_path, capsys):
+    """``export-uff --ema`` wrote 3 of the real beam's 6 modes without a word where ``ema``
+    notes the dropped poles and the lowest lines' weight (review 67)."""
+    frf = sample_frfset(9)
+    write_frf(tmp_path / "s.h5", frf)
+    assert main(["ema", str(tmp_path / "s.h5"), "--json", str(tmp_path / "e.json")]) == 0
+    notes = json.loads((tmp_path / "e.json").read_text())["notes"]
+    assert notes
+    capsys.readouterr()
+    assert main(["export-uff", str(tmp_path / "s.h5"), str(tmp_path / "m.uff"), "--ema"]) == 0
+    err = capsys.readouterr().err
+    for note in notes:
+        assert f"note (ema): {note}" in err

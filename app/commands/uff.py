@@ -30,7 +30,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     modes.add_argument("--ema", action="store_true",
                        help="run the automatic modal analysis now and add its modes")
     e.add_argument("--ascii", action="store_true",
-                   help="ASCII dataset 58 (12 significant digits; not an exact round trip)")
+                   help="ASCII dataset 58 (values with 12 significant digits, frequencies "
+                   "with 6: not an exact round trip; refused where two lines would become "
+                   "one)")
     e.add_argument("--geometry", type=int, choices=(2411, 15), default=2411,
                    help="geometry dataset (default 2411, double precision)")
     e.set_defaults(handler=run_export)
@@ -93,6 +95,11 @@ def run_export(args: argparse.Namespace) -> int:
     infinite = infinite_as_unmeasured(frf)
     if infinite:  # dataset 58 holds the measured lines only
         print(f"warning: {infinite}", file=sys.stderr)
+    ascii_note = None
+    if args.ascii:  # refused before the modal analysis, noted after the file is written
+        from pelvislab.acquisition.uff import ascii_frequency_note
+
+        ascii_note = ascii_frequency_note(frf.frequency_hz)
     modes = None
     if args.modes:
         modes = _modes_from_json(Path(args.modes), frf)
@@ -101,7 +108,11 @@ def run_export(args: argparse.Namespace) -> int:
 
         _, result = ema_file(Path(args.session))  # as `pelvislab ema` does it
         modes = UffModes(result.frequency_hz, result.damping_ratio, result.shapes)
+        for note in result.notes:  # what `pelvislab ema` would say (modes left out, ...)
+            print(f"note (ema): {note}", file=sys.stderr)
     n = write_uff(out, frf, modes, binary=not args.ascii, geometry=args.geometry)
+    if ascii_note:
+        print(f"note: {ascii_note}", file=sys.stderr)
     if frf.H_std is not None:
         # what each analysis of the imported file does without it (`identify` and `gap
         # diagnose` estimate the noise from the data; `ema` does not: docs/ema.md)
