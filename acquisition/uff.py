@@ -602,6 +602,7 @@ def read_uff(path: str | Path, points: dict[int, PointInfo] | None = None
     entries = []
     scalar_warned = False
     unplaced: set[int] = set()  # nodes already named in a "no coordinates" note
+    renamed_not: set[int] = set()  # nodes whose points-file name was noted as not applied
     catalogue: dict = {}  # the landmark catalogue, for nodes named after a landmark
 
     def channel(dset: dict, role: str) -> tuple[object, tuple[str, str, np.ndarray, np.ndarray]]:
@@ -642,6 +643,14 @@ def read_uff(path: str | Path, points: dict[int, PointInfo] | None = None
         if parsed is not None:
             name, bone, direction = parsed
             key: object = name
+            if info is not None and node not in renamed_not:
+                # the file's own records name each channel (a node carries several): the
+                # points file's node name is not applied, its bone and position are
+                # (it was silent: review 67)
+                renamed_not.add(node)
+                notes.append(f"node {node}: the points file's name {info.name!r} is not "
+                             f"applied (this file's records name their channels, e.g. "
+                             f"{name!r}); its bone and position are")
         else:
             direction = _direction_from_code(code, where)
             if code == 0 and not scalar_warned:

@@ -51,6 +51,9 @@ def test_import_with_points_and_errors(tmp_path, capsys):
     assert main(argv) == 0
     back = read_frf(tmp_path / "b.h5")
     assert back.outputs.bone[0] == "sacrum"  # node 1 (the first output) re-mapped
+    # its name "x" is not applied, and said so (it was silent: review 67)
+    assert back.outputs.name[0] == frf.outputs.name[0]
+    assert "node 1: the points file's name 'x' is not applied" in capsys.readouterr().err
     assert main(["import-uff", str(tmp_path / "none.uff"), "--out", str(tmp_path / "c.h5")]) == 1
     assert "no such file" in capsys.readouterr().err
     assert main(["export-uff", str(tmp_path / "s.h5"), str(tmp_path / "z.uff"), "--modes",
