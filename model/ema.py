@@ -1393,6 +1393,46 @@ def _spacing_hint(frequency_hz: np.ndarray) -> str:
             "the lines: measure on a finer grid around the peaks")
 
 
+def _frequency_stable_hint(diagram: StabilisationDiagram, band_hz: tuple[float, float],
+                           crit: StabilityCriteria) -> str:
+    """The poles stable in frequency at as many orders as a mode needs but fully stable
+    (frequency, damping, vector) at fewer than ``min_count``, as text for the no-mode note
+    ("" when none). Such a pole's damping wanders from order to order, as that of a mode
+    narrower than the line spacing does; the real beam's 51.5 Hz mode (zeta 0.05 % on a
+    1 Hz grid) with ``--band 40 60``: stable in frequency at orders 3-12, fully at 3, and the
+    note said only "measure on a finer grid" (review 67). Frequencies are grouped within
+    ``frequency_tol`` of the first member."""
+    need = max(crit.min_count, int(math.ceil(crit.min_fraction * len(diagram.orders))))
+    rows = []  # (frequency_hz, order, fully stable)
+    for k, order in enumerate(diagram.orders):
+        fk, zk = diagram.frequency_hz(k), diagram.damping_ratio(k)
+        for i in np.flatnonzero(diagram.status[k] >= STABLE_FREQUENCY):
+            if 0 < zk[i] < crit.max_damping_ratio and band_hz[0] <= fk[i] <= band_hz[1]:
+                rows.append((float(fk[i]), int(order), bool(diagram.status[k][i] == STABLE_ALL)))
+    rows.sort()
+    said = []
+    start = 0
+    while start < len(rows):
+        end = start
+        while end + 1 < len(rows) and rows[end + 1][0] <= rows[start][0] * (1 + crit.frequency_tol):
+            end += 1
+        group = rows[start:end + 1]
+        orders = {r[1] for r in group}
+        full = {r[1] for r in group if r[2]}
+        if len(orders) >= need and len(full) < crit.min_count:
+            f_mid = float(np.median([r[0] for r in group]))
+            said.append(f"{f_mid:.5g} Hz (stable in frequency at {len(orders)} orders, in "
+                        f"damping too at {len(full)})")
+        start = end + 1
+    if not said:
+        return ""
+    picks = " ".join(s.split(" Hz")[0] for s in said)
+    return (f"; a mode needs {crit.min_count} orders stable in damping too, and pole(s) at "
+            f"{'; '.join(said)} fall short: a damping narrower than the lines resolve "
+            f"wanders with the order. Pick them by hand (--frequencies {picks}) or raise "
+            "--max-order")
+
+
 def ema(
     frequency_hz: np.ndarray,
     H: np.ndarray,
@@ -1485,7 +1525,8 @@ def _ema(
                            f"goes up to order {top_order} only; a mode needs "
                            f"{crit.min_count} stable orders ({advice})")
             else:
-                no_pole = "no stable pole found in the band" + _spacing_hint(f)
+                no_pole = ("no stable pole found in the band" + _spacing_hint(f)
+                           + _frequency_stable_hint(diagram, band, crit))
     edges = edge_poles(diagram, crit) if residual_poles else np.zeros(0, dtype=complex)
     if edges.size and poles.size:  # a manual pick may name a pole at the edge itself
         fe, _ = pole_frequency_damping(edges)
