@@ -488,6 +488,8 @@ def read_uff(path: str | Path, points: dict[int, PointInfo] | None = None
     import pyuff
 
     path = Path(path)
+    if path.is_dir():
+        raise IsADirectoryError(f"{path} is a folder, not a UFF file")
     if not path.is_file():
         raise FileNotFoundError(f"no such file: {path}")
     with open(path, "rb") as handle:  # every dataset ends with a line "    -1"
@@ -573,6 +575,9 @@ def read_uff(path: str | Path, points: dict[int, PointInfo] | None = None
             f"{path} holds {n_frf} FRF records and {n_mode_sets} modes, but its "
             f"pelvislab header says {header[0]} and {header[1]}: truncated? Not importing "
             "part of it")
+    if n_mode_sets:  # they were dropped without a word (review 67)
+        notes.append(f"{n_mode_sets} mode shape dataset(s) (55) not imported: the file "
+                     "written holds the FRFs (/frf); run `pelvislab ema` on it for modes")
     if header is not None and (n_frf, n_mode_sets) != header:
         notes.append(f"{n_frf} FRF records and {n_mode_sets} modes, more than the "
                      f"pelvislab header's {header[0]} and {header[1]}: datasets were added "
@@ -603,11 +608,13 @@ def read_uff(path: str | Path, points: dict[int, PointInfo] | None = None
     scalar_warned = False
     unplaced: set[int] = set()  # nodes already named in a "no coordinates" note
     renamed_not: set[int] = set()  # nodes whose points-file name was noted as not applied
+    used_nodes: set[int] = set()  # nodes of the FRF records imported
     catalogue: dict = {}  # the landmark catalogue, for nodes named after a landmark
 
     def channel(dset: dict, role: str) -> tuple[object, tuple[str, str, np.ndarray, np.ndarray]]:
         nonlocal scalar_warned
         node = int(dset["rsp_node" if role == "out" else "ref_node"])
+        used_nodes.add(node)
         code = int(dset["rsp_dir" if role == "out" else "ref_dir"])
         where = f"{path} node {node}"
         ours = str(dset.get("id1", "")).strip() == MARKER
@@ -730,6 +737,10 @@ def read_uff(path: str | Path, points: dict[int, PointInfo] | None = None
     for (out_name, in_name), n in replaced.items():
         notes.append(f"FRF {out_name}/{in_name} is given more than once with different "
                      f"values at {n} line(s): the values of the record read last are kept")
+
+    unused = sorted(set(points) - used_nodes)
+    if unused:  # a typo in a node number was silent (review 67)
+        notes.append(f"points file node(s) {unused} are in no FRF record imported: not used")
 
     def channels(table: dict) -> Channels:
         rows = list(table.values())

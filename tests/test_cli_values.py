@@ -26,13 +26,15 @@ from pelvislab.app.cli import main
     (["gap", "diagnose", "S.h5", "--json", "g.json", "--effects", "added_mass,added_mass"],
      "added_mass named more than once"),
     (["identify", "S.h5", "--json", ""], "the output's name is empty"),
+    (["ema", "S.h5", "--json", "e.json", "--update", ""], "got none"),
     (["gap", "diagnose", "S.h5", "--json", " "], "the output's name is empty"),
     (["gap", "diagnose", "S.h5", "--json", "g.json", "--effects", ","], "got none"),
     (["gap", "benchmark", "--json", "b.json", "--kinds", "none,nope"], "unknown nope"),
 ])
 def test_meaningless_values_are_refused(argv, message, tmp_path, monkeypatch, capsys):
     # before: a parameter named twice in --params fitted as two (each std n/a,
-    # "converged"), an empty --json read as the folder ".", an argmax of an empty
+    # "converged"), an empty --json read as the folder ".", --update "" run as no
+    # update (exit 0), an argmax of an empty
     # sequence, negative damping ratios, NaN-to-integer,
     # a 2 TiB allocation, a pole picked for -5 Hz, "--starts 0" run as 1 start, "," read
     # as "every parameter", min() of an empty sequence, a file named "-", a benchmark

@@ -162,3 +162,25 @@ def test_export_with_ema_says_what_ema_says(tmp_path, capsys):
     err = capsys.readouterr().err
     for note in notes:
         assert f"note (ema): {note}" in err
+
+
+def test_import_says_what_it_leaves_out(tmp_path, capsys):
+    """Mode datasets (55) and points-file nodes in no record were dropped without a word;
+    a folder given as the file read "no such file" (review 67)."""
+    frf = sample_frfset(6)
+    write_frf(tmp_path / "s.h5", frf)
+    doc = {"outputs": [{"name": n} for n in frf.outputs.name],
+           "modes": [{"frequency_hz": 50.0, "damping_ratio": 0.02,
+                      "shape": {"re": [0.0, 0.5, 1.0], "im": [0.0, 0.0, 0.1]}}]}
+    (tmp_path / "e.json").write_text(json.dumps(doc))
+    assert main(["export-uff", str(tmp_path / "s.h5"), str(tmp_path / "m.uff"), "--modes",
+                 str(tmp_path / "e.json")]) == 0
+    (tmp_path / "p.toml").write_text('[[point]]\nnode = 77\nname = "x"\nbone = "sacrum"\n')
+    capsys.readouterr()
+    assert main(["import-uff", str(tmp_path / "m.uff"), "--out", str(tmp_path / "b.h5"),
+                 "--points", str(tmp_path / "p.toml")]) == 0
+    err = capsys.readouterr().err
+    assert "1 mode shape dataset(s) (55) not imported" in err
+    assert "points file node(s) [77] are in no FRF record imported" in err
+    assert main(["import-uff", str(tmp_path), "--out", str(tmp_path / "c.h5")]) == 1
+    assert "is a folder, not a UFF file" in capsys.readouterr().err

@@ -283,10 +283,11 @@ def run_ema(args: argparse.Namespace) -> int:
         if out is None:
             raise ValueError("--plot needs --json to a file (the PNG goes next to it)")
         plot_path = check_new_output(stability_plot_path(out))
-    if (args.model or args.no_rigid_filter or args.with_damping) and not args.update:
+    if (args.model or args.no_rigid_filter or args.with_damping) and args.update is None:
         raise ValueError("--model, --no-rigid-filter and --with-damping go with --update")
     model, names = None, []
-    if args.update:  # the model and the names checked before any fit
+    if args.update is not None:  # the model and the names checked before any fit
+        # ("" too: it was a silent no-op, exit 0, where "," is an error: review 67)
         from pelvislab.model.correlation_updating import updating_space
         from pelvislab.model.pelvis import load_model
 
