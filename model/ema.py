@@ -1506,6 +1506,12 @@ def _ema(
     notes: list[str] = []
     no_pole = ""
     if frequencies_hz is not None and len(frequencies_hz) > 0:
+        outside = [float(x) for x in np.reshape(frequencies_hz, -1)
+                   if np.isfinite(x) and not band[0] <= x <= band[1]]
+        if outside:  # "no pole stable near 112 Hz" with the band at 150-250 Hz (review 67)
+            raise ValueError(f"frequencies {outside} Hz lie outside the band's lines "
+                             f"({band[0]:.6g}-{band[1]:.6g} Hz): widen --band or pick "
+                             "within it")
         poles = pick_poles(diagram, frequencies_hz)
         selection = "manual"
     else:

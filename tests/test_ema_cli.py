@@ -65,6 +65,10 @@ def test_bad_input_gives_one_line_errors(session, tmp_path, capsys):
     assert "no such file" in capsys.readouterr().err
     assert main(["ema", str(tmp / "s.h5"), "--band", "300", "100", "--json", "-"]) == 1
     assert "band" in capsys.readouterr().err
+    # a pick outside the band read "no pole stable near ..." (review 67)
+    assert main(["ema", str(tmp / "s.h5"), "--band", "150", "250", "--frequencies", "112",
+                 "--json", "-"]) == 1
+    assert "[112.0] Hz lie outside the band's lines" in capsys.readouterr().err
     (tmp_path / "junk.h5").write_text("not hdf5")
     assert main(["ema", str(tmp_path / "junk.h5"), "--json", "-"]) == 1
     err = capsys.readouterr().err
