@@ -2550,7 +2550,7 @@ def _null_extension_stage(s: _Stages, results: Sequence[CandidateResult],
     # it (fresh judge-like set 1717_020, a 4.1e5 N/m sacrospinous spring on a subject
     # damped per dashpot: best without the extension at the pubic joint, refitted with
     # it held-out gap 0.64, and a point mass was named at 0.52; from the sacroiliac
-    # joint's linearised starts the spring with the extension reaches 0.1). Each start
+    # joint's linearised starts the spring with the extension reaches 0.15). Each start
     # with the extension at its least and at its own fit
     ext_least = null_ext.candidate.lower
     springs = [c for c, starts in (spring_starts or {}).items() if starts]

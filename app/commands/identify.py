@@ -294,7 +294,7 @@ def identify_file(path: str | Path, method: str = "frf", params: list[str] | Non
                 # version B fitting significantly better may only say that version A
                 # stopped in a local minimum: a foreign file without any frequency
                 # dependence fitted at rms 1.014 (at the noise floor) with k_pubh 6x its
-                # true value, 318 in chi2 above the truth; version B lowered it by 62 and
+                # true value, 160 in chi2 above the truth; version B lowered it by 62 and
                 # the fit was told to use version B (review 66). Version A again from the
                 # gap diagnosis' global base fit, kept when it fits better, then tested
                 again, restart_note = _from_the_global_base_fit(
