@@ -60,7 +60,7 @@ FREQUENCY_ABSCISSAE = (0, 1, SPEC_FREQUENCY)
 # ordinates that are responses (0 "unknown" is taken as displacement, as before)
 RESPONSE_ORDINATES = (0, SPEC_DISPLACEMENT, SPEC_VELOCITY, SPEC_ACCELERATION)
 # denominators read as force: excitation or reaction force, or a type the file leaves open
-# (unknown, general: taken as force, with a note)
+# (unknown: silently, as before; general and reaction force with a note)
 FORCE_DENOMINATORS = (0, 1, 9, SPEC_FORCE)
 STANDARD_GRAVITY_M_S2 = 9.80665  # m/s^2 per g (3rd CGPM, 1901; ISO 80000-3)
 AXES = np.eye(3)
