@@ -2489,16 +2489,11 @@ def _support_on_line_stage(s: _Stages, results: Sequence[CandidateResult]
     return new
 
 
-def _null_extension_stage(s: _Stages, results: Sequence[CandidateResult],
-                          spring_starts: dict[Candidate, list[tuple[np.ndarray, np.ndarray]]]
-                          | None = None,
-                          n_screened: dict[tuple[str, str], int] | None = None
+def _null_extension_stage(s: _Stages, results: Sequence[CandidateResult]
                           ) -> list[CandidateResult]:
     """Every effect refitted together with one damping per dashpot, when that null
     extension is significant but not at the noise or when no candidate comes near the
-    noise, and every line-spring place fitted with it from its ``spring_starts`` (the
-    linearised starts of the screen; ``n_screened``: places per (effect, variant), for
-    the significance test). Returns the new results (their ``beyond_null`` set)."""
+    noise. Returns the new results (their ``beyond_null`` set)."""
     # an effect on a subject whose dashpots differ within a joint: every effect is
     # refitted with one damping per dashpot when that extension is significant but not at
     # the noise (per-dashpot damping alone took hysteretic damping f_c = 1 from gap 6.3 to
@@ -2544,42 +2539,12 @@ def _null_extension_stage(s: _Stages, results: Sequence[CandidateResult],
         _c, x = _joint_start(cand, s.short_lines, [], res.u, bounds, opt, pairs)
         return _joint_finish(cand, s.fit, s.held, x, bounds, opt, opt.max_nfev_joint)
 
-    # every line-spring place again with the extension, from its linearised starts (the
-    # undistorted bases'): the spring's best place without the extension is the line
-    # that also mimics the dashpots' misfit, and refitted from there the spring stays on
-    # it (fresh judge-like set 1717_020, a 4.1e5 N/m sacrospinous spring on a subject
-    # damped per dashpot: best without the extension at the pubic joint, refitted with
-    # it held-out gap 0.64, and a point mass was named at 0.52; from the sacroiliac
-    # joint's linearised starts the spring with the extension reaches 0.15). Each start
-    # with the extension at its least and at its own fit
-    ext_least = null_ext.candidate.lower
-    springs = [c for c, starts in (spring_starts or {}).items() if starts]
-
-    def spring_with_null(cand: Candidate) -> tuple[np.ndarray, np.ndarray, float, float]:
-        combined = with_extension(cand, null_ext.candidate)
-        pairs = [(th, np.concatenate([u, ext])) for th, u in spring_starts[cand]
-                 for ext in (ext_least, null_ext.u)]
-        _c, x = _joint_start(combined, s.short_lines, [], pairs[0][1], bounds, opt, pairs)
-        return _joint_finish(combined, s.fit, s.held, x, bounds, opt, opt.max_nfev_joint)
-
-    jobs: list[tuple[str, object]] = ([("effect", r) for r in effects]
-                                      + [("spring", c) for c in springs])
-
-    def run(job: tuple[str, object]) -> tuple[np.ndarray, np.ndarray, float, float]:
-        kind, item = job
-        return with_null(item) if kind == "effect" else spring_with_null(item)
-
     new: list[CandidateResult] = []
-    for (kind, item), fitted in zip(jobs, parallel_map(run, jobs, opt.jobs), strict=True):
+    for res, fitted in zip(effects, parallel_map(with_null, effects, opt.jobs), strict=True):
         # the same extension again: with_extension is deterministic, and the worker's
         # candidate (built in the child) cannot come back (closures do not pickle)
-        if kind == "effect":
-            cand = with_extension(item.candidate, null_ext.candidate)
-            places = item.screened_places
-        else:
-            cand = with_extension(item, null_ext.candidate)
-            places = (n_screened or {}).get((item.effect, item.variant), 1)
-        new.append(_fitted_result(cand, fitted, s.held.n, places))
+        cand = with_extension(res.candidate, null_ext.candidate)
+        new.append(_fitted_result(cand, fitted, s.held.n, res.screened_places))
     _armature_tissue_cross_refit(s, new, null_ext.candidate)
     for combined in new:
         combined.beyond_null = null_ext.chi2_heldout - combined.chi2_heldout
@@ -3670,7 +3635,7 @@ def diagnose(data: GapData, model: PelvisModel, options: GapOptions | None = Non
     results += _support_on_line_stage(s, results)
     timing["support_on_line_s"] = time.perf_counter() - t5
     t4 = time.perf_counter()
-    results += _null_extension_stage(s, results, spring_starts, n_screened)
+    results += _null_extension_stage(s, results)
     timing["null_extension_s"] = time.perf_counter() - t4
     if progress:
         progress(_stage_note("polish, supports on spring lines, refits with one damping "
