@@ -12,6 +12,7 @@ import pytest
 
 from pelvislab.acquisition.frfset import FrfSet, write_frf
 from pelvislab.app.cli import main
+from pelvislab.app.commands.identify import _digits_to_show
 from pelvislab.model.identification import FitResult, frf_with_jacobian
 from pelvislab.model.identification_pelvis import FACE_UP, layout_channels, pelvis_problem
 from pelvislab.model.pelvis import default_model
@@ -98,16 +99,19 @@ def test_identify_with_h_std_uses_chi_square(tmp_path: Path, capsys) -> None:
     assert doc["parameters"]["m_sacrum"]["std"] > 0
     # the terminal gets the result too (nothing was printed when it converged)
     printed = capsys.readouterr().out.splitlines()
-    low, high = doc["parameters"]["m_sacrum"]["interval_95"]
     assert printed[0].startswith("identify (frf): converged, rms residual ")
-    assert printed[1:] == [
-        f"  m_sacrum  {doc['parameters']['m_sacrum']['value']:.4g} kg  "
-        f"(std {doc['parameters']['m_sacrum']['std']:.2g}, 95 % {low:.4g} to {high:.4g})",
-        f"  k_io_R    {doc['parameters']['k_io_R']['value']:.4g} N/m  "
-        f"(std {doc['parameters']['k_io_R']['std']:.2g}, 95 % "
-        f"{doc['parameters']['k_io_R']['interval_95'][0]:.4g} to "
-        f"{doc['parameters']['k_io_R']['interval_95'][1]:.4g})",
-        f"JSON: {out}"]
+
+    def line(name: str, unit: str) -> str:
+        # the digits that show the std (a std of 2.4e-6 kg on 0.396 kg: 7)
+        p = doc["parameters"][name]
+        d = _digits_to_show(p["value"], p["std"])
+        low, high = p["interval_95"]
+        return (f"  {name:<8}  {p['value']:.{d}g} {unit}  (std {p['std']:.2g}, 95 % "
+                f"{low:.{d}g} to {high:.{d}g})")
+
+    assert printed[1:] == [line("m_sacrum", "kg"), line("k_io_R", "N/m"), f"JSON: {out}"]
+    assert _digits_to_show(doc["parameters"]["m_sacrum"]["value"],
+                           doc["parameters"]["m_sacrum"]["std"]) == 7
 
 
 @pytest.mark.parametrize("f_k", [0.0, 0.002, 0.008])
@@ -488,7 +492,7 @@ def test_a_b_where_it_means_nothing_is_refused(options: list[str], message: str,
     assert not out.exists()
 
 
-def test_a_start_that_is_not_positive_is_named(tmp_path: Path) -> None:
+def test_a_start_that_is_not_positive_is_named() -> None:
     """A model file with its dampings at 0 failed with "start values of identified
     parameters must be positive", naming none (review 66)."""
     from pelvislab.model.identification import identify_frf
