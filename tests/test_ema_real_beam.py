@@ -109,3 +109,19 @@ def test_a_mode_stable_in_frequency_only_is_named_in_the_no_mode_note(beam_sessi
     assert main(argv[:-1] + [str(out2), "--frequencies", pick]) == 0
     (mode,) = json.loads(out2.read_text())["modes"]
     assert mode["frequency_hz"] == pytest.approx(51.52, abs=0.05)
+
+
+def test_the_summary_marks_a_weak_mode(beam_session, capsys):
+    """``--band 5 200`` reports a noise pole at 55.4 Hz (significance 1.35) beside the
+    beam's 51.5 and 142.2 Hz modes; the printed summary read all three alike, the
+    significance only in the JSON (review 67). Modes below 2 are marked weak."""
+    out = beam_session / "ema_5_200.json"
+    assert main(["ema", str(beam_session / "beam.h5"), "--band", "5", "200",
+                 "--json", str(out)]) == 0
+    modes = json.loads(out.read_text())["modes"]
+    lines = [ln for ln in capsys.readouterr().err.splitlines() if " Hz  zeta " in ln]
+    assert len(lines) == len(modes) >= 2
+    for m, line in zip(modes, lines, strict=True):
+        assert f"significance {m['significance']:.3g}" in line
+        assert ("(weak" in line) == (m["significance"] < 2.0), line
+    assert any(m["significance"] > 10 for m in modes)  # the beam's modes are not weak
