@@ -742,14 +742,24 @@ def read_uff(path: str | Path, points: dict[int, PointInfo] | None = None
     if unused:  # a typo in a node number was silent (review 67)
         notes.append(f"points file node(s) {unused} are in no FRF record imported: not used")
 
-    def channels(table: dict) -> Channels:
+    def channels(table: dict, role: str) -> Channels:
         rows = list(table.values())
         names = [r[0] for r in rows]
-        if len(set(names)) != len(names):  # two nodes mapped to one name: keep them apart
-            names = [f"{r[0]}#{k + 1}" for k, r in enumerate(rows)]
+        shared = sorted({n for n in names if names.count(n) > 1})
+        if shared:
+            # two nodes mapped to one name: those channels kept apart as NAME#1, NAME#2
+            # (every channel was renamed, the others too, and silently: review 67)
+            seen: dict[str, int] = {}
+            for k, n in enumerate(names):
+                if n in shared:
+                    seen[n] = seen.get(n, 0) + 1
+                    names[k] = f"{n}#{seen[n]}"
+            notes.append(f"{role} channel name(s) {shared} given to more than one node (the "
+                         "points file?): kept apart as NAME#1, NAME#2, ...; a drive point "
+                         "among them no longer pairs with its input by name")
         return Channels(names, [r[1] for r in rows], np.array([r[2] for r in rows]),
                         np.array([r[3] for r in rows]))
 
-    frf = FrfSet(grid, H, channels(outputs), channels(inputs),
+    frf = FrfSet(grid, H, channels(outputs, "output"), channels(inputs, "input"),
                  attrs={"source": f"UFF import of {path.name}"})
     return frf, notes

@@ -92,3 +92,17 @@ def test_a_g_label_that_cannot_be_read_reliably_is_skipped(tmp_path, label, ordi
     assert frf.outputs.name == ["node1+Z"]
     assert any("node 2 / 9" in n and repr(label) in n and "cannot be read reliably" in n
                for n in notes), notes
+
+
+def test_two_nodes_given_one_name_are_kept_apart_and_said_so(tmp_path):
+    """A points file naming nodes 1 and 2 alike renamed every output (node3+Z#3 too) and
+    said nothing; only the shared name is numbered now, with a note (review 67)."""
+    from pelvislab.acquisition.uff import read_points_file
+
+    path = _write(tmp_path / "n.uff", [{}, {}, {}])
+    (tmp_path / "p.toml").write_text('[[point]]\nnode = 1\nname = "a"\n'
+                                     '[[point]]\nnode = 2\nname = "a"\n')
+    frf, notes = read_uff(path, read_points_file(tmp_path / "p.toml"))
+    assert frf.outputs.name == ["a+Z#1", "a+Z#2", "node3+Z"]
+    assert any("output channel name(s) ['a+Z'] given to more than one node" in n
+               for n in notes), notes
