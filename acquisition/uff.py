@@ -324,11 +324,12 @@ def ascii_frequency_note(frequency_hz: np.ndarray) -> str | None:
             f"({np.unique(f).size} lines, {np.unique(rounded).size} after rounding): write "
             "the binary format (without --ascii), which keeps every digit")
     shift = np.abs(rounded - f)
-    if not np.any(shift > 1e-12 * np.maximum(np.abs(f), 1.0)):
+    moved = int(np.sum(shift > 1e-12 * np.maximum(np.abs(f), 1.0)))
+    if not moved:
         return None
     return (f"ASCII dataset 58 keeps {ASCII_ABSCISSA_DIGITS} significant digits of frequency "
-            f"(E13.5): {int(np.sum(shift > 1e-12 * np.maximum(np.abs(f), 1.0)))} line(s) "
-            f"moved by up to {shift.max():.3g} Hz (the binary format keeps every digit)")
+            f"(E13.5): {moved} line(s) moved by up to {shift.max():.3g} Hz (the binary "
+            "format keeps every digit)")
 
 
 def write_uff(path: str | Path, frf: FrfSet, modes: UffModes | None = None,
