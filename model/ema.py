@@ -1375,6 +1375,60 @@ def _missing_mode_note(frequency_hz: np.ndarray, H: np.ndarray, H_fit: np.ndarra
             "(--frequencies, or the GUI's Modes tab)")
 
 
+def _misfit_concentration_note(frequency_hz: np.ndarray, H: np.ndarray, H_fit: np.ndarray,
+                               min_fit_error: float = 0.1, max_share_of_lines: float = 0.02,
+                               nested: bool = True) -> str:
+    """A note when, without ``H_std``, the modal fit leaves a relative misfit of at least
+    ``min_fit_error`` (:meth:`EmaResult.fit_error`) and half of that misfit (in |H_fit-H|²)
+    sits on at most ``max_share_of_lines`` of the lines (at least 2): "" otherwise.
+
+    Without ``H_std`` every line of an FRF weighs alike, so a few lines the modes cannot
+    follow decide the figure, and pull the residues. On the real beam (docs/ema.md) with
+    ``--band 3 1000`` the fit error is 0.75, 65 % of the misfit at 3 Hz (the lowest line
+    of a receptance converted from accelerance, noise ÷ω²), below the 95 % share that
+    :func:`low_lines_dominate` notes; from 20 Hz it is 0.038 (measured, session 50).
+    Lines at the band's start get a band start from which the lines, as fitted, would not
+    get the note (``nested``: whether to look for one)."""
+    f = np.asarray(frequency_hz, dtype=float)
+    ok = np.isfinite(H) & np.isfinite(H_fit)
+    err = np.where(ok, np.abs(H_fit - H), 0.0) ** 2
+    total_err = float(err.sum())
+    total = float(np.where(ok, np.abs(H), 0.0).__pow__(2).sum())
+    if not (total > 0 and total_err > 0) or np.sqrt(total_err / total) < min_fit_error:
+        return ""
+    per_line = err.reshape(f.size, -1).sum(axis=1)
+    order = np.argsort(per_line)[::-1]
+    n = int(np.searchsorted(np.cumsum(per_line[order]), 0.5 * total_err) + 1)
+    if n > max(2, int(max_share_of_lines * f.size)):
+        return ""
+    lines = np.sort(f[order[:n]])
+    share = float(per_line[order[:n]].sum() / total_err)
+    where = ", ".join(f"{x:.4g}" for x in lines)
+    order_f = np.argsort(f)
+    at_start = lines[-1] <= f[order_f][min(n + 2, f.size - 1)]
+    start = None
+    if at_start and nested:
+        # the first band start whose lines, as fitted now, no longer get this note: one
+        # line past the noisy ones was not enough (noise ÷ω² dominates each next lowest
+        # line: the beam's advice walked 3, 4, 5 Hz...); from 19 Hz the beam fits to 0.039
+        fs, Hs, Fs = f[order_f], H[order_f], H_fit[order_f]
+        start = next((fs[k] for k in range(1, min(f.size - 3, max(10, f.size // 10)))
+                      if not _misfit_concentration_note(fs[k:], Hs[k:], Fs[k:],
+                                                        min_fit_error, max_share_of_lines,
+                                                        nested=False)), None)
+    advice = ("a mode may be missing or poorly fitted there: see the stabilisation diagram, "
+              "or give H_std" if not at_start else
+              "if they are noise (the lowest lines of a receptance converted from "
+              "accelerance or mobility), "
+              + (f"start the band at {start:.4g} Hz or above (--band), " if start is not None
+                 else "start the band above them (--band), ")
+              + "or give H_std")
+    return (f"the modal fit leaves {np.sqrt(total_err / total):.0%} of the FRFs' norm "
+            f"unexplained (fit_error), {share:.0%} of that misfit at {n} line(s) ({where} "
+            "Hz): without H_std every line weighs alike, so those lines decide the fit; "
+            + advice)
+
+
 def _spacing_hint(frequency_hz: np.ndarray) -> str:
     """Why lightly damped modes may go unseen on this grid (text for the notes).
 
@@ -1628,10 +1682,9 @@ def _ema(
         notes.append("dropped pole(s) that do not explain their neighbourhood (significance "
                      f"< {crit.min_significance:g}): "
                      + ", ".join(f"{x:.4g} Hz" for x in sorted(dropped)))
-    if std is None:
-        dominant = low_lines_dominate(f, Hc)
-        if dominant:
-            notes.append(dominant)
+    dominant = low_lines_dominate(f, Hc) if std is None else ""
+    if dominant:
+        notes.append(dominant)
     # the refinement comes after the significance test: polished noise poles would pass it,
     # and every extra pole costs the nonlinear fit two parameters
     f_std = np.full(poles.size, np.nan)
@@ -1659,6 +1712,21 @@ def _ema(
                      f"{crit.edge_lines} lines on one side), fitted with the modes but not "
                      "reported as modes: " + ", ".join(
                          f"{x:.4g} Hz (zeta {z:.2%})" for x, z in zip(fe, ze, strict=True)))
+    if selection == "manual" and np.any(significance < crit.min_significance):
+        # kept because picked, where the automatic selection drops them: a pick of the
+        # real beam's 55.4 Hz noise pole (significance 1.06) read like a mode (review 67)
+        fw, _ = pole_frequency_damping(poles[significance < crit.min_significance])
+        notes.append("picked pole(s) that do not pass the significance check (< "
+                     f"{crit.min_significance:g}; kept because picked): " + ", ".join(
+                         f"{x:.4g} Hz ({s_:.3g})" for x, s_ in zip(
+                             fw, significance[significance < crit.min_significance],
+                             strict=True))
+                     + ": the data near them are explained about as well without them; "
+                     "check them on the stabilisation diagram")
+    if std is None and not dominant:
+        concentrated = _misfit_concentration_note(f, Hc, H_fit)
+        if concentrated:
+            notes.append(concentrated)
     if std is not None:
         # a mode the selection left out (a heavily damped one is not stable over orders:
         # zeta 10 % at 150 Hz between two 1 % modes, local mean 23-30 there)

@@ -268,12 +268,12 @@ def test_receptance_converted_from_noisy_accelerance_is_named_and_a_band_start_g
     assert 1.0 < start < 20.0, note
     fn = np.sort(np.abs(lam) / (2 * np.pi))
     banded = ema(f, noisy / -w2, band_hz=(start, 300.0))
-    assert not any("weighs alike" in n for n in banded.notes)
+    assert not any("every line of an FRF weighs alike" in n for n in banded.notes)
     in_band = fn[(fn > start) & (fn < 300.0)]
     assert banded.frequency_hz.size == in_band.size
     np.testing.assert_allclose(banded.frequency_hz, in_band, rtol=5e-3)
     clean = ema(f, add_noise(receptance(M, K, C, f, [0, 2, 4], [0]), 0.01, 4))
-    assert not any("weighs alike" in n for n in clean.notes), clean.notes
+    assert not any("weighs alike" in n for n in clean.notes), clean.notes  # either note
 
 
 def test_the_suggested_band_start_leaves_a_band_ema_can_fit():
@@ -358,3 +358,39 @@ def test_no_mode_note_suggests_only_an_order_the_lines_allow():
         for suggested in re.findall(r"try --max-order (\d+)", notes):
             ema(f, H, max_order=int(suggested))  # an order the lines allow
     assert "4 lines allow no higher order" in " ".join(ema(f, H, max_order=6).notes)
+
+
+def test_a_picked_pole_that_fails_the_significance_check_is_noted(system):
+    """A manual pick keeps a pole the automatic selection would drop (review 67: the real
+    beam's 55.4 Hz noise pole, significance 1.06, read like a mode). Picking 250 Hz between
+    two modes takes a noise pole there (1.04 measured): the notes name it, not the mode
+    picked at 49.3 Hz with it."""
+    M, K, C, _, _ = system
+    f = np.arange(5.0, 300.5, 1.0)
+    H = add_noise(receptance(M, K, C, f, [0, 2, 4], [0]), 0.01, 4)
+    result = ema(f, H, frequencies_hz=[49.3, 250.0])
+    (note,) = [n for n in result.notes if n.startswith("picked pole(s) that do not pass")]
+    assert "250" in note and "49." not in note, note
+    assert not any(n.startswith("picked pole(s)") for n in ema(f, H).notes)
+
+
+def test_a_fit_decided_by_a_few_low_lines_is_named_with_a_band_start(system):
+    """Without H_std a few lines the modes cannot follow decide the fit error (the real
+    beam from 3 Hz: 0.75, no note; review 67). The two lowest lines 20 times too large
+    (a fault the low-lines share of low_lines_dominate does not reach): the note names
+    them and a band start from which all six modes are found and the note is gone; the
+    clean data get no note."""
+    M, K, C, lam, _ = system
+    f = np.arange(5.0, 300.5, 1.0)
+    H = add_noise(receptance(M, K, C, f, [0, 2, 4], [0]), 0.01, 4)
+    assert not any(n.startswith("the modal fit leaves") for n in ema(f, H).notes)
+    H[:2] *= 20
+    result = ema(f, H)
+    (note,) = [n for n in result.notes if n.startswith("the modal fit leaves")]
+    assert not any("every line of an FRF weighs alike" in n for n in result.notes)
+    start = float(note.split("start the band at ")[1].split()[0])
+    assert 7.0 <= start <= 30.0, note
+    banded = ema(f, H, band_hz=(start, 300.0))
+    assert not any(n.startswith("the modal fit leaves") for n in banded.notes), banded.notes
+    np.testing.assert_allclose(banded.frequency_hz, np.sort(np.abs(lam)) / (2 * np.pi),
+                               rtol=5e-3)
