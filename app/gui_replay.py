@@ -128,10 +128,12 @@ def candidate_rows(report: dict[str, Any]) -> list[tuple[str, str, str, str, str
     damping per dashpot: its verdict is ``none``), not needed beside ``none`` (the
     reason says why), not near the noise beside ``unexplained``. An aborted demo file
     showed "100 %" for an effect whose drop was not significant, beside the verdict
-    ``none``. A null shrink (``gap_before`` 0, where it is undefined) shows as "—"."""
+    ``none``. Where ``gap_before`` is 0 the shrink is undefined (the JSON holds 0.0) and
+    shows as "—"."""
     from pelvislab.model.gap_effects import NULL_EXTENSIONS
 
     verdict = str(report.get("verdict", ""))
+    gap_before = float(report.get("gap_before") or 0.0)
     updating_explains = str(report.get("verdict_reason", "")).startswith(
         "parameter updating explains the data")
 
@@ -160,8 +162,9 @@ def candidate_rows(report: dict[str, Any]) -> list[tuple[str, str, str, str, str
     rows = []
     for cand in sorted(report.get("candidates") or [], key=rank):
         said = status(cand)
-        # null where gap_before is 0: the shrink is undefined there (design 4.4's ratio)
-        shrink = ("—" if cand.get("shrink") is None
+        # undefined where gap_before is 0 (design 4.4's ratio; the JSON holds 0.0 there,
+        # null in reports of sessions 40-49)
+        shrink = ("—" if cand.get("shrink") is None or not gap_before > 0
                   else f"{100 * number(cand, 'shrink'):.0f} %")
         rows.append((str(cand.get("effect", "")), said, f"{number(cand, 'gap_after'):.3g}",
                      shrink if said == "named" else f"({shrink})",

@@ -1003,9 +1003,11 @@ class CandidateResult:
         return {
             "effect": c.effect,
             "gap_after": _round(self.gap_after),
-            # undefined at gap_before 0 (design 4.4's 1 - gap_after/gap_before): null, not a
-            # 0.0 that reads "no shrink"
-            "shrink": _round(1.0 - self.gap_after / gap_before) if gap_before > 0 else None,
+            # 1 - gap_after/gap_before is undefined at gap_before 0; design 4.4 fixes a
+            # float, so 0.0 there (no model error to remove), which the text report and
+            # the GUI show as n/a from gap_before (session 50: it was null, a contract
+            # change without a schema bump, found by a docs review)
+            "shrink": _round(1.0 - self.gap_after / gap_before) if gap_before > 0 else 0.0,
             "params": params,
             "evidence": evidence,
             "variant": c.variant,

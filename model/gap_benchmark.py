@@ -132,9 +132,9 @@ def run_benchmark(generator: Generator | None, kinds: Sequence[str] | None = Non
             cpu = _cpu_s() - c0
             rep = result.report
             verdict = str(rep["verdict"])
-            shrink = None  # also where the report's is null (gap_before 0: undefined)
+            shrink = None  # gap_before 0: undefined (the report's 0.0 there, design 4.4)
             for c in rep["candidates"]:
-                if c["effect"] == verdict and c["shrink"] is not None:
+                if c["effect"] == verdict and rep["gap_before"] > 0:
                     shrink = float(c["shrink"])
             local = case.place_kind in LOCAL_KINDS and kind != "none"
             entry = {
@@ -187,9 +187,9 @@ def _score(cases: list[dict], kinds: Sequence[str], labels: Sequence[str]
     correct = [c for c in cases if c["correct"]]
     local = [c for c in cases if c["place_correct"] is not None]
     # shrink = 1 - gap_after/gap_before is undefined at gap_before 0 (held-out chi2 at or
-    # below its noise expectation: an effect named on the chi2 test alone); the report
-    # writes null there (0.0 before, which entries of older runs may still hold), so those
-    # sets are counted apart
+    # below its noise expectation: an effect named on the chi2 test alone); the cases hold
+    # null there (the report 0.0, as design 4.4 fixes a float), so those sets are counted
+    # apart
     named = [c for c in correct if c["kind"] != "none"]
     shrinks = [c["shrink"] for c in named if c["gap_before"] > 0 and c["shrink"] is not None]
     false_none = [c for c in cases if c["kind"] != "none" and c["verdict"] == "none"]

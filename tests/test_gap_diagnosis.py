@@ -420,14 +420,15 @@ def test_shrink_distribution_leaves_out_sets_named_at_base_gap_0():
 
 
 def test_benchmark_takes_a_null_shrink_of_a_set_named_at_base_gap_0(monkeypatch):
-    """The report writes shrink null at gap_before 0; the benchmark read float(shrink)."""
+    """At gap_before 0 the shrink is undefined (the report's 0.0): the case holds null, so
+    the benchmark counts such sets apart; it read float(shrink) of a null once."""
     from types import SimpleNamespace
 
     from pelvislab.model import gap_benchmark
 
     report = {"verdict": "added_mass", "gap_before": 0.0, "thresholds": {"none_gap": 0.5},
               "where": {}, "candidates": [{"effect": "added_mass", "gap_after": 0.0,
-                                           "shrink": None}],
+                                           "shrink": 0.0}],
               "verdict_reason": "added_mass lowers the held-out chi2 by 40 (> 18)",
               "significance": {"candidate": "added_mass", "significant": True,
                                "by": "held-out lines", "held_out_chi2_drop": 40.0,

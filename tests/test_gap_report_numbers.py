@@ -1,7 +1,9 @@
 """Numbers of the gap JSON (design 4.4) that readers take at face value (contract audit).
 
-``shrink = 1 - gap_after/gap_before`` is undefined when ``gap_before`` is 0: it is written
-null (JSON null, not NaN), not 0.0, which reads "no shrink". ``tests/data/demo_sim_seed1.h5``
+``shrink = 1 - gap_after/gap_before`` is undefined when ``gap_before`` is 0. Design 4.4 fixes
+a float: 0.0 (null in sessions 40-49, a contract change without a schema bump that a docs
+review found in session 50), and every reader says n/a from ``gap_before`` rather than
+showing a 0 % shrink. ``tests/data/demo_sim_seed1.h5``
 (a simulated-chain session's /frf, no effect) has gap_before 0, like ``make demo``'s.
 
 The ``where`` shares sum to 1 (design 4.4) to 1e-9 in each list: rounded to 4 digits they
@@ -43,11 +45,11 @@ def demo_gap(tmp_path_factory) -> tuple[int, str, str, dict]:
     return code, stdout.getvalue(), stderr.getvalue(), _strict(out.read_text())
 
 
-def test_shrink_is_null_at_gap_before_0_and_every_reader_says_so(demo_gap, qtbot):
+def test_shrink_at_gap_before_0_is_a_float_and_every_reader_says_n_a(demo_gap, qtbot):
     code, stdout, stderr, doc = demo_gap
     assert code == 0, stderr
     assert doc["gap_before"] == 0.0 and doc["candidates"]
-    assert all(c["shrink"] is None for c in doc["candidates"])
+    assert all(type(c["shrink"]) is float and c["shrink"] == 0.0 for c in doc["candidates"])
     # the text report: no "0%" shrink, and why
     rows = [line for line in stdout.splitlines() if " shrink " in line and " @ " in line]
     assert rows and all("shrink    n/a" in line for line in rows)

@@ -328,12 +328,13 @@ def format_report(report: dict) -> str:
         lines.append("  lowest FRAC: " + ", ".join(
             f"{w['output']}/{w['input']} {w['frac']:.3f}" for w in worst))
     lines.append("which (held-out gap after adding the effect):")
+    # 1 - gap_after/gap_before is undefined where gap_before is 0 (the JSON holds 0.0)
+    undefined = not report["gap_before"] > 0
     for c in report["candidates"]:
-        # shrink is null where gap_before is 0: 1 - gap_after/gap_before is undefined there
-        shrink = "n/a" if c["shrink"] is None else f"{c['shrink']:.0%}"
+        shrink = "n/a" if undefined or c["shrink"] is None else f"{c['shrink']:.0%}"
         lines.append(f"  {c['effect']:<30} gap {c['gap_after']:<8.3g} shrink "
                      f"{shrink:>6}  [{c.get('variant', '')} @ {c.get('place', '')}]")
-    if any(c["shrink"] is None for c in report["candidates"]):
+    if undefined and report["candidates"]:
         lines.append("  (shrink n/a: the base model's gap is 0, at the noise level, so no "
                      "shrink can be measured; the chi2 test decides)")
     ranges = report.get("not_excluded") or []
