@@ -226,6 +226,10 @@ def test_identify_json(files: dict[str, Path], capsys: pytest.CaptureFixture) ->
     assert doc["parameters"] and set(doc["parameters"]) <= PARAMETER_NAMES
     for p in doc["parameters"].values():
         assert set(p) >= {"value", "std"} and p["value"] > 0
+        assert p["std"] is None or isinstance(p["std"], float)
+    # std may be null (not determined), which design 4.5 does not foresee: a versioned
+    # change, docs/identification.md "Migration"
+    assert (doc["schema"], doc["schema_version"]) == ("pelvislab-identify", 2)
 
 
 def test_ema_json(files: dict[str, Path], capsys: pytest.CaptureFixture) -> None:

@@ -26,6 +26,10 @@ from pelvislab.app.commands._common import (
 EQ610_A_OVER_B = 0.1
 
 
+
+IDENTIFY_SCHEMA = "pelvislab-identify"
+IDENTIFY_SCHEMA_VERSION = 2  # 1: design 4.5 as written (std always a float)
+
 def register(subparsers: argparse._SubParsersAction) -> None:
     """Add ``identify`` to the CLI."""
     p = subparsers.add_parser(
@@ -346,6 +350,10 @@ def identify_file(path: str | Path, method: str = "frf", params: list[str] | Non
     doc.update(extra)
     doc["units"] = {"m_": "kg", "k_": "N/m", "c_": "N s/m", "f_": "1"}
     doc["source"] = str(path)
+    # design 4.5 fixes {"value": v, "std": s}; std (and interval_95) may be null where the
+    # data do not determine a parameter: version 2 of the document (docs/identification.md,
+    # "Migration")
+    doc["schema"], doc["schema_version"] = IDENTIFY_SCHEMA, IDENTIFY_SCHEMA_VERSION
     notes = [n for n in (left_out_note, infinite_note, std_note, noise_note,
                          calibration_note, restart_note, profile_note) if n]
     if notes:
