@@ -115,13 +115,18 @@ class Terminated(KeyboardInterrupt):
 def _stop_on_termination_signals() -> dict[int, object]:
     """Turn SIGTERM and SIGHUP into :class:`Terminated` in the main thread (their default
     action ended the process at once: a partial file left behind, forked workers of the gap
-    fits orphaned). A SIGHUP already ignored (nohup) stays ignored. ``run`` and ``gui`` put
+    fits orphaned). A SIGHUP already ignored (nohup) stays ignored. A SIGINT inherited as
+    ignored (a background job of a non-interactive shell) is handled too: ``run`` handles
+    it once the run starts, but a ``kill -INT`` while it opened the bench and the file was
+    ignored and the whole protocol then ran (review, session 50). ``run`` and ``gui`` put
     their own handlers over these while they run. Returns the handlers to put back."""
     previous: dict[int, object] = {}
-    for name in ("SIGTERM", "SIGHUP"):
+    for name in ("SIGTERM", "SIGHUP", "SIGINT"):
         sig = getattr(signal, name, None)
         if sig is None or (name == "SIGHUP" and signal.getsignal(sig) is signal.SIG_IGN):
             continue
+        if name == "SIGINT" and signal.getsignal(sig) is not signal.SIG_IGN:
+            continue  # Python's own handler: KeyboardInterrupt
 
         def stop(signum: int, frame: object, name: str = name) -> None:
             raise Terminated(f"interrupted by {name}")

@@ -1,0 +1,73 @@
+"""Windows where a stop or a failure used to be lost or misrecorded (review, session 50):
+a ``kill -INT`` while ``run`` opened the bench and the file, with SIGINT inherited as
+ignored, was ignored and the whole protocol ran; a resume that failed after recording its
+run left that run "running" ("a killed run may have left an output on")."""
+
+from __future__ import annotations
+
+import os
+import signal
+import time
+
+import pytest
+
+from pelvislab.acquisition import runner as runner_module
+from pelvislab.acquisition.session import SessionReader, SessionWriter
+from pelvislab.app.cli import main
+from pelvislab.tests.test_runner_aiming import PROTOCOL as AIM_PROTOCOL
+
+sim_bench = pytest.importorskip("pelvislab.sim_instruments.bench")
+
+PROTOCOL = AIM_PROTOCOL.split("[[setups]]\nname = \"b\"")[0]  # three steps, two channels
+
+
+def test_sigint_inherited_as_ignored_stops_run_while_it_prepares(tmp_path, monkeypatch,
+                                                                 capsys):
+    protocol = tmp_path / "p.toml"
+    protocol.write_text(PROTOCOL)
+    out = tmp_path / "s.h5"
+    original = runner_module.prepare_session
+
+    def prepare_then_signal(*args, **kwargs):
+        os.kill(os.getpid(), signal.SIGINT)  # as `kill -INT` from the script that started it
+        deadline = time.monotonic() + 2.0
+        while time.monotonic() < deadline:  # the handler runs between bytecodes
+            time.sleep(0.01)
+        return original(*args, **kwargs)
+
+    monkeypatch.setattr(runner_module, "prepare_session", prepare_then_signal)
+    before = signal.signal(signal.SIGINT, signal.SIG_IGN)  # a background job's SIGINT
+    try:
+        code = main(["run", str(protocol), "--out", str(out), "--quiet"])
+        assert signal.getsignal(signal.SIGINT) is signal.SIG_IGN  # put back as it was
+    finally:
+        signal.signal(signal.SIGINT, before)
+    assert code == 130, capsys.readouterr().err
+    assert "interrupted by SIGINT" in capsys.readouterr().err
+    assert not out.exists()  # stopped before the file: nothing measured
+
+
+def test_a_resume_that_fails_before_its_first_step_records_how_its_run_ended(tmp_path,
+                                                                            monkeypatch):
+    protocol = tmp_path / "p.toml"
+    protocol.write_text(PROTOCOL)
+    out = tmp_path / "s.h5"
+    with runner_module.prepare_session(protocol, out, bench=sim_bench.open_simulated_bench(
+            generators="python")) as session:
+        session.runner.abort("stopped by the test", "aborted")  # before any step
+        session.run()
+
+    def failing_repair(self):
+        raise OSError("Can't synchronously write data (addr overflow)")
+
+    monkeypatch.setattr(SessionWriter, "repair_frf", failing_repair)
+    with pytest.raises(OSError, match="addr overflow"):
+        runner_module.prepare_session(protocol, out, resume=True,
+                                      bench=sim_bench.open_simulated_bench(generators="python"))
+    with SessionReader(out) as reader:
+        status, reason = reader.status
+        runs = [dict(g.attrs) for _, g in sorted(reader.handle["runs"].items())]
+    assert len(runs) == 2
+    assert status == "failed" and "before the first step" in reason, (status, reason)
+    assert "addr overflow" in reason
+    assert "ended_utc" in runs[-1]
