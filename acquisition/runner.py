@@ -1618,7 +1618,18 @@ def prepare_session(protocol_path: Path | str, out_path: Path | str,
                            f"{protocol.subject.id!r})")
                 assert writer.run_group is not None
                 writer.run_group.attrs["subject_id"] = subject_id
-        except BaseException:
+        except BaseException as exc:
+            if writer.run_group is not None:
+                # the run's record says how it ended; left "running", every failed resume
+                # added a run that "may have left an output on" (review, session 50). No
+                # output was on: nothing is driven before the run starts
+                try:
+                    writer.finish_run("interrupted" if isinstance(exc, KeyboardInterrupt)
+                                      else "failed",
+                                      f"before the first step: {exc}" if str(exc) else
+                                      "before the first step")
+                except Exception as record_exc:  # the file may be what failed
+                    log.error("could not record the run's end in %s: %s", out, record_exc)
             writer.close()
             raise
     except BaseException:
