@@ -44,6 +44,7 @@ from pelvislab.acquisition.session import (
     SessionWriter,
     StepData,
     frf_from_steps,
+    run_records,
 )
 from pelvislab.acquisition.tracking import gate_problem
 from pelvislab.drivers.bench import SPEED_OF_SOUND_RANGE_M_S
@@ -1949,10 +1950,21 @@ def reprocess_session(source: Path | str, target: Path | str, tracking_options: 
             out.attrs["schema_version"] = SESSION_SCHEMA_VERSION
             out.attrs["reprocessed_from"] = str(source)
             out.attrs["software_version"] = software_version
-            for group in ("protocol", "bench", "runs"):
+            for group in ("protocol", "bench"):
                 if group in reader.handle:
                     reader.handle.copy(reader.handle[group], out, name=group)
-            create_log(out, reader.log_lines() + [
+            damaged_runs = []
+            if isinstance(reader.handle.get("runs"), h5py.Group):
+                runs_out = out.create_group("runs")
+                for name, attrs, problem in run_records(reader.handle):
+                    try:
+                        if attrs is None:
+                            raise OSError(problem)
+                        reader.handle.copy(reader.handle["runs"][name], runs_out, name=name)
+                    except Exception as exc:  # a record damaged by a kill: say so, go on
+                        damaged_runs.append(f"run {name} not copied: "
+                                            f"{' '.join(str(exc).split())[:200]}")
+            create_log(out, reader.log_lines() + damaged_runs + [
                 f"reprocessed from {source} with tracking options {tracking_options!r}"
                 + (f", speed of sound {speed_of_sound_m_s} m/s" if speed_of_sound_m_s else "")
                 + (f", gates {dict(channel_gates)!r}" if channel_gates else "")])

@@ -966,23 +966,24 @@ class SessionReader:
     @property
     def status(self) -> tuple[str, str]:
         """(status, reason) of the last run (``/runs``): completed, aborted, interrupted,
-        failed, or running (the process ended without closing the session: killed)."""
-        runs = self._h5.get("runs")
-        names = sorted(runs) if runs is not None else []
-        if not names:
+        failed, or running (the process ended without closing the session: killed);
+        ``damaged`` when its record cannot be read (see :func:`run_records`)."""
+        records = run_records(self._h5)
+        if not records:
             return ("unknown", "")
-        a = runs[names[-1]].attrs
-        return (_text(a.get("status", "unknown")), _text(a.get("reason", "")))
+        _name, attrs, problem = records[-1]
+        if attrs is None:
+            return (RUN_RECORD_DAMAGED, problem)
+        return (_text(attrs.get("status", "unknown")), _text(attrs.get("reason", "")))
 
     @property
     def outputs_confirmed_off(self) -> bool | None:
         """False when any run's end could not confirm every output off (``/runs``
         attribute; a resumed session keeps its earlier runs' record), True when every run
         that recorded it confirmed them, None when none did (killed runs, or a file from
-        before session 31)."""
-        runs = self._h5.get("runs")
-        values = [runs[k].attrs.get("outputs_confirmed_off") for k in sorted(runs)] \
-            if runs is not None else []
+        before session 31; a damaged record counts as none)."""
+        values = [attrs.get("outputs_confirmed_off")
+                  for _, attrs, _ in run_records(self._h5) if attrs is not None]
         known = [bool(v) for v in values if v is not None]
         return None if not known else all(known)
 
@@ -1112,6 +1113,33 @@ class SessionReader:
 
     def __exit__(self, *exc: object) -> None:
         self.close()
+
+
+RUN_RECORD_DAMAGED = "damaged"
+"""The status :func:`run_records` readers give a run whose ``/runs/<k>`` cannot be read."""
+
+
+def run_records(h5: h5py.File | h5py.Group) -> list[tuple[str, dict[str, Any] | None, str]]:
+    """Each run's record of ``/runs`` in order: ``(name, attributes, "")``, or
+    ``(name, None, why)`` when its group cannot be read.
+
+    A kill -9 (or a power cut) while HDF5 flushed a run's record, as its run started or
+    ended, can leave that one group's object header half written: the steps and /frf were
+    whole, yet every tool refused the file ("unable to determine object type"; review,
+    session 50). A damaged record says so and the rest of the file stays readable."""
+    runs = h5.get("runs") if isinstance(h5, h5py.Group) else None
+    if not isinstance(runs, h5py.Group):
+        return []
+    records: list[tuple[str, dict[str, Any] | None, str]] = []
+    for name in sorted(runs):
+        try:
+            records.append((name, dict(runs[name].attrs), ""))
+        except Exception as exc:  # HDF5 says KeyError, OSError or RuntimeError here
+            reason = " ".join(str(exc).strip("'\"").split())[:160]
+            records.append((name, None, f"the record of run {name} is unreadable ({reason}): "
+                            "the process was probably killed while it wrote it, as the run "
+                            "started or ended"))
+    return records
 
 
 def _read_point(attrs: h5py.AttributeManager, prefix: str) -> Point:

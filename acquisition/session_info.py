@@ -22,12 +22,14 @@ import numpy as np
 
 from pelvislab.acquisition.frfset import FRF_SCHEMA, FrfSet, existing_file, read_frf
 from pelvislab.acquisition.session import (
+    RUN_RECORD_DAMAGED,
     SESSION_SCHEMA,
     STATUS_COMPLETE,
     STATUS_COMPLETE_ALIASES,
     SessionReader,
     being_written_here,
     process_identity,
+    run_records,
 )
 
 #: Session log lines kept in the summary (the latest warnings and errors).
@@ -126,9 +128,18 @@ def _session(reader: SessionReader, path: Path) -> dict[str, Any]:
                      " the plan is unknown")
     h5 = reader.handle
     runs = []
-    for name in sorted(h5.get("runs", {})):
-        a = h5["runs"][name].attrs
-        bench = h5["runs"][name].get("bench")
+    for name, a, problem in run_records(h5):
+        if a is None:  # a kill while its record was flushed: the rest is readable
+            notes.append(problem)
+            runs.append({"index": int(name) if name.isdigit() else name, "started_utc": "",
+                         "ended_utc": None, "status": RUN_RECORD_DAMAGED, "reason": problem,
+                         "outputs_confirmed_off": None, "simulated": None,
+                         "software_version": "", **_writer_record({})})
+            continue
+        try:
+            bench = h5["runs"][name].get("bench")
+        except Exception:  # its bench group damaged alone
+            bench = None
         confirmed = a.get("outputs_confirmed_off")
         runs.append({
             "index": int(name) if name.isdigit() else name,
@@ -248,10 +259,10 @@ def _session(reader: SessionReader, path: Path) -> dict[str, Any]:
 def last_run_writer_alive(h5: h5py.File, path: Path | str) -> bool | None:
     """:func:`_writer_alive` of the last run in ``/runs`` of the open session file at
     ``path`` (None without runs, or for a reprocessed file: its runs are its source's)."""
-    runs = h5.get("runs")
-    if runs is None or not len(runs) or "reprocessed_from" in h5.attrs:
+    records = run_records(h5)
+    if not records or "reprocessed_from" in h5.attrs or records[-1][1] is None:
         return None
-    return _writer_alive(_writer_record(runs[sorted(runs)[-1]].attrs), path)
+    return _writer_alive(_writer_record(records[-1][1]), path)
 
 
 def _writer_record(attrs: Any) -> dict[str, Any]:

@@ -71,3 +71,59 @@ def test_a_resume_that_fails_before_its_first_step_records_how_its_run_ended(tmp
     assert status == "failed" and "before the first step" in reason, (status, reason)
     assert "addr overflow" in reason
     assert "ended_utc" in runs[-1]
+
+
+def _damage_object_header(path, name: str) -> None:
+    """Overwrite the version byte of object ``name``'s header, as a kill inside the flush
+    that wrote it can leave it ("bad object header version number")."""
+    import h5py
+
+    with h5py.File(path, "r") as h5:
+        address = h5py.h5o.get_info(h5[name].id).addr
+    with open(path, "r+b") as f:
+        f.seek(address)
+        f.write(b"\xff")
+
+
+@pytest.fixture
+def damaged_run_record(tmp_path):
+    protocol = tmp_path / "p.toml"
+    protocol.write_text(PROTOCOL)
+    out = tmp_path / "s.h5"
+    with runner_module.prepare_session(protocol, out, bench=sim_bench.open_simulated_bench(
+            generators="python")) as session:
+        assert session.run().status == "completed"
+    _damage_object_header(out, "runs/000")
+    return protocol, out
+
+
+def test_a_damaged_run_record_leaves_the_session_readable(damaged_run_record, tmp_path,
+                                                          capsys):
+    """A kill -9 while a run's record was flushed (as it started or ended) left that group
+    unreadable, and session info, --resume, identify and reprocess all refused the file
+    ("Unable to synchronously open object"), its steps and /frf whole (review, session 50)."""
+    from pelvislab.acquisition.session import run_records
+    from pelvislab.app.commands._common import incomplete_session_warning
+    from pelvislab.app.commands.identify import recorded_calibration_std
+
+    protocol, out = damaged_run_record
+    with SessionReader(out) as reader:
+        (name, attrs, problem), = run_records(reader.handle)
+        assert attrs is None and "run 000 is unreadable" in problem
+        status, reason = reader.status
+        assert status == "damaged" and reason == problem
+        assert reader.outputs_confirmed_off is None
+        assert len(list(reader.steps(with_echoes=False))) == 3
+    assert main(["session", "info", str(out)]) == 0
+    captured = capsys.readouterr()
+    assert "run 000 is unreadable" in captured.out + captured.err
+    assert "steps: 3 acquired of 3 planned" in captured.out
+    assert "damaged" in incomplete_session_warning(out)
+    recorded_calibration_std(out, [40.0])  # the bench record of the latest readable run
+    assert main(["reprocess", str(out), "--out", str(tmp_path / "r.h5")]) == 0
+    with SessionReader(tmp_path / "r.h5") as reader:
+        assert any("run 000 not copied" in line for line in reader.log_lines())
+        assert len(list(reader.steps(with_echoes=False))) == 3
+    capsys.readouterr()
+    assert main(["run", str(protocol), "--out", str(out), "--resume"]) == 0
+    assert "nothing to measure" in capsys.readouterr().out

@@ -41,7 +41,10 @@ def incomplete_session_warning(path: str | Path) -> str | None:
             if handle.attrs.get("schema") not in ("pelvislab-session", b"pelvislab-session") \
                     or runs is None or not len(runs):
                 return None
-            status = runs[sorted(runs)[-1]].attrs.get("status", "unknown")
+            try:
+                status = runs[sorted(runs)[-1]].attrs.get("status", "unknown")
+            except Exception:  # damaged by a kill as the run ended: not known complete
+                status = "damaged"
             status = status.decode() if isinstance(status, bytes) else str(status)
             if status == "completed":
                 return None

@@ -733,9 +733,15 @@ def recorded_calibration_std(path: str | Path, frequency_hz: Any
         # file that stated the uncertainty only later was not read (review, session 40)
         runs = handle.get("runs")
         if isinstance(runs, h5py.Group):
-            latest = [runs[n]["bench"] for n in sorted(runs)
-                      if isinstance(runs[n], h5py.Group)
-                      and isinstance(runs[n].get("bench"), h5py.Group)]
+            latest = []
+            for name in sorted(runs):
+                try:
+                    run = runs[name]
+                    if isinstance(run, h5py.Group) and isinstance(run.get("bench"),
+                                                                  h5py.Group):
+                        latest.append(run["bench"])
+                except Exception:  # a run record damaged by a kill (session info says so)
+                    continue
             bench = latest[-1] if latest else bench
         attrs = dict(bench.attrs)
     u_rel = np.atleast_1d(np.asarray(attrs.get("drive_calibration_u_rel", []), dtype=float))
