@@ -110,6 +110,55 @@ def create_log(group: h5py.Group, lines: Sequence[str] = ()) -> h5py.Dataset:
                                 dtype=f"S{LOG_LINE_BYTES}")
 
 
+KILL_RESERVE_BYTES = 64 * 2**20
+"""Bytes a resume after a killed run reserves, unwritten, past the file's recorded end
+(:func:`_reserve_past_a_kill`)."""
+
+
+def _reserve_past_a_kill(handle: h5py.File) -> None:
+    """Reserve :data:`KILL_RESERVE_BYTES` past the end of allocation the file recorded, as
+    a dataset never written (``/unused_after_kill_<n>``: a hole on disk, no space used).
+
+    A kill -9 inside a flush can leave objects written, or referenced, past the end of the
+    allocation recorded in the superblock: a step group whose index points there (judged
+    damaged, "addr overflow"), the log's new chunk. Without this the resumed run allocates
+    its new objects over that range, and a damaged reference could then read them as its
+    own (a step group resolving to another step's data). The killed run's last flush
+    allocated less than this (a step of the thesis protocols is 0.2-1 MB)."""
+    dcpl = h5py.h5p.create(h5py.h5p.DATASET_CREATE)
+    dcpl.set_alloc_time(h5py.h5d.ALLOC_TIME_EARLY)
+    dcpl.set_fill_time(h5py.h5d.FILL_TIME_NEVER)
+    n = sum(1 for name in handle if name.startswith("unused_after_kill_"))
+    space = h5py.h5s.create_simple((KILL_RESERVE_BYTES,))
+    h5py.h5d.create(handle.id, f"unused_after_kill_{n}".encode(), h5py.h5t.STD_U8LE, space,
+                    dcpl=dcpl).close()
+    handle.flush()
+
+
+def salvage_log(h5: h5py.File) -> tuple[list[str], list[str]]:
+    """The lines of ``/log`` that can be read, chunk by chunk, and what could not be read.
+
+    A kill -9 while the log grew into a new chunk can leave that chunk's address beyond
+    the end of the file HDF5 recorded: reading the whole log failed, and every line was lost
+    to readers, though all but the last chunk's were intact (review, session 50: 256 of
+    259 lines readable)."""
+    try:
+        ds = h5["log"]
+        n = int(ds.shape[0])
+        step = int(ds.chunks[0]) if ds.chunks else max(n, 1)
+    except Exception as exc:
+        return [], [f"unreadable ({' '.join(str(exc).split())[:160]})"]
+    lines: list[str] = []
+    problems: list[str] = []
+    for start in range(0, n, step):
+        try:
+            lines += [_text(v) for v in ds[start:start + step]]
+        except Exception as exc:
+            problems.append(f"lines {start + 1}-{min(n, start + step)} of {n} unreadable "
+                            f"({' '.join(str(exc).split())[:160]})")
+    return lines, problems
+
+
 def log_entry(line: str) -> np.bytes_:
     """``line`` as UTF-8, cut to :data:`LOG_LINE_BYTES` on a character boundary."""
     return _utf8_cut(line, LOG_LINE_BYTES)
@@ -461,7 +510,32 @@ class SessionWriter:
             raise SessionFileError(f"{path}: its /protocol differs from the protocol file "
                                    "given; resume with the protocol the session started with")
         created = float(handle.attrs.get("created_unix_s", time.time()))
-        return cls(handle, path, time.monotonic(), max(0.0, time.time() - created))
+        lines, problems = salvage_log(handle) if "log" in handle else ([], [])
+        records = run_records(handle)
+        if records and (records[-1][1] is None or _text(records[-1][1].get("status", ""))
+                        == "running"):
+            # killed: before anything is allocated (the log's replacement first of all)
+            _reserve_past_a_kill(handle)
+        if problems:
+            # a log damaged by a kill cannot take new lines ("addr overflow": every resume
+            # failed; review, session 50): its readable lines go into a new log. The old
+            # one is moved aside, not deleted: deleting it frees its lost chunk, whose
+            # range runs past the file's recorded end, and the next allocations there
+            # corrupted the root group (measured on a killed file); readers read /log only
+            try:
+                n = sum(1 for name in handle if name.startswith("log_damaged_"))
+                handle.move("log", f"log_damaged_{n}")
+                create_log(handle, lines)
+                handle.flush()
+            except Exception as exc:
+                handle.close()
+                raise SessionFileError(f"{path}: its log is damaged ({problems[0]}) and "
+                                       f"could not be replaced ({exc})") from None
+        writer = cls(handle, path, time.monotonic(), max(0.0, time.time() - created))
+        for problem in problems:
+            writer.log(f"the session log was damaged (a kill while it grew?): {problem}; "
+                       "its readable lines were copied into a new log", "WARNING")
+        return writer
 
     # -------------------------------------------------------------- writing
     def elapsed_s(self) -> float:
@@ -991,10 +1065,8 @@ class SessionReader:
         """The session log."""
         if "log" not in self._h5:
             return []
-        try:
-            return [_text(v) for v in self._h5["log"][()]]
-        except Exception as exc:  # a damaged log must not hide the data
-            return [f"(session log unreadable: {' '.join(str(exc).split())})"]
+        lines, problems = salvage_log(self._h5)
+        return lines + [f"(session log: {p})" for p in problems]
 
     def bench(self) -> dict[str, Any]:
         """/bench attributes, roles as nested dicts."""

@@ -127,3 +127,52 @@ def test_a_damaged_run_record_leaves_the_session_readable(damaged_run_record, tm
     capsys.readouterr()
     assert main(["run", str(protocol), "--out", str(out), "--resume"]) == 0
     assert "nothing to measure" in capsys.readouterr().out
+
+
+def test_a_log_chunk_lost_to_a_kill_is_salvaged_and_a_resume_goes_on(damaged_run_record,
+                                                                      tmp_path):
+    """A kill while ``/log`` grew into a new chunk left that chunk's address past the end of
+    allocation the superblock recorded: reading the log gave one error line for all of it,
+    and every resume failed writing its first log line ("addr overflow"; review, session
+    50). Simulated here: a second chunk, then the recorded end set inside it and the file
+    cut there, as the kill left it. The readable lines are kept, the resume writes on."""
+    import struct
+
+    import h5py
+
+    protocol, out = damaged_run_record
+    path = tmp_path / "log.h5"
+    with h5py.File(out, "r") as src, h5py.File(path, "w", libver=("earliest", "v110")) as h5:
+        for name in ("protocol", "bench", "steps", "frf", "log"):
+            src.copy(src[name], h5, name=name)
+        for key, value in src.attrs.items():
+            h5.attrs[key] = value
+        h5.create_group("runs").create_group("000").attrs["status"] = "running"  # killed
+    writer = SessionWriter.resume(path)
+    first = len(writer.handle["log"])
+    for k in range(300):
+        writer.log(f"line {k}")
+    writer.close()
+    with h5py.File(path, "r") as h5:
+        log = h5["log"]
+        assert log.id.get_num_chunks() == 2
+        lost_chunk = log.id.get_chunk_info(1).byte_offset
+    with open(path, "r+b") as f:
+        assert f.read(9)[8] == 0  # superblock version 0: end of allocation at byte 40
+        f.seek(40)
+        f.write(struct.pack("<Q", lost_chunk + 1000))
+    os.truncate(path, lost_chunk + 1000)
+
+    with SessionReader(path) as reader:
+        lines = reader.log_lines()
+    assert lines[first:256] == [line for line in lines[first:256] if " INFO line " in line]
+    assert len(lines) == 257 and "unreadable" in lines[-1], lines[-1]
+    writer = SessionWriter.resume(path)  # failed: addr overflow at its first log line
+    writer.log("after the kill")
+    writer.close()
+    with SessionReader(path) as reader:
+        lines = reader.log_lines()
+        assert len(list(reader.steps(with_echoes=False))) == 3
+    assert len(lines) == 258 and lines[-1].endswith("INFO after the kill")
+    assert "the session log was damaged" in lines[-2] and "WARNING" in lines[-2]
+    assert lines[first].endswith("INFO line 0")
