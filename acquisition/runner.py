@@ -44,6 +44,7 @@ from pelvislab.acquisition.session import (
     SessionWriter,
     StepData,
     frf_from_steps,
+    partial_path,
     run_records,
 )
 from pelvislab.acquisition.tracking import gate_problem
@@ -1514,6 +1515,8 @@ def prepare_session(protocol_path: Path | str, out_path: Path | str,
     every: list[StepData] = []
     problems: list[str] = []
     previous_run: tuple[str, str] | None = None
+    if not str(out_path).strip():  # Path("") is ".", which read ". is a folder" (review)
+        raise ValueError("the session file's name is empty: give one, e.g. session.h5")
     if out.is_dir():  # "exists; use --resume" sent the user the wrong way (review, session 39)
         raise IsADirectoryError(f"{out} is a folder: give the session file's name, e.g. "
                                 f"{out / 'session.h5'}")
@@ -1912,7 +1915,6 @@ def reprocess_session(source: Path | str, target: Path | str, tracking_options: 
     that cuts the echo (:data:`pelvislab.acquisition.tracking.GATE_CUT_LEVEL`) with the
     number of steps it was made on; the file's log gets the same lines.
     """
-    import os
 
     import h5py
 
@@ -1939,7 +1941,7 @@ def reprocess_session(source: Path | str, target: Path | str, tracking_options: 
     if not target.parent.is_dir():
         raise FileNotFoundError(f"output folder {target.parent} does not exist")
     remove_stale_partials(target)
-    partial = target.with_name(f".{target.name}.{os.getpid()}.partial")
+    partial = partial_path(target)
     reader = SessionReader(source)
     try:
         names = reader.step_names()

@@ -352,6 +352,22 @@ def _pid_alive(pid: int) -> bool:
     return True
 
 
+def partial_path(path: Path | str, pid: int | None = None) -> Path:
+    """The temporary name a new file at ``path`` is built under: ``.<name>.<pid>.partial``
+    in the same folder, with the name shortened (and a hash of it kept) where that would
+    pass the file system's 255 bytes: a legal 253-byte ``--out`` was refused with
+    "[Errno 36] File name too long", naming the temporary file (review, session 50)."""
+    import hashlib
+
+    path = Path(path)
+    name = path.name
+    suffix = f".{os.getpid() if pid is None else pid}.partial"
+    if len(f".{name}{suffix}".encode()) > 255:
+        digest = hashlib.sha1(name.encode()).hexdigest()[:12]
+        name = name.encode()[:200].decode(errors="ignore") + "~" + digest
+    return path.with_name(f".{name}{suffix}")
+
+
 def remove_stale_partials(path: Path | str) -> list[str]:
     """Delete ``.<name>.<pid>.partial`` files next to ``path`` whose process is gone.
 
@@ -362,7 +378,8 @@ def remove_stale_partials(path: Path | str) -> list[str]:
     """
     path = Path(path)
     removed: list[str] = []
-    pattern = re.compile(rf"\.{re.escape(path.name)}\.(\d+)\.partial")
+    stem = partial_path(path, 0).name[: -len(".0.partial")]
+    pattern = re.compile(rf"{re.escape(stem)}\.(\d+)\.partial")
     try:
         candidates = list(path.parent.iterdir())
     except OSError:
@@ -452,12 +469,14 @@ class SessionWriter:
         stale = remove_stale_partials(path)
         # Built under a temporary name and linked into place when complete: a kill during
         # creation must not leave a half-made file at ``path`` (measured: "truncated file").
-        tmp = path.with_name(f".{path.name}.{os.getpid()}.partial")
+        tmp = partial_path(path)
         try:
             handle = h5py.File(tmp, "w", libver=("earliest", "v110"))
         except OSError as exc:
             tmp.unlink(missing_ok=True)  # HDF5 may have left it empty (disk full)
-            raise SessionFileError(f"cannot create {path}: {exc}") from None
+            # the system's reason, not HDF5's text naming the temporary file (review)
+            reason = os.strerror(exc.errno) if exc.errno else str(exc)
+            raise SessionFileError(f"cannot create {path}: {reason}") from None
         try:
             with handle:
                 handle.attrs["schema"] = SESSION_SCHEMA

@@ -95,7 +95,7 @@ def test_resuming_a_finished_session_opens_and_writes_nothing(tmp_path, capsys):
     args = argparse.Namespace(protocol=str(protocol), out=str(out), bench=None, resume=True,
                               wait_prompts=False, subject_id=None, quiet=True)
     assert run_command(args) == 0
-    assert "nothing to measure; the file is left as it is" in capsys.readouterr().out
+    assert "nothing to measure; the file is left as it is" in capsys.readouterr().err
     assert hashlib.sha256(out.read_bytes()).hexdigest() == before
 
 

@@ -126,7 +126,7 @@ def test_a_damaged_run_record_leaves_the_session_readable(damaged_run_record, tm
         assert len(list(reader.steps(with_echoes=False))) == 3
     capsys.readouterr()
     assert main(["run", str(protocol), "--out", str(out), "--resume"]) == 0
-    assert "nothing to measure" in capsys.readouterr().out
+    assert "nothing to measure" in capsys.readouterr().err
 
 
 def test_a_log_chunk_lost_to_a_kill_is_salvaged_and_a_resume_goes_on(damaged_run_record,
@@ -176,3 +176,17 @@ def test_a_log_chunk_lost_to_a_kill_is_salvaged_and_a_resume_goes_on(damaged_run
     assert len(lines) == 258 and lines[-1].endswith("INFO after the kill")
     assert "the session log was damaged" in lines[-2] and "WARNING" in lines[-2]
     assert lines[first].endswith("INFO line 0")
+
+
+def test_output_names_the_review_found_misreported(tmp_path, capsys):
+    """A legal 250-byte --out was refused ("[Errno 36] File name too long" on the hidden
+    temporary name); --out "" read ". is a folder" (review, session 50)."""
+    protocol = tmp_path / "p.toml"
+    protocol.write_text(PROTOCOL)
+    long_name = tmp_path / ("a" * 247 + ".h5")
+    assert main(["run", str(protocol), "--out", str(long_name), "--quiet"]) == 0
+    with SessionReader(long_name) as reader:
+        assert reader.status[0] == "completed"
+    capsys.readouterr()
+    assert main(["run", str(protocol), "--out", "", "--quiet"]) == 1
+    assert "name is empty" in capsys.readouterr().err

@@ -237,7 +237,8 @@ def run_command(args: argparse.Namespace) -> int:
                                    software_version=package_version(),
                                    subject_id=args.subject_id)
     except NothingToResume as exc:
-        print(f"pelvislab run: {exc}")
+        # on stderr with every other last line of run (stdout held it alone; review)
+        print(f"pelvislab run: {exc}", file=sys.stderr)
         return 0
     except DriverError as exc:
         # an instrument that does not open is an instrument fault (exit 3), not bad input
