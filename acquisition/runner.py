@@ -43,6 +43,7 @@ from pelvislab.acquisition.session import (
     SessionReader,
     SessionWriter,
     StepData,
+    extend_cut_session,
     frf_from_steps,
     partial_path,
     run_records,
@@ -1520,9 +1521,11 @@ def prepare_session(protocol_path: Path | str, out_path: Path | str,
     if out.is_dir():  # "exists; use --resume" sent the user the wrong way (review, session 39)
         raise IsADirectoryError(f"{out} is a folder: give the session file's name, e.g. "
                                 f"{out / 'session.h5'}")
+    cut_note = ""
     if resume:
         if not out.is_file():
             raise FileNotFoundError(f"--resume: no session file {out} to continue")
+        cut_note = extend_cut_session(out)
         with SessionReader(out) as reader:
             if reader.protocol_text != protocol.text:
                 raise ValueError(f"{out}: its /protocol differs from {protocol_path}; resume "
@@ -1610,6 +1613,8 @@ def prepare_session(protocol_path: Path | str, out_path: Path | str,
             writer.log(f"run started: protocol {protocol.name!r} ({protocol.source}), "
                        f"{'resumed, ' + str(len(skip)) + ' steps kept' if resume else 'new'}"
                        f" session, bench {description['name']!r}", flush=True)
+            if cut_note:
+                writer.log(f"resume: {cut_note}", "WARNING")
             for problem in problems:
                 writer.log(f"resume: step {problem}; measured again", "WARNING")
             replaced = speed_of_sound_note(bench.config, protocol)

@@ -110,6 +110,42 @@ def create_log(group: h5py.Group, lines: Sequence[str] = ()) -> h5py.Dataset:
                                 dtype=f"S{LOG_LINE_BYTES}")
 
 
+def recorded_end_of_file(path: Path | str) -> int | None:
+    """The end of allocation a version 0 or 1 superblock records (bytes: what HDF5 checks
+    the file's size against), or None for another layout (our files have version 0)."""
+    try:
+        with open(path, "rb") as f:
+            head = f.read(64)
+    except OSError:
+        return None
+    if len(head) < 56 or head[:8] != b"\x89HDF\r\n\x1a\n" or head[8] not in (0, 1) \
+            or head[13] != 8:
+        return None
+    at = 40 if head[8] == 0 else 44  # version 1 has 4 bytes more before the addresses
+    return int.from_bytes(head[at:at + 8], "little")
+
+
+def extend_cut_session(path: Path | str) -> str:
+    """Extend a session file that ends before the end its superblock records, with a hole
+    (zeros; no disk space used), so that it opens again; a note saying so, or "".
+
+    A write that failed part way (a file-size limit, a quota, a disk filled between the
+    free-space check and the flush) left the superblock written with the new end and the
+    data beyond the limit not: HDF5 then refused the whole file ("truncated file: eof =
+    3072000, stored_eof = 3329205"; review, session 50), its complete steps with it. Only
+    what was never written is missing; the objects there read as damaged. Called by
+    ``run --resume``; readers only say how to do it (:class:`SessionReader`)."""
+    path = Path(path)
+    end = recorded_end_of_file(path)
+    size = path.stat().st_size
+    if end is None or size >= end:
+        return ""
+    os.truncate(path, end)
+    return (f"the file ended {end - size} bytes before the end its superblock records (a "
+            f"write that failed part way): extended to {end} bytes with zeros; what was "
+            "being written then is lost and reads as damaged")
+
+
 KILL_RESERVE_BYTES = 64 * 2**20
 """Bytes a resume after a killed run reserves, unwritten, past the file's recorded end
 (:func:`_reserve_past_a_kill`)."""
@@ -417,6 +453,45 @@ _WRITING: set[str] = set()
 """Session files a :class:`SessionWriter` of this process has open (resolved paths): a run
 recorded with this process's identity is being written only if its file is one of them."""
 
+WRITE_FAILURES: list[str] = []
+"""Session files this process failed to write (HDF5 refused a write: a file-size limit, a
+quota, an I/O error, a disk filled by another process). HDF5 has no way back: such a file
+can no longer be flushed or closed, and the library's own clean-up at exit then crashed
+the process (segmentation fault, exit 139, after pages of tracebacks; review, session 50).
+The command line ends the process without that clean-up when this is not empty
+(``pelvislab.app.cli.main``); every complete step was flushed before."""
+
+
+class SessionWriteError(OSError):
+    """Writing the session file failed (see :data:`WRITE_FAILURES`): one line."""
+
+
+def _write_guarded(method: Any) -> Any:
+    """Turn an HDF5 write failure in a :class:`SessionWriter` method into one
+    :class:`SessionWriteError` naming the file and the system's reason, and remember it."""
+    import functools
+
+    @functools.wraps(method)
+    def guarded(self: SessionWriter, *args: Any, **kwargs: Any) -> Any:
+        if self.write_error is not None:
+            raise SessionWriteError(self.write_error)
+        try:
+            return method(self, *args, **kwargs)
+        except (OSError, RuntimeError) as exc:
+            if isinstance(exc, SessionWriteError):
+                raise
+            errno_ = getattr(exc, "errno", None)
+            reason = (os.strerror(errno_) if errno_ else
+                      next((m.group(1) for m in [re.search(r"error message = '([^']+)'",
+                                                           str(exc))] if m),
+                           " ".join(str(exc).split())[:160]))
+            self.write_error = (f"writing {self.path} failed: {reason}; every complete "
+                                "step before it is on disk: remove the cause (free space, "
+                                "the file-size limit), then continue with --resume")
+            WRITE_FAILURES.append(str(self.path))
+            raise SessionWriteError(self.write_error) from None
+    return guarded
+
 
 def being_written_here(path: Path | str) -> bool:
     """Whether a :class:`SessionWriter` of this process has ``path`` open."""
@@ -447,6 +522,7 @@ class SessionWriter:
                                [_text(n) for n in g["outputs/name"][()]],
                                [_text(n) for n in g["inputs/name"][()]])
         self.run_group: h5py.Group | None = None
+        self.write_error: str | None = None  # set by the first failed write (_write_guarded)
         self._lines: dict[tuple[int, int, int], list[tuple[complex, float]]] = {}
 
     # -------------------------------------------------------------- open / create
@@ -571,6 +647,7 @@ class SessionWriter:
         names = [n for n in self._h5["steps"] if n.isdigit()]
         return max((int(n) for n in names), default=-1) + 1
 
+    @_write_guarded
     def start_run(self, bench: Mapping[str, Any], software_version: str = "") -> None:
         """Record one run (invocation) under ``/runs/<k>`` with status ``running``."""
         runs = self._h5.require_group("runs")
@@ -594,6 +671,7 @@ class SessionWriter:
         self.run_group = g
         self._h5.flush()
 
+    @_write_guarded
     def finish_run(self, status: str, reason: str = "",
                    command_logs: Mapping[str, Sequence[tuple[float, str]]] | None = None,
                    unsafe: Sequence[str] = ()) -> None:
@@ -611,6 +689,7 @@ class SessionWriter:
             self.append_command_logs(command_logs or {})
         self._h5.flush()
 
+    @_write_guarded
     def append_command_logs(self, command_logs: Mapping[str, Sequence[tuple[float, str]]]
                             ) -> None:
         """Append to ``/runs/<k>/command_logs/<role>/{time_s,text}`` the entries of each
@@ -639,6 +718,7 @@ class SessionWriter:
             lg["time_s"][n:] = [float(t) for t, _ in new]
             lg["text"][n:] = [_utf8_cut(text, COMMAND_BYTES) for _, text in new]
 
+    @_write_guarded
     def log(self, message: str, level: str = "INFO", flush: bool = False) -> None:
         """Append one line to the session log (``/log``)."""
         ds = self._h5["log"]
@@ -668,6 +748,7 @@ class SessionWriter:
                           f"{self.path.parent}, the next step needs about "
                           f"{need / 2**20:.1f} MB; free space, then continue with --resume")
 
+    @_write_guarded
     def append_step(self, step: StepData) -> int:
         """Write ``step`` as the next ``/steps/<index>`` group, its /frf lines, flush."""
         size_before = _file_size(self.path)
@@ -720,6 +801,7 @@ class SessionWriter:
                                        _file_size(self.path) - size_before)
         return index
 
+    @_write_guarded
     def repair_frf(self) -> int:
         """Rewrite every /frf line from the complete steps in place (after a kill between a
         step's flush and its /frf lines); returns the number of lines written."""
@@ -782,6 +864,7 @@ class SessionWriter:
         if "acquired_at_s" in frf:
             frf["acquired_at_s"][i] = step.started_at_s
 
+    @_write_guarded
     def flush(self) -> None:
         """Flush everything written so far to disk."""
         self._h5.flush()
@@ -790,13 +873,43 @@ class SessionWriter:
         """Flush, close and fsync (idempotent): a session reported complete is on the disk,
         not only in the operating system's cache (a power cut after the run keeps it)."""
         _WRITING.discard(str(Path(self.path).resolve()))
+        if self.write_error is not None:
+            self._abandon()
+            return
         if self._h5.id.valid:
-            self._h5.flush()
+            try:
+                self.flush()
+            except SessionWriteError:
+                self.close()  # as after any failed write
+                raise
             self._h5.close()
             try:
                 fsync_path(self.path)
             except OSError as exc:  # the data are written; say that the sync failed
                 log.error("fsync of %s failed: %s", self.path, exc)
+
+    def _abandon(self) -> None:
+        """Close the file after a failed write without writing to it again.
+
+        A close flushes HDF5's metadata and writes the superblock with the end of file it
+        believes in: after a write that failed at 3.07 MB (a file-size limit) that made
+        the file unreadable ("truncated file: eof = 3072000, stored_eof = 3329205"), where
+        the file as its last successful flush left it opens and resumes. So the file's
+        descriptor is pointed at /dev/null first: what the close writes goes nowhere."""
+        try:
+            fd = self._h5.id.get_vfd_handle()
+            null = os.open(os.devnull, os.O_RDWR)
+            try:
+                os.dup2(null, int(fd))
+            finally:
+                os.close(null)
+        except Exception as exc:  # no descriptor to redirect: leave the file open
+            log.error("%s: not closed after its failed write (%s)", self.path, exc)
+            return
+        try:
+            self._h5.close()
+        except Exception as exc:
+            log.debug("closing %s after a failed write: %s", self.path, exc)
 
     def __enter__(self) -> SessionWriter:
         return self
@@ -1003,6 +1116,14 @@ class SessionReader:
                 raise SessionFileError(f"{self.path} is in use by another process (a run in "
                                        f"progress?); try again when it has finished: "
                                        f"{reason}") from None
+            end = recorded_end_of_file(self.path)
+            if end is not None and self.path.stat().st_size < end:
+                raise SessionFileError(
+                    f"{self.path} ends {end - self.path.stat().st_size} bytes before the end "
+                    "its superblock records (a write that failed part way: a full disk, a "
+                    "file-size limit, or a copy cut short): `pelvislab run PROTOCOL --out "
+                    f"{self.path} --resume` extends it and goes on (the steps written "
+                    "before are kept)") from None
             raise SessionFileError(f"{self.path} is not a readable HDF5 file (truncated or "
                                    f"damaged?): {reason}") from None
         try:

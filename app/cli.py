@@ -14,7 +14,7 @@ import signal
 import sys
 from collections.abc import Sequence
 from importlib import metadata
-from typing import NoReturn
+from typing import Any, NoReturn
 
 from pelvislab.app.commands import COMMAND_MODULES
 from pelvislab.app.errors import NotImplementedCommand
@@ -150,11 +150,72 @@ def main(argv: Sequence[str] | None = None) -> int:
         sub.error(f"unrecognized arguments: {' '.join(unknown)}")
     configure_logging(args.verbose)
     previous = _stop_on_termination_signals()
+    previous_unraisable, previous_excepthook = sys.unraisablehook, sys.excepthook
+    sys.unraisablehook = _quiet_after_a_failed_session_write(previous_unraisable)
+    # h5py's object clean-up (Cython) prints the traceback through sys.excepthook first
+    sys.excepthook = _quiet_excepthook(previous_excepthook)
     try:
-        return _run_handler(args)
+        code = _run_handler(args)
     finally:
+        sys.unraisablehook, sys.excepthook = previous_unraisable, previous_excepthook
         for sig, handler in previous.items():
             signal.signal(sig, handler)  # type: ignore[arg-type]
+    if argv is None and _session_write_failures():
+        # the process, not a caller of main(): HDF5's clean-up at exit would try the
+        # failed file again and crash (segmentation fault, exit 139); every complete step
+        # is on disk and the command has said what happened (session.WRITE_FAILURES)
+        for stream in (sys.stdout, sys.stderr):
+            try:
+                stream.flush()
+            except (OSError, ValueError):
+                pass
+        os._exit(code)
+    return code
+
+
+def _session_write_failures() -> list[str]:
+    """The session files this process failed to write (none when no session was opened)."""
+    session = sys.modules.get("pelvislab.acquisition.session")
+    return list(getattr(session, "WRITE_FAILURES", []) or [])
+
+
+def _a_failed_write(exc: BaseException | None) -> bool:
+    """Whether ``exc`` is HDF5 failing a write (or an error after a session file could not
+    be written): what the command reports once in its own line."""
+    if not isinstance(exc, (OSError, RuntimeError)):
+        return False
+    text = str(exc)
+    # the first ones come while the failed write unwinds, before it is recorded
+    return bool(_session_write_failures()) or any(
+        w in text for w in ("write failed", "write request failed", "unable to extend file",
+                            "flush"))
+
+
+def _quiet_after_a_failed_session_write(previous: Any) -> Any:
+    """An unraisable-exception hook that drops h5py's object clean-up errors of a session
+    file that could not be written (each dropped object printed a traceback of the same
+    write failure: 14-67 lines; review, session 50)."""
+    def hook(unraisable: Any) -> None:
+        if _a_failed_write(unraisable.exc_value) and "h5py" in repr(unraisable.object):
+            log.debug("after a failed session write: %s", unraisable.exc_value)
+            return
+        previous(unraisable)
+    return hook
+
+
+def _quiet_excepthook(previous: Any) -> Any:
+    """The same for the traceback h5py's clean-up prints through ``sys.excepthook`` before
+    it reports the error as unraisable (only for tracebacks inside h5py's object code)."""
+    def hook(kind: Any, value: Any, tb: Any) -> None:
+        frames, walk = [], tb
+        while walk is not None:
+            frames.append(walk.tb_frame.f_code.co_filename)
+            walk = walk.tb_next
+        if frames and all("h5py" in f for f in frames) and _a_failed_write(value):
+            log.debug("after a failed session write: %s", value)
+            return
+        previous(kind, value, tb)
+    return hook
 
 
 def _run_handler(args: argparse.Namespace) -> int:

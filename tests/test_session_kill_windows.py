@@ -190,3 +190,39 @@ def test_output_names_the_review_found_misreported(tmp_path, capsys):
     capsys.readouterr()
     assert main(["run", str(protocol), "--out", "", "--quiet"]) == 1
     assert "name is empty" in capsys.readouterr().err
+
+
+def test_a_write_that_fails_part_way_ends_in_one_line_and_the_session_resumes(tmp_path):
+    """A file-size limit (as a quota, or a disk filled by another process between the
+    free-space check and the flush) failed a write part way: exit 139 (segmentation fault in
+    HDF5's clean-up at exit) after pages of h5py tracebacks, and a file HDF5 refused whole
+    ("truncated file": the superblock recorded the new end, the data beyond the limit were
+    never written; review, session 50). Now: exit 3 with the reason, no traceback; session
+    info says how to go on; --resume extends the file and completes the plan."""
+    import resource
+    import subprocess
+    import sys
+
+    protocol = tmp_path / "p.toml"
+    protocol.write_text(PROTOCOL)
+    out = tmp_path / "s.h5"
+    limit = 1_600_000  # the file grows ~0.8 MB per step of this protocol: step 2 fails
+
+    def limit_file_size() -> None:
+        resource.setrlimit(resource.RLIMIT_FSIZE, (limit, resource.RLIM_INFINITY))
+
+    done = subprocess.run([sys.executable, "-m", "pelvislab.app", "run", str(protocol),
+                           "--out", str(out), "--quiet"], preexec_fn=limit_file_size,
+                          capture_output=True, text=True, timeout=120)
+    assert done.returncode == 3, (done.returncode, done.stderr[-2000:])
+    assert "Traceback" not in done.stderr, done.stderr[-2000:]
+    assert "File too large" in done.stderr and "--resume" in done.stderr
+    with pytest.raises(Exception, match="--resume` extends it"):
+        SessionReader(out)
+    assert main(["run", str(protocol), "--out", str(out), "--resume", "--quiet"]) == 0
+    with SessionReader(out) as reader:
+        assert reader.status[0] == "completed"
+        steps = list(reader.steps(with_echoes=False))
+        assert sorted({s.key for s in steps}) == sorted(s.key for s in steps)  # no repeat
+        assert len(steps) == 3
+        assert any("extended to" in line for line in reader.log_lines())
