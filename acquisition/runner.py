@@ -1567,8 +1567,8 @@ def prepare_session(protocol_path: Path | str, out_path: Path | str,
             last = previous_run[0] if previous_run else "?"
             raise NothingToResume(
                 f"{out} already holds every step of {protocol.name!r} (last run {last}): "
-                "nothing to measure; " + ("/frf was rebuilt from its steps (lines lost to "
-                                          "a kill), nothing else changed" if repaired else
+                "nothing to measure; " + (f"/frf was rebuilt from its steps ({repaired}), "
+                                          "nothing else changed" if repaired else
                                           "the file is left as it is"))
     elif out.exists():
         raise FileExistsError(f"{out} exists; not overwriting it (use --resume to continue "
@@ -1816,26 +1816,37 @@ def _first_table_difference(a: dict[str, Any], b: dict[str, Any]) -> str:
 
 
 # --------------------------------------------------------------------------- reprocessing
-def _repair_frf_only(path: Path, protocol_text: str) -> bool:
+def _repair_frf_only(path: Path, protocol_text: str) -> str:
     """Rebuild ``path``'s /frf from its complete steps when it differs from them (a kill
-    between a step's flush and its /frf lines); True if it did. Nothing else is written
-    but one log line."""
+    between a step's flush and its /frf lines); what differed if it did ("" otherwise).
+    Nothing else is written but one log line. Values missing from /frf are a kill's mark;
+    values that differ may be one too (a repeated step's line, combined with the earlier
+    one) or a damaged step or /frf, so the count of each is said (a corrupted phasor's
+    step rewrote a correct line as "lines lost to a kill"; review, session 50)."""
     with SessionReader(path) as reader:
         layout = reader.frf_layout()
         if layout is None:
             return False
         stored = reader.frf()
         rebuilt = frf_from_steps(list(reader.steps(with_echoes=False)), *layout)
-    same = (np.array_equal(np.isfinite(stored.H), np.isfinite(rebuilt.H))
-            and np.allclose(np.nan_to_num(stored.H), np.nan_to_num(rebuilt.H),
-                            rtol=1e-9, atol=0.0))
-    if same:
-        return False
+    both = np.isfinite(stored.H) & np.isfinite(rebuilt.H)
+    missing = int(np.sum(~np.isfinite(stored.H) & np.isfinite(rebuilt.H)))
+    extra = int(np.sum(np.isfinite(stored.H) & ~np.isfinite(rebuilt.H)))
+    changed = int(np.sum(~np.isclose(stored.H[both], rebuilt.H[both], rtol=1e-9, atol=0.0)))
+    if not (missing or extra or changed):
+        return ""
+    parts = ([f"{missing} value(s) missing: lost to a kill after a step's flush"]
+             if missing else [])
+    if changed or extra:
+        parts.append(f"{changed + extra} value(s) that differed from the steps: a repeated "
+                     "step's line lost to a kill, or a damaged step or /frf (check the log "
+                     "and `session info`)")
+    what = "; ".join(parts)
     with SessionWriter.resume(path, protocol_text) as writer:
         lines = writer.repair_frf()
         writer.log(f"resume: every step already measured; /frf rebuilt from the steps "
-                   f"({lines} lines)", "WARNING")
-    return True
+                   f"({lines} lines; {what})", "WARNING")
+    return what
 
 
 def _with_gate(options: Any, gate: tuple[int, int] | None) -> Any:

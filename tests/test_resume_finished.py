@@ -63,8 +63,10 @@ def test_resume_still_repairs_frf_after_a_kill_between_the_last_flush_and_its_li
         h5["frf"]["H"][...] = H
     with h5py.File(out, "r") as h5:
         runs_before = len(h5["runs"])
-    with pytest.raises(NothingToResume, match="/frf was rebuilt from its steps"):
+    with pytest.raises(NothingToResume, match="/frf was rebuilt from its steps") as raised:
         prepare_session(protocol, out, resume=True, bench=None)
+    assert "missing: lost to a kill" in str(raised.value)
+    assert "differed" not in str(raised.value)
     with SessionReader(out) as reader:
         assert np.isfinite(reader.frf().H[i]).any(), "the last step's /frf lines are lost"
         assert len(reader.handle["runs"]) == runs_before
@@ -158,3 +160,21 @@ def test_reprocess_says_its_progress_without_a_terminal_when_asked(tmp_path, cap
     assert "reprocessing step 3/3" in err and "reprocessed 3 steps" in err
     assert main(["reprocess", str(out), "--out", str(tmp_path / "q.h5")]) == 0
     assert "reprocessing step" not in capsys.readouterr().err
+
+
+def test_a_stored_value_that_differs_from_its_step_is_not_blamed_on_a_kill(tmp_path):
+    """A /frf value that differs from its step (here /frf changed; a damaged phasor gives
+    the same) was rebuilt with "lines lost to a kill" (review, session 50): the resume now
+    says that values differed and that the cause may be damage."""
+    protocol, out = _finished(tmp_path)
+    with h5py.File(out, "r+") as h5:
+        H = h5["frf"]["H"][()]
+        k = np.argwhere(np.isfinite(H))[0]
+        H[tuple(k)] *= 1.5
+        h5["frf"]["H"][...] = H
+    with pytest.raises(NothingToResume, match="/frf was rebuilt from its steps") as raised:
+        prepare_session(protocol, out, resume=True, bench=None)
+    assert "1 value(s) that differed from the steps" in str(raised.value)
+    assert "missing" not in str(raised.value)
+    with SessionReader(out) as reader:
+        assert any("differed from the steps" in line for line in reader.log_lines())
