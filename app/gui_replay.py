@@ -133,7 +133,7 @@ def candidate_rows(report: dict[str, Any]) -> list[tuple[str, str, str, str, str
     from pelvislab.model.gap_effects import NULL_EXTENSIONS
 
     verdict = str(report.get("verdict", ""))
-    gap_before = float(report.get("gap_before") or 0.0)
+    gap_before = report.get("gap_before")  # None: not said (a report built by hand)
     updating_explains = str(report.get("verdict_reason", "")).startswith(
         "parameter updating explains the data")
 
@@ -164,7 +164,8 @@ def candidate_rows(report: dict[str, Any]) -> list[tuple[str, str, str, str, str
         said = status(cand)
         # undefined where gap_before is 0 (design 4.4's ratio; the JSON holds 0.0 there,
         # null in reports of sessions 40-49)
-        shrink = ("—" if cand.get("shrink") is None or not gap_before > 0
+        shrink = ("—" if cand.get("shrink") is None
+                  or (gap_before is not None and not float(gap_before) > 0)
                   else f"{100 * number(cand, 'shrink'):.0f} %")
         rows.append((str(cand.get("effect", "")), said, f"{number(cand, 'gap_after'):.3g}",
                      shrink if said == "named" else f"({shrink})",
