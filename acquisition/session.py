@@ -1120,10 +1120,10 @@ class SessionReader:
             if end is not None and self.path.stat().st_size < end:
                 raise SessionFileError(
                     f"{self.path} ends {end - self.path.stat().st_size} bytes before the end "
-                    "its superblock records (a write that failed part way: a full disk, a "
-                    "file-size limit, or a copy cut short): `pelvislab run PROTOCOL --out "
-                    f"{self.path} --resume` extends it and goes on (the steps written "
-                    "before are kept)") from None
+                    "its superblock records: a copy cut short (copy it again), or a write "
+                    "that failed part way (a full disk, a file-size limit), which `pelvislab "
+                    f"run PROTOCOL --out {self.path} --resume` extends and goes on from (the "
+                    "steps written before are kept)") from None
             raise SessionFileError(f"{self.path} is not a readable HDF5 file (truncated or "
                                    f"damaged?): {reason}") from None
         try:

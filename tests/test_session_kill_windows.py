@@ -217,7 +217,7 @@ def test_a_write_that_fails_part_way_ends_in_one_line_and_the_session_resumes(tm
     assert done.returncode == 3, (done.returncode, done.stderr[-2000:])
     assert "Traceback" not in done.stderr, done.stderr[-2000:]
     assert "File too large" in done.stderr and "--resume" in done.stderr
-    with pytest.raises(Exception, match="--resume` extends it"):
+    with pytest.raises(Exception, match="--resume` extends and goes on"):
         SessionReader(out)
     assert main(["run", str(protocol), "--out", str(out), "--resume", "--quiet"]) == 0
     with SessionReader(out) as reader:
@@ -226,3 +226,23 @@ def test_a_write_that_fails_part_way_ends_in_one_line_and_the_session_resumes(tm
         assert sorted({s.key for s in steps}) == sorted(s.key for s in steps)  # no repeat
         assert len(steps) == 3
         assert any("extended to" in line for line in reader.log_lines())
+
+
+def test_session_info_check_reads_every_step_whole(tmp_path, capsys):
+    """The summary reads the steps' attributes only: a step whose echoes cannot be read
+    passed as "3 acquired of 3 planned" (review, session 50). --check reads every step's
+    data, names the damaged group and exits 1."""
+    protocol = tmp_path / "p.toml"
+    protocol.write_text(PROTOCOL)
+    out = tmp_path / "s.h5"
+    with runner_module.prepare_session(protocol, out, bench=sim_bench.open_simulated_bench(
+            generators="python")) as session:
+        assert session.run().status == "completed"
+    assert main(["session", "info", str(out), "--check"]) == 0
+    assert "check: 3 step group(s) read whole, none damaged" in capsys.readouterr().out
+    _damage_object_header(out, "steps/000001/echoes/ch1")
+    assert main(["session", "info", str(out)]) == 0  # attributes only: looks complete
+    assert "3 acquired of 3 planned" in capsys.readouterr().out
+    assert main(["session", "info", str(out), "--check"]) == 1
+    text = capsys.readouterr().out
+    assert "1 damaged:" in text and "000001" in text, text

@@ -16,11 +16,17 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         description="Summarise a session file (or an FRF-only file): subject and protocol, "
         "how each run ended and whether its outputs were confirmed off, the steps acquired "
         "against the protocol's plan per setup, tracking quality per channel, the /frf "
-        "lines and points (H_std or not), and the log's warnings. Reads no raw echoes.")
+        "lines and points (H_std or not), and the log's warnings. Reads no raw echoes "
+        "(--check reads every step's data).")
     i.add_argument("session", metavar="S.h5", help="session or FRF-only file")
     i.add_argument("--json", metavar="OUT",
                    help="also write the summary as JSON to this file; '-': print the JSON "
                    "alone on stdout instead of the text")
+    i.add_argument("--check", action="store_true",
+                   help="also read every step's data (raw echoes included) and report the "
+                   "step groups that cannot be read whole: exit 1 when there is one (the "
+                   "summary reads the steps' attributes only, so damaged data there pass "
+                   "unseen)")
     i.set_defaults(handler=info_command)
 
 
@@ -32,13 +38,36 @@ def info_command(args: argparse.Namespace) -> int:
     if args.json not in (None, "-"):
         check_new_output(args.json)
     info = session_info(args.session)
+    if args.check:
+        info["check"] = check_steps(args.session) if info["kind"] != "frf-only" else None
     if args.json == "-":
         print_json(info)
-        return 0
+        return 1 if info.get("check") and info["check"]["damaged"] else 0
     print(info_text(info))
+    check = info.get("check")
+    if check is not None:
+        print(f"check: {check['read_whole']} step group(s) read whole"
+              + (f", {len(check['damaged'])} damaged:" if check["damaged"] else
+                 ", none damaged"))
+        for problem in check["damaged"]:
+            print(f"  {problem}")
+        if check["damaged"]:
+            print("  `run --resume` measures such a step again unless a later group holds "
+                  "it; `reprocess` and the analyses leave it out")
     if args.json:
         print(f"JSON: {write_json(args.json, info)}")
-    return 0
+    return 1 if check and check["damaged"] else 0
+
+
+def check_steps(path: str) -> dict[str, Any]:
+    """Read every step group whole (raw echoes, displacement, phasors): how many read and
+    which could not be (the summary reads the steps' attributes only: a damaged echoes
+    chunk passed as "8 acquired of 8", found by a review in session 50)."""
+    from pelvislab.acquisition.session import SessionReader
+
+    with SessionReader(path) as reader:
+        n = sum(1 for _ in reader.steps(include_incomplete=True, with_echoes=True))
+        return {"read_whole": n, "damaged": list(reader.damaged)}
 
 
 def info_text(info: dict[str, Any]) -> str:
