@@ -44,6 +44,7 @@ from pelvislab.acquisition.session import (
     SessionWriter,
     StepData,
     extend_cut_session,
+    first_difference,
     frf_from_steps,
     partial_path,
     run_records,
@@ -1528,8 +1529,10 @@ def prepare_session(protocol_path: Path | str, out_path: Path | str,
         cut_note = extend_cut_session(out)
         with SessionReader(out) as reader:
             if reader.protocol_text != protocol.text:
-                raise ValueError(f"{out}: its /protocol differs from {protocol_path}; resume "
-                                 "with the protocol the session started with")
+                where = first_difference(reader.protocol_text, protocol.text)
+                raise ValueError(f"{out}: its /protocol differs from {protocol_path} "
+                                 f"({where}); resume with the protocol the session started "
+                                 "with (the text itself: a comment counts)")
             every = list(reader.steps(include_incomplete=True, with_echoes=False))
             skip = [s.key for s in every if s.status == STATUS_COMPLETE]
             done = {(k[0], round(float(k[1]), 9), int(k[2])) for k in skip}

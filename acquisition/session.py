@@ -84,6 +84,22 @@ class SessionFileError(ValueError):
 SUBJECT_ID_PATTERN = re.compile(r"[A-Za-z0-9._-]{0,32}")
 
 
+def first_difference(stored: str, given: str) -> str:
+    """Where two protocol texts first differ, as "line N: 'stored' in the session, 'given'
+    in the file" (a resume refused "differs" without saying where; a comment edited counts:
+    the session keeps the very text it was measured with; review, session 50)."""
+    a, b = stored.splitlines(), given.splitlines()
+    for n, (x, y) in enumerate(zip(a, b, strict=False), start=1):
+        if x != y:
+            return f"line {n}: {x.strip()[:80]!r} in the session, {y.strip()[:80]!r} in the file"
+    if len(a) != len(b):
+        n = min(len(a), len(b)) + 1
+        longer = "session" if len(a) > len(b) else "file"
+        line = (a if len(a) > len(b) else b)[n - 1]
+        return f"line {n}: {line.strip()[:80]!r} only in the {longer}"
+    return "line endings or trailing whitespace"
+
+
 def check_subject_id(subject_id: str) -> str:
     """A pseudonymous subject ID: letters, digits, ``-_.``, at most 32 characters (an ID,
     never a name: no spaces)."""
@@ -600,10 +616,12 @@ class SessionWriter:
             handle = h5py.File(path, "r+")
         except OSError as exc:
             raise SessionFileError(f"{path}: cannot open for appending ({exc})") from None
-        if protocol_text is not None and _text(handle["protocol"].attrs["toml"]) != protocol_text:
+        stored = _text(handle["protocol"].attrs["toml"])
+        if protocol_text is not None and stored != protocol_text:
             handle.close()
             raise SessionFileError(f"{path}: its /protocol differs from the protocol file "
-                                   "given; resume with the protocol the session started with")
+                                   f"given ({first_difference(stored, protocol_text)}); "
+                                   "resume with the protocol the session started with")
         created = float(handle.attrs.get("created_unix_s", time.time()))
         lines, problems = salvage_log(handle) if "log" in handle else ([], [])
         records = run_records(handle)

@@ -178,3 +178,15 @@ def test_a_stored_value_that_differs_from_its_step_is_not_blamed_on_a_kill(tmp_p
     assert "missing" not in str(raised.value)
     with SessionReader(out) as reader:
         assert any("differed from the steps" in line for line in reader.log_lines())
+
+
+def test_a_changed_protocol_is_refused_naming_the_first_line_that_differs(tmp_path):
+    """"its /protocol differs" did not say where, and a comment edited counts (the session
+    keeps the very text it was measured with; review, session 50)."""
+    protocol, out = _finished(tmp_path)
+    text = protocol.read_text().splitlines()
+    k = next(i for i, line in enumerate(text) if line.startswith("name = "))
+    text[k] += "  # edited"
+    protocol.write_text("\n".join(text) + "\n")
+    with pytest.raises(ValueError, match=rf"line {k + 1}: .*# edited' in the file"):
+        prepare_session(protocol, out, resume=True, bench=None)
