@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import logging
 import math
+import os
 import threading
 import time
 from collections.abc import Callable, Iterable, Mapping, Sequence
@@ -1526,8 +1527,17 @@ def prepare_session(protocol_path: Path | str, out_path: Path | str,
     if resume:
         if not out.is_file():
             raise FileNotFoundError(f"--resume: no session file {out} to continue")
+        size_found = out.stat().st_size
         cut_note = extend_cut_session(out)
-        with SessionReader(out) as reader:
+        try:
+            reader = SessionReader(out)
+        except Exception:
+            if cut_note:  # it does not open even so: leave it as it was found
+                os.truncate(out, size_found)
+            raise
+        with reader:
+            if cut_note and reader.protocol_text != protocol.text:
+                os.truncate(out, size_found)  # another session, or another protocol
             if reader.protocol_text != protocol.text:
                 where = first_difference(reader.protocol_text, protocol.text)
                 raise ValueError(f"{out}: its /protocol differs from {protocol_path} "
@@ -1566,13 +1576,14 @@ def prepare_session(protocol_path: Path | str, out_path: Path | str,
             # review, session 39); a cut step measured again since (an incomplete group
             # left in the file) does not change that. Only /frf lines lost to a kill after
             # the last step's flush are written (repair_frf), nothing else
-            repaired = _repair_frf_only(out, protocol.text)
+            repaired = _repair_frf_only(out, protocol.text, cut_note)
             last = previous_run[0] if previous_run else "?"
             raise NothingToResume(
                 f"{out} already holds every step of {protocol.name!r} (last run {last}): "
-                "nothing to measure; " + (f"/frf was rebuilt from its steps ({repaired}), "
-                                          "nothing else changed" if repaired else
-                                          "the file is left as it is"))
+                "nothing to measure; " + "; ".join(filter(None, (
+                    cut_note, f"/frf was rebuilt from its steps ({repaired})"
+                    if repaired else ""))) + ("" if cut_note or repaired else
+                                              "the file is left as it is"))
     elif out.exists():
         raise FileExistsError(f"{out} exists; not overwriting it (use --resume to continue "
                               "that session, or choose another --out)")
@@ -1636,10 +1647,13 @@ def prepare_session(protocol_path: Path | str, out_path: Path | str,
                 # added a run that "may have left an output on" (review, session 50). No
                 # output was on: nothing is driven before the run starts
                 try:
+                    # the outputs as the safe state finds them now (the bench is closed
+                    # next), not assumed off (review, session 50)
+                    unsafe = list(bench.safe_state() or [])
                     writer.finish_run("interrupted" if isinstance(exc, KeyboardInterrupt)
                                       else "failed",
                                       f"before the first step: {exc}" if str(exc) else
-                                      "before the first step")
+                                      "before the first step", unsafe=unsafe)
                 except Exception as record_exc:  # the file may be what failed
                     log.error("could not record the run's end in %s: %s", out, record_exc)
             writer.close()
@@ -1819,7 +1833,7 @@ def _first_table_difference(a: dict[str, Any], b: dict[str, Any]) -> str:
 
 
 # --------------------------------------------------------------------------- reprocessing
-def _repair_frf_only(path: Path, protocol_text: str) -> str:
+def _repair_frf_only(path: Path, protocol_text: str, cut_note: str = "") -> str:
     """Rebuild ``path``'s /frf from its complete steps when it differs from them (a kill
     between a step's flush and its /frf lines); what differed if it did ("" otherwise).
     Nothing else is written but one log line. Values missing from /frf are a kill's mark;
@@ -1837,6 +1851,9 @@ def _repair_frf_only(path: Path, protocol_text: str) -> str:
     extra = int(np.sum(np.isfinite(stored.H) & ~np.isfinite(rebuilt.H)))
     changed = int(np.sum(~np.isclose(stored.H[both], rebuilt.H[both], rtol=1e-9, atol=0.0)))
     if not (missing or extra or changed):
+        if cut_note:  # the extension is in the file's own log too
+            with SessionWriter.resume(path, protocol_text) as writer:
+                writer.log(f"resume: every step already measured; {cut_note}", "WARNING")
         return ""
     parts = ([f"{missing} value(s) missing: lost to a kill after a step's flush"]
              if missing else [])
@@ -1849,6 +1866,8 @@ def _repair_frf_only(path: Path, protocol_text: str) -> str:
         lines = writer.repair_frf()
         writer.log(f"resume: every step already measured; /frf rebuilt from the steps "
                    f"({lines} lines; {what})", "WARNING")
+        if cut_note:
+            writer.log(f"resume: {cut_note}", "WARNING")
     return what
 
 

@@ -91,7 +91,9 @@ def first_difference(stored: str, given: str) -> str:
     a, b = stored.splitlines(), given.splitlines()
     for n, (x, y) in enumerate(zip(a, b, strict=False), start=1):
         if x != y:
-            return f"line {n}: {x.strip()[:80]!r} in the session, {y.strip()[:80]!r} in the file"
+            # stripped only where that keeps them different (trailing blanks otherwise)
+            a_, b_ = (x.strip(), y.strip()) if x.strip() != y.strip() else (x, y)
+            return f"line {n}: {a_[:80]!r} in the session, {b_[:80]!r} in the file"
     if len(a) != len(b):
         n = min(len(a), len(b)) + 1
         longer = "session" if len(a) > len(b) else "file"
@@ -141,6 +143,10 @@ def recorded_end_of_file(path: Path | str) -> int | None:
     return int.from_bytes(head[at:at + 8], "little")
 
 
+CUT_EXTENSION_MAX_BYTES = 64 * 2**20
+"""The most :func:`extend_cut_session` adds (and never more than the file's own size)."""
+
+
 def extend_cut_session(path: Path | str) -> str:
     """Extend a session file that ends before the end its superblock records, with a hole
     (zeros; no disk space used), so that it opens again; a note saying so, or "".
@@ -156,35 +162,62 @@ def extend_cut_session(path: Path | str) -> str:
     size = path.stat().st_size
     if end is None or size >= end:
         return ""
-    os.truncate(path, end)
+    if end - size > min(size, CUT_EXTENSION_MAX_BYTES):
+        # not what a failed flush leaves (it lacks at most the flush's bytes): a copy cut
+        # short, or a superblock that is itself damaged (an end of 1 TiB made the file
+        # 1 TiB; review, session 50)
+        raise SessionFileError(f"{path} ends {end - size} bytes before the end its "
+                               f"superblock records ({end}): more than a failed write leaves;"
+                               " not extended (a copy cut short? copy it again)")
+    import fcntl
+
+    with open(path, "r+b") as f:
+        try:  # HDF5's own lock: a process writing it now
+            fcntl.flock(f.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError:
+            raise SessionFileError(f"{path} is in use by another process; not "
+                                   "extended") from None
+        try:
+            f.truncate(end)
+        finally:
+            fcntl.flock(f.fileno(), fcntl.LOCK_UN)
     return (f"the file ended {end - size} bytes before the end its superblock records (a "
             f"write that failed part way): extended to {end} bytes with zeros; what was "
             "being written then is lost and reads as damaged")
 
 
-KILL_RESERVE_BYTES = 64 * 2**20
-"""Bytes a resume after a killed run reserves, unwritten, past the file's recorded end
-(:func:`_reserve_past_a_kill`)."""
+def _reserve_past_recorded_end(path: Path, n_steps: int) -> str:
+    """After a killed run, move the end of allocation the superblock records past what the
+    killed flush may have allocated, before HDF5 opens the file; a log line ("" when the
+    layout is not known).
 
-
-def _reserve_past_a_kill(handle: h5py.File) -> None:
-    """Reserve :data:`KILL_RESERVE_BYTES` past the end of allocation the file recorded, as
-    a dataset never written (``/unused_after_kill_<n>``: a hole on disk, no space used).
-
-    A kill -9 inside a flush can leave objects written, or referenced, past the end of the
-    allocation recorded in the superblock: a step group whose index points there (judged
-    damaged, "addr overflow"), the log's new chunk. Without this the resumed run allocates
-    its new objects over that range, and a damaged reference could then read them as its
-    own (a step group resolving to another step's data). The killed run's last flush
-    allocated less than this (a step of the thesis protocols is 0.2-1 MB)."""
-    dcpl = h5py.h5p.create(h5py.h5p.DATASET_CREATE)
-    dcpl.set_alloc_time(h5py.h5d.ALLOC_TIME_EARLY)
-    dcpl.set_fill_time(h5py.h5d.FILL_TIME_NEVER)
-    n = sum(1 for name in handle if name.startswith("unused_after_kill_"))
-    space = h5py.h5s.create_simple((KILL_RESERVE_BYTES,))
-    h5py.h5d.create(handle.id, f"unused_after_kill_{n}".encode(), h5py.h5t.STD_U8LE, space,
-                    dcpl=dcpl).close()
-    handle.flush()
+    A kill -9 inside a flush can leave links pointing at or past the recorded end (a
+    helper's review, session 50: ``steps/000001`` at exactly the old end). The resumed run
+    allocates from that end, and its first new object could then sit where the damaged link
+    points: the step would read as another object (a new step: a duplicate). Reserved:
+    twice the mean step's bytes, at least 1 MB, at most :data:`CUT_EXTENSION_MAX_BYTES`;
+    the file is extended to it with a hole (no disk space used on Linux file systems)."""
+    end = recorded_end_of_file(path)
+    if end is None:
+        return ""
+    size = path.stat().st_size
+    mean_step = size / max(n_steps, 1)
+    reserve = int(min(CUT_EXTENSION_MAX_BYTES, max(2**20, 2 * mean_step)))
+    new_end = max(end, size) + reserve
+    room = file_size_limit_room(path)
+    if room is not None and new_end - size > room:
+        return ""  # the step's own space check says what to do
+    with open(path, "r+b") as f:
+        head = f.read(9)
+        at = 40 if head[8] == 0 else 44
+        f.seek(at)
+        f.write(int(new_end).to_bytes(8, "little"))
+        f.truncate(new_end)
+        f.flush()
+        os.fsync(f.fileno())
+    return (f"the last run was killed: {reserve} bytes reserved past the file's recorded "
+            "end, so that nothing new is written where that run's last flush may have "
+            "left references")
 
 
 def salvage_log(h5: h5py.File) -> tuple[list[str], list[str]]:
@@ -414,7 +447,9 @@ def partial_path(path: Path | str, pid: int | None = None) -> Path:
     path = Path(path)
     name = path.name
     suffix = f".{os.getpid() if pid is None else pid}.partial"
-    if len(f".{name}{suffix}".encode()) > 255:
+    # decided for the longest pid, so that creation and the stale-file clean-up (pid 0)
+    # shorten alike (review, session 50: a 242-byte name was shortened for one only)
+    if len(f".{name}.{'9' * 10}.partial".encode()) > 255:
         digest = hashlib.sha1(name.encode()).hexdigest()[:12]
         name = name.encode()[:200].decode(errors="ignore") + "~" + digest
     return path.with_name(f".{name}{suffix}")
@@ -482,6 +517,101 @@ class SessionWriteError(OSError):
     """Writing the session file failed (see :data:`WRITE_FAILURES`): one line."""
 
 
+def _fill_new_session(handle: h5py.File, protocol: Protocol, bench: Mapping[str, Any],
+                      software_version: str, subject_id: str | None) -> None:
+    """Write a new session's layout into ``handle`` (:meth:`SessionWriter.create`) and
+    close it (an error leaves it open: the caller closes it without writing)."""
+    handle.attrs["schema"] = SESSION_SCHEMA
+    handle.attrs["schema_version"] = SESSION_SCHEMA_VERSION
+    handle.attrs["created_utc"] = _utc_now()
+    handle.attrs["created_unix_s"] = time.time()
+    handle.attrs["software_version"] = software_version
+    handle.attrs["protocol_name"] = protocol.name
+    handle.attrs["subject_id"] = (protocol.subject.id if subject_id is None
+                                  else subject_id)
+    handle.attrs["subject_position"] = protocol.subject.position
+    g = handle.create_group("protocol")
+    g.attrs["toml"] = protocol.text
+    g.attrs["source"] = protocol.source
+    _write_bench(handle.create_group("bench"), bench)
+    # every step and run adds a link to these two: sized now, while the file
+    # is still private, so that no later flush has to move them
+    _presized_group(handle, "steps", 2 * len(protocol.steps()) + 64)
+    _presized_group(handle, "runs", 256)
+    create_log(handle)
+    frequencies, outputs, inputs = plan_channels(protocol)
+    shape = (len(frequencies), len(outputs), len(inputs))
+    write_frf(handle, FrfSet(frequencies, np.full(shape, np.nan + 1j * np.nan),
+                             outputs, inputs, H_std=np.full(shape, np.nan),
+                             acquired_at_s=np.full(len(frequencies), np.nan)))
+    handle.flush()  # a write refused raises here; inside close() it crashed the process
+    handle.close()
+
+
+def file_size_limit_room(path: Path | str) -> int | None:
+    """Bytes the process's file-size limit (``RLIMIT_FSIZE``, ``ulimit -f``) leaves for the
+    file at ``path`` to grow, or None without a limit."""
+    try:
+        import resource
+
+        limit = resource.getrlimit(resource.RLIMIT_FSIZE)[0]
+    except (ImportError, OSError, ValueError):
+        return None
+    if limit == resource.RLIM_INFINITY or limit < 0:
+        return None
+    try:
+        size = Path(path).stat().st_size
+    except OSError:
+        size = 0
+    return max(0, int(limit) - size)
+
+
+def _write_failure_reason(exc: BaseException) -> str:
+    """The system's reason for a failed HDF5 write ("File too large"), else HDF5's text."""
+    errno_ = getattr(exc, "errno", None)
+    if errno_:
+        return os.strerror(errno_)
+    found = re.search(r"error message = '([^']+)'", str(exc))
+    return found.group(1) if found else " ".join(str(exc).split())[:160]
+
+
+def _is_write_failure(exc: BaseException) -> bool:
+    """Whether ``exc`` is HDF5 failing to write (not, say, a read of a damaged object)."""
+    import errno
+
+    if getattr(exc, "errno", None) in (errno.EFBIG, errno.ENOSPC, errno.EIO, errno.EDQUOT,
+                                       errno.EROFS):
+        return True
+    text = str(exc).lower()
+    return any(w in text for w in ("write failed", "write request failed", "unable to "
+                                   "extend file", "unable to flush", "can't write",
+                                   "synchronously write", "synchronously flush"))
+
+
+def _close_without_writing(handle: h5py.File) -> None:
+    """Leave ``handle`` after a failed write without writing to its file again: what the
+    file holds is synced, then its descriptor is pointed at /dev/null, so that whatever
+    HDF5 still writes (its flush, the superblock with an end the data never reached) goes
+    nowhere. The handle stays open."""
+    try:
+        fd = int(handle.id.get_vfd_handle())
+    except Exception as exc:  # no descriptor to redirect: leave the file open
+        log.error("%s: not closed after its failed write (%s)", handle.filename, exc)
+        return
+    try:
+        os.fsync(fd)  # the complete steps, flushed before, reach the disk
+    except OSError as exc:
+        log.error("fsync of %s after a failed write: %s", handle.filename, exc)
+    null = os.open(os.devnull, os.O_RDWR)
+    try:
+        os.dup2(null, fd)
+    finally:
+        os.close(null)
+    # not closed: after a refused write HDF5's flush and close can crash the process
+    # (segmentation fault inside close(), measured at a 1 MB file-size limit); the
+    # command line ends the process without HDF5's clean-up (WRITE_FAILURES)
+
+
 def _write_guarded(method: Any) -> Any:
     """Turn an HDF5 write failure in a :class:`SessionWriter` method into one
     :class:`SessionWriteError` naming the file and the system's reason, and remember it."""
@@ -494,13 +624,9 @@ def _write_guarded(method: Any) -> Any:
         try:
             return method(self, *args, **kwargs)
         except (OSError, RuntimeError) as exc:
-            if isinstance(exc, SessionWriteError):
+            if isinstance(exc, SessionWriteError) or not _is_write_failure(exc):
                 raise
-            errno_ = getattr(exc, "errno", None)
-            reason = (os.strerror(errno_) if errno_ else
-                      next((m.group(1) for m in [re.search(r"error message = '([^']+)'",
-                                                           str(exc))] if m),
-                           " ".join(str(exc).split())[:160]))
+            reason = _write_failure_reason(exc)
             self.write_error = (f"writing {self.path} failed: {reason}; every complete "
                                 "step before it is on disk: remove the cause (free space, "
                                 "the file-size limit), then continue with --resume")
@@ -558,6 +684,13 @@ class SessionWriter:
                                   "continue that session, or choose another --out)")
         if not path.parent.is_dir():
             raise FileNotFoundError(f"folder {path.parent} does not exist")
+        room = file_size_limit_room(path.with_name(".none"))
+        if room is not None and room < 16 * 2**20:
+            # HDF5 crashed inside the new file's first flush at such a limit (review,
+            # session 50): refused before anything is written
+            raise SessionFileError(f"cannot create {path}: the file-size limit (ulimit -f) "
+                                   f"is {room / 2**20:.2f} MB, under the 16 MB a session "
+                                   "needs to start; raise it")
         stale = remove_stale_partials(path)
         # Built under a temporary name and linked into place when complete: a kill during
         # creation must not leave a half-made file at ``path`` (measured: "truncated file").
@@ -570,30 +703,16 @@ class SessionWriter:
             reason = os.strerror(exc.errno) if exc.errno else str(exc)
             raise SessionFileError(f"cannot create {path}: {reason}") from None
         try:
-            with handle:
-                handle.attrs["schema"] = SESSION_SCHEMA
-                handle.attrs["schema_version"] = SESSION_SCHEMA_VERSION
-                handle.attrs["created_utc"] = _utc_now()
-                handle.attrs["created_unix_s"] = time.time()
-                handle.attrs["software_version"] = software_version
-                handle.attrs["protocol_name"] = protocol.name
-                handle.attrs["subject_id"] = (protocol.subject.id if subject_id is None
-                                              else subject_id)
-                handle.attrs["subject_position"] = protocol.subject.position
-                g = handle.create_group("protocol")
-                g.attrs["toml"] = protocol.text
-                g.attrs["source"] = protocol.source
-                _write_bench(handle.create_group("bench"), bench)
-                # every step and run adds a link to these two: sized now, while the file
-                # is still private, so that no later flush has to move them
-                _presized_group(handle, "steps", 2 * len(protocol.steps()) + 64)
-                _presized_group(handle, "runs", 256)
-                create_log(handle)
-                frequencies, outputs, inputs = plan_channels(protocol)
-                shape = (len(frequencies), len(outputs), len(inputs))
-                write_frf(handle, FrfSet(frequencies, np.full(shape, np.nan + 1j * np.nan),
-                                         outputs, inputs, H_std=np.full(shape, np.nan),
-                                         acquired_at_s=np.full(len(frequencies), np.nan)))
+            try:
+                _fill_new_session(handle, protocol, bench, software_version, subject_id)
+            except (OSError, RuntimeError) as exc:
+                # a write refused while the file was built (a file-size limit): its close
+                # failed the same way and HDF5's clean-up at exit crashed, silently
+                # (review, session 50); nothing of it is kept
+                _close_without_writing(handle)
+                WRITE_FAILURES.append(str(tmp))
+                raise SessionWriteError(f"cannot create {path}: "
+                                        f"{_write_failure_reason(exc)}") from None
             publish_new_file(tmp, path)
         finally:
             tmp.unlink(missing_ok=True)
@@ -611,7 +730,17 @@ class SessionWriter:
     def resume(cls, path: Path | str, protocol_text: str | None = None) -> SessionWriter:
         """Open an existing session to append steps; checks schema (and protocol text)."""
         path = Path(path)
-        SessionReader(path).close()  # schema/version/readability checks, clear errors
+        with SessionReader(path) as reader:  # schema/version/readability checks
+            killed = reader.status[0] in ("running", RUN_RECORD_DAMAGED)
+            n_steps = len(reader.step_names())
+            stored = reader.protocol_text
+            # read before the reserve below: past the old end, a lost chunk reads as zeros
+            lines, problems = (salvage_log(reader.handle) if "log" in reader.handle
+                               else ([], []))
+        reserved = ""
+        if killed and (protocol_text is None or stored == protocol_text):
+            # before HDF5 opens it for writing: its first allocation comes at the open
+            reserved = _reserve_past_recorded_end(path, n_steps)
         try:
             handle = h5py.File(path, "r+")
         except OSError as exc:
@@ -623,12 +752,6 @@ class SessionWriter:
                                    f"given ({first_difference(stored, protocol_text)}); "
                                    "resume with the protocol the session started with")
         created = float(handle.attrs.get("created_unix_s", time.time()))
-        lines, problems = salvage_log(handle) if "log" in handle else ([], [])
-        records = run_records(handle)
-        if records and (records[-1][1] is None or _text(records[-1][1].get("status", ""))
-                        == "running"):
-            # killed: before anything is allocated (the log's replacement first of all)
-            _reserve_past_a_kill(handle)
         if problems:
             # a log damaged by a kill cannot take new lines ("addr overflow": every resume
             # failed; review, session 50): its readable lines go into a new log. The old
@@ -648,6 +771,8 @@ class SessionWriter:
         for problem in problems:
             writer.log(f"the session log was damaged (a kill while it grew?): {problem}; "
                        "its readable lines were copied into a new log", "WARNING")
+        if reserved:
+            writer.log(reserved, "WARNING")
         return writer
 
     # -------------------------------------------------------------- writing
@@ -765,6 +890,14 @@ class SessionWriter:
             raise OSError(errno.ENOSPC, f"disk almost full: {free / 2**20:.1f} MB free in "
                           f"{self.path.parent}, the next step needs about "
                           f"{need / 2**20:.1f} MB; free space, then continue with --resume")
+        room = file_size_limit_room(self.path)
+        if room is not None and room < need:
+            # a refused write is no better than a full disk (review, session 50: HDF5
+            # crashed inside its flush at a `ulimit -f` limit)
+            raise OSError(errno.EFBIG, f"the file-size limit (ulimit -f) leaves "
+                          f"{room / 2**20:.1f} MB for {self.path.name}, the next step needs "
+                          f"about {need / 2**20:.1f} MB; raise it, then continue with "
+                          "--resume")
 
     @_write_guarded
     def append_step(self, step: StepData) -> int:
@@ -907,27 +1040,10 @@ class SessionWriter:
                 log.error("fsync of %s failed: %s", self.path, exc)
 
     def _abandon(self) -> None:
-        """Close the file after a failed write without writing to it again.
-
-        A close flushes HDF5's metadata and writes the superblock with the end of file it
-        believes in: after a write that failed at 3.07 MB (a file-size limit) that made
-        the file unreadable ("truncated file: eof = 3072000, stored_eof = 3329205"), where
-        the file as its last successful flush left it opens and resumes. So the file's
-        descriptor is pointed at /dev/null first: what the close writes goes nowhere."""
-        try:
-            fd = self._h5.id.get_vfd_handle()
-            null = os.open(os.devnull, os.O_RDWR)
-            try:
-                os.dup2(null, int(fd))
-            finally:
-                os.close(null)
-        except Exception as exc:  # no descriptor to redirect: leave the file open
-            log.error("%s: not closed after its failed write (%s)", self.path, exc)
-            return
-        try:
-            self._h5.close()
-        except Exception as exc:
-            log.debug("closing %s after a failed write: %s", self.path, exc)
+        """Close the file after a failed write without writing to it again
+        (:func:`_close_without_writing`): a close writes HDF5's metadata and the
+        superblock with the end of file it believes in, past what reached the disk."""
+        _close_without_writing(self._h5)
 
     def __enter__(self) -> SessionWriter:
         return self

@@ -164,6 +164,12 @@ def main(argv: Sequence[str] | None = None) -> int:
         # the process, not a caller of main(): HDF5's clean-up at exit would try the
         # failed file again and crash (segmentation fault, exit 139); every complete step
         # is on disk and the command has said what happened (session.WRITE_FAILURES)
+        import atexit
+
+        try:  # Python's exit handlers still run: the bench's last safe state, pools
+            atexit._run_exitfuncs()
+        except Exception as exc:
+            log.error("exit handlers: %s", exc)
         for stream in (sys.stdout, sys.stderr):
             try:
                 stream.flush()
