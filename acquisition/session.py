@@ -1040,9 +1040,11 @@ class SessionWriter:
                 log.error("fsync of %s failed: %s", self.path, exc)
 
     def _abandon(self) -> None:
-        """Close the file after a failed write without writing to it again
-        (:func:`_close_without_writing`): a close writes HDF5's metadata and the
-        superblock with the end of file it believes in, past what reached the disk."""
+        """Give the file up after a failed write without writing to it again
+        (:func:`_close_without_writing`: synced, its descriptor pointed at /dev/null, the
+        handle left open): a close writes HDF5's metadata and the superblock with the end
+        of file it believes in, past what reached the disk, and can crash after a refused
+        write."""
         _close_without_writing(self._h5)
 
     def __enter__(self) -> SessionWriter:
