@@ -21,6 +21,17 @@ sim_bench = pytest.importorskip("pelvislab.sim_instruments.bench")
 PROTOCOL = AIM_PROTOCOL.split("[[setups]]\nname = \"b\"")[0]  # three steps, two channels
 
 
+def _completed_session(tmp_path):
+    """A 3-step session run to its end on the simulated bench: (protocol, file)."""
+    protocol = tmp_path / "p.toml"
+    protocol.write_text(PROTOCOL)
+    out = tmp_path / "s.h5"
+    with runner_module.prepare_session(protocol, out, bench=sim_bench.open_simulated_bench(
+            generators="python")) as session:
+        assert session.run().status == "completed"
+    return protocol, out
+
+
 def test_sigint_inherited_as_ignored_stops_run_while_it_prepares(tmp_path, monkeypatch,
                                                                  capsys):
     protocol = tmp_path / "p.toml"
@@ -87,12 +98,7 @@ def _damage_object_header(path, name: str) -> None:
 
 @pytest.fixture
 def damaged_run_record(tmp_path):
-    protocol = tmp_path / "p.toml"
-    protocol.write_text(PROTOCOL)
-    out = tmp_path / "s.h5"
-    with runner_module.prepare_session(protocol, out, bench=sim_bench.open_simulated_bench(
-            generators="python")) as session:
-        assert session.run().status == "completed"
+    protocol, out = _completed_session(tmp_path)
     _damage_object_header(out, "runs/000")
     return protocol, out
 
@@ -296,12 +302,7 @@ def test_session_info_check_reads_every_step_whole(tmp_path, capsys):
     """The summary reads the steps' attributes only: a step whose echoes cannot be read
     passed as "3 acquired of 3 planned" (review, session 50). --check reads every step's
     data, names the damaged group and exits 1."""
-    protocol = tmp_path / "p.toml"
-    protocol.write_text(PROTOCOL)
-    out = tmp_path / "s.h5"
-    with runner_module.prepare_session(protocol, out, bench=sim_bench.open_simulated_bench(
-            generators="python")) as session:
-        assert session.run().status == "completed"
+    protocol, out = _completed_session(tmp_path)
     assert main(["session", "info", str(out), "--check"]) == 0
     assert "check: 3 step group(s) read whole, none damaged" in capsys.readouterr().out
     _damage_object_header(out, "steps/000001/echoes/ch1")
@@ -324,12 +325,7 @@ def test_a_link_left_at_the_recorded_end_by_a_kill_never_reads_new_objects(tmp_p
 
     import h5py
 
-    protocol = tmp_path / "p.toml"
-    protocol.write_text(PROTOCOL)
-    out = tmp_path / "s.h5"
-    with runner_module.prepare_session(protocol, out, bench=sim_bench.open_simulated_bench(
-            generators="python")) as session:
-        assert session.run().status == "completed"
+    protocol, out = _completed_session(tmp_path)
     with h5py.File(out, "r+") as h5:
         h5["runs/000"].attrs["status"] = "running"  # killed
         last = sorted(h5["steps"])[-1]
