@@ -1644,8 +1644,7 @@ def prepare_session(protocol_path: Path | str, out_path: Path | str,
         except BaseException as exc:
             if writer.run_group is not None:
                 # the run's record says how it ended; left "running", every failed resume
-                # added a run that "may have left an output on" (review, session 50). No
-                # output was on: nothing is driven before the run starts
+                # added a run that "may have left an output on" (review, session 50)
                 try:
                     # the outputs as the safe state finds them now (the bench is closed
                     # next), not assumed off (review, session 50)
@@ -1843,7 +1842,7 @@ def _repair_frf_only(path: Path, protocol_text: str, cut_note: str = "") -> str:
     with SessionReader(path) as reader:
         layout = reader.frf_layout()
         if layout is None:
-            return False
+            return ""
         stored = reader.frf()
         rebuilt = frf_from_steps(list(reader.steps(with_echoes=False)), *layout)
     both = np.isfinite(stored.H) & np.isfinite(rebuilt.H)
