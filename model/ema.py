@@ -1393,7 +1393,7 @@ def _misfit_concentration_note(frequency_hz: np.ndarray, H: np.ndarray, H_fit: n
     ok = np.isfinite(H) & np.isfinite(H_fit)
     err = np.where(ok, np.abs(H_fit - H), 0.0) ** 2
     total_err = float(err.sum())
-    total = float(np.where(ok, np.abs(H), 0.0).__pow__(2).sum())
+    total = float((np.where(ok, np.abs(H), 0.0) ** 2).sum())
     if not (total > 0 and total_err > 0) or np.sqrt(total_err / total) < min_fit_error:
         return ""
     per_line = err.reshape(f.size, -1).sum(axis=1)
