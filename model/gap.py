@@ -3671,8 +3671,10 @@ def diagnose(data: GapData, model: PelvisModel, options: GapOptions | None = Non
     timing["polish_s"] = time.perf_counter() - t3
     if progress and timing["polish_s"] >= PROGRESS_EVERY_S:
         progress(f"polish of the leaders done in {timing['polish_s']:.1f} s")
-    t5 = time.perf_counter()
+    t6 = time.perf_counter()
     results += _ground_spring_on_other_bones_stage(s, cands, results)
+    timing["ground_spring_other_bones_s"] = time.perf_counter() - t6
+    t5 = time.perf_counter()
     results += _support_on_line_stage(s, results)
     timing["support_on_line_s"] = time.perf_counter() - t5
     t4 = time.perf_counter()
