@@ -3607,7 +3607,8 @@ def diagnose(data: GapData, model: PelvisModel, options: GapOptions | None = Non
     """Run the whole diagnosis on prepared data against the base ``model``.
 
     Stages: base fit (and the dashpot reading), where, screening, joint fits, the global
-    line search for springs to ground, polish, supports on spring lines, refits with one
+    line search for springs to ground, polish, a leading spring to ground refitted on the
+    other bones, supports on spring lines, refits with one
     damping per dashpot, the base refitted from the leaders' parameters (which may replace
     the base fit and its "where"), the chain's tolerances, the verdict (module docstring);
     while the best candidate leaves the held-out lines measurably above the noise, the
