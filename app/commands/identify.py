@@ -25,10 +25,9 @@ from pelvislab.app.commands._common import (
 #: ratios identified stiffness and damping better), used for ch. 7's updating.
 EQ610_A_OVER_B = 0.1
 
-
-
 IDENTIFY_SCHEMA = "pelvislab-identify"
 IDENTIFY_SCHEMA_VERSION = 2  # 1: design 4.5 as written (std always a float)
+
 
 def register(subparsers: argparse._SubParsersAction) -> None:
     """Add ``identify`` to the CLI."""
