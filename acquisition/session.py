@@ -128,9 +128,9 @@ def create_log(group: h5py.Group, lines: Sequence[str] = ()) -> h5py.Dataset:
                                 dtype=f"S{LOG_LINE_BYTES}")
 
 
-def recorded_end_of_file(path: Path | str) -> int | None:
-    """The end of allocation a version 0 or 1 superblock records (bytes: what HDF5 checks
-    the file's size against), or None for another layout (our files have version 0)."""
+def _end_of_file_field(path: Path | str) -> int | None:
+    """Byte offset of the end-of-allocation address in a version 0 or 1 superblock with
+    8-byte addresses, or None for another layout (our files have version 0)."""
     try:
         with open(path, "rb") as f:
             head = f.read(64)
@@ -139,8 +139,18 @@ def recorded_end_of_file(path: Path | str) -> int | None:
     if len(head) < 56 or head[:8] != b"\x89HDF\r\n\x1a\n" or head[8] not in (0, 1) \
             or head[13] != 8:
         return None
-    at = 40 if head[8] == 0 else 44  # version 1 has 4 bytes more before the addresses
-    return int.from_bytes(head[at:at + 8], "little")
+    return 40 if head[8] == 0 else 44  # version 1 has 4 bytes more before the addresses
+
+
+def recorded_end_of_file(path: Path | str) -> int | None:
+    """The end of allocation a version 0 or 1 superblock records (bytes: what HDF5 checks
+    the file's size against), or None for another layout (our files have version 0)."""
+    at = _end_of_file_field(path)
+    if at is None:
+        return None
+    with open(path, "rb") as f:
+        f.seek(at)
+        return int.from_bytes(f.read(8), "little")
 
 
 CUT_EXTENSION_MAX_BYTES = 64 * 2**20
@@ -197,8 +207,9 @@ def _reserve_past_recorded_end(path: Path, n_steps: int) -> str:
     points: the step would read as another object (a new step: a duplicate). Reserved:
     twice the mean step's bytes, at least 1 MB, at most :data:`CUT_EXTENSION_MAX_BYTES`;
     the file is extended to it with a hole (no disk space used on Linux file systems)."""
+    at = _end_of_file_field(path)
     end = recorded_end_of_file(path)
-    if end is None:
+    if at is None or end is None:
         return ""
     size = path.stat().st_size
     mean_step = size / max(n_steps, 1)
@@ -208,8 +219,6 @@ def _reserve_past_recorded_end(path: Path, n_steps: int) -> str:
     if room is not None and new_end - size > room:
         return ""  # the step's own space check says what to do
     with open(path, "r+b") as f:
-        head = f.read(9)
-        at = 40 if head[8] == 0 else 44
         f.seek(at)
         f.write(int(new_end).to_bytes(8, "little"))
         f.truncate(new_end)
@@ -700,8 +709,8 @@ class SessionWriter:
         except OSError as exc:
             tmp.unlink(missing_ok=True)  # HDF5 may have left it empty (disk full)
             # the system's reason, not HDF5's text naming the temporary file (review)
-            reason = os.strerror(exc.errno) if exc.errno else str(exc)
-            raise SessionFileError(f"cannot create {path}: {reason}") from None
+            raise SessionFileError(f"cannot create {path}: "
+                                   f"{_write_failure_reason(exc)}") from None
         try:
             try:
                 _fill_new_session(handle, protocol, bench, software_version, subject_id)

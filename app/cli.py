@@ -190,11 +190,11 @@ def _a_failed_write(exc: BaseException | None) -> bool:
     be written): what the command reports once in its own line."""
     if not isinstance(exc, (OSError, RuntimeError)):
         return False
-    text = str(exc)
+    if _session_write_failures():
+        return True
     # the first ones come while the failed write unwinds, before it is recorded
-    return bool(_session_write_failures()) or any(
-        w in text for w in ("write failed", "write request failed", "unable to extend file",
-                            "flush"))
+    session = sys.modules.get("pelvislab.acquisition.session")
+    return session is not None and session._is_write_failure(exc)
 
 
 def _quiet_after_a_failed_session_write(previous: Any) -> Any:
