@@ -131,7 +131,7 @@ def write_frf(target: h5py.File | h5py.Group | str | Path, frf: FrfSet, name: st
         import os
         import secrets
 
-        from pelvislab.acquisition.session import publish_new_file
+        from pelvislab.acquisition.session import new_hdf5_file, publish_new_file
 
         path = Path(target)
         if path.exists():
@@ -140,7 +140,10 @@ def write_frf(target: h5py.File | h5py.Group | str | Path, frf: FrfSet, name: st
         # no half file under the real name, and a file that appears meanwhile is kept
         tmp = path.parent / f".{path.name}.{os.getpid()}.{secrets.token_hex(4)}.tmp"
         try:
-            with h5py.File(tmp, "w-") as handle:
+            # what the arrays take, doubled by new_hdf5_file for HDF5's own structures
+            estimate = 16 * frf.H.size + sum(np.asarray(a).nbytes for a in (
+                frf.frequency_hz, frf.H_std, frf.acquired_at_s) if a is not None)
+            with new_hdf5_file(tmp, path, estimate) as handle:
                 handle.attrs["schema"] = FRF_SCHEMA
                 handle.attrs["schema_version"] = FRF_SCHEMA_VERSION
                 write_frf(handle, frf, name)

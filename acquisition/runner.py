@@ -1923,6 +1923,23 @@ def _bone_unstated_notes(frf: FrfSet, unstated: set[tuple[str, str]]) -> list[st
             for prefix, name in bone_unstated_points(frf, unstated)]
 
 
+def _stored_bytes(group: Any) -> int:
+    """Bytes the datasets under the HDF5 ``group`` take in their file (0 for None): what a
+    copy of them needs, without the free space or a hole the file may hold."""
+    import h5py
+
+    if group is None:
+        return 0
+    total = [0]
+
+    def add(_name: str, item: Any) -> None:
+        if isinstance(item, h5py.Dataset):
+            total[0] += item.id.get_storage_size()
+
+    group.visititems(add)
+    return total[0]
+
+
 def reprocess_session(source: Path | str, target: Path | str, tracking_options: Any = None,
                       speed_of_sound_m_s: float | None = None,
                       progress: Callable[[int, int], None] | None = None,
@@ -1961,6 +1978,7 @@ def reprocess_session(source: Path | str, target: Path | str, tracking_options: 
         SESSION_SCHEMA_VERSION,
         create_log,
         log_entry,
+        new_hdf5_file,
         publish_new_file,
         remove_stale_partials,
     )
@@ -1982,7 +2000,7 @@ def reprocess_session(source: Path | str, target: Path | str, tracking_options: 
     reader = SessionReader(source)
     try:
         names = reader.step_names()
-        with h5py.File(partial, "w-") as out:
+        with new_hdf5_file(partial, target, _stored_bytes(reader.handle.get("steps"))) as out:
             for k in reader.handle.attrs:
                 out.attrs[k] = reader.handle.attrs[k]
             out.attrs["schema"] = SESSION_SCHEMA

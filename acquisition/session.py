@@ -22,6 +22,7 @@ report damaged groups instead of failing on them.
 
 from __future__ import annotations
 
+import contextlib
 import datetime as _dt
 import logging
 import math
@@ -642,6 +643,67 @@ def _write_guarded(method: Any) -> Any:
             WRITE_FAILURES.append(str(self.path))
             raise SessionWriteError(self.write_error) from None
     return guarded
+
+
+class NoRoomError(OSError):
+    """Too little free disk or file-size-limit room to start writing a file; its text is
+    the one line the command prints."""
+
+    def __str__(self) -> str:
+        return str(self.strerror or super().__str__())
+
+
+NEW_FILE_MARGIN_BYTES = 1 * 2**20
+"""Room a new derived file (an FRF-only file, a reprocessed session) needs beyond twice its
+estimated size before it is started (:func:`new_hdf5_file`)."""
+
+
+@contextlib.contextmanager
+def new_hdf5_file(tmp: Path, target: Path, bytes_estimate: int) -> Iterator[h5py.File]:
+    """Create the HDF5 file ``tmp`` (to be published as ``target`` by the caller, who also
+    removes ``tmp``), yield it, flush and close it.
+
+    Refused before anything is written (:class:`NoRoomError`, ENOSPC or EFBIG) when the
+    disk or the file-size limit (``ulimit -f``) leaves less than twice ``bytes_estimate``
+    plus :data:`NEW_FILE_MARGIN_BYTES`. A write refused all the same (a disk filled by
+    another process, a quota, an I/O error) raises :class:`SessionWriteError` naming
+    ``target`` and the system's reason; the handle is then left without writing to its
+    file again (:func:`_close_without_writing`): HDF5's flush and close after a refused
+    write crashed the process (segmentation fault, measured for ``model frf --out`` and
+    ``reprocess`` at a file-size limit, session 51)."""
+    import errno
+    import shutil
+
+    need = 2 * max(0, int(bytes_estimate)) + NEW_FILE_MARGIN_BYTES
+    free = shutil.disk_usage(target.parent).free
+    if free < need:
+        raise NoRoomError(errno.ENOSPC, f"cannot write {target}: {free / 2**20:.1f} MB free in "
+                      f"{target.parent}, it needs about {need / 2**20:.1f} MB")
+    room = file_size_limit_room(tmp)
+    if room is not None and room < need:
+        raise NoRoomError(errno.EFBIG, f"cannot write {target}: the file-size limit (ulimit -f) "
+                      f"is {room / 2**20:.2f} MB, it needs about {need / 2**20:.1f} MB; "
+                      "raise it")
+    try:
+        handle = h5py.File(tmp, "w-")
+    except OSError as exc:
+        raise OSError(getattr(exc, "errno", None) or errno.EIO,
+                      f"cannot create {target}: {_write_failure_reason(exc)}") from None
+    try:
+        yield handle
+        handle.flush()  # a refused write raises here; inside close() it crashed
+    except (OSError, RuntimeError) as exc:
+        if not _is_write_failure(exc):
+            handle.close()
+            raise
+        _close_without_writing(handle)
+        WRITE_FAILURES.append(str(tmp))
+        raise SessionWriteError(f"writing {target} failed: {_write_failure_reason(exc)}; "
+                                "nothing was written under that name") from None
+    except BaseException:
+        handle.close()
+        raise
+    handle.close()
 
 
 def being_written_here(path: Path | str) -> bool:
