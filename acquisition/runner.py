@@ -554,27 +554,35 @@ class Runner:
     # -------------------------------------------------------------- listeners
     def subscribe(self, listener: Listener, critical: bool = False) -> None:
         """Call ``listener(event)`` for every event. An exception in a ``critical``
-        listener (the session writer) is a fault that stops the run; in another listener
-        it is logged and that listener is dropped."""
+        listener (the session writer) is a fault that stops the run, raised once every
+        other listener has had the event; in another listener it is logged and that
+        listener is dropped."""
         self._listeners.append((listener, critical))
 
     def _emit(self, event: Event) -> None:
         # Listeners write files: a signal handler must not raise inside them (see critical).
         was = self.critical
         self.critical = True
+        critical_failure: Exception | None = None
         try:
             for listener, critical in list(self._listeners):
-                if critical:
-                    listener(event)
-                    continue
                 try:
                     listener(event)
                 except Exception as exc:
+                    if critical:
+                        # the others still get the event: a session writer refusing every
+                        # write after a failed one kept the Fault and RunFinished from the
+                        # GUI, which showed "RUNNING — OUTPUTS ON" for a run ended with its
+                        # outputs off (session 51)
+                        critical_failure = critical_failure or exc
+                        continue
                     log.error("listener %r failed on %s, dropped: %s", listener,
                               type(event).__name__, exc)
                     self._listeners.remove((listener, critical))
         finally:
             self.critical = was
+        if critical_failure is not None:
+            raise critical_failure
 
     def _t(self) -> float:
         return self._clock() - self._t0

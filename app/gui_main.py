@@ -147,6 +147,9 @@ class OperatorWindow(QtWidgets.QMainWindow):
         self.close_reason = "window closed by the operator"
         self._last_stop_key: tuple[int, int] | None = None
         self.outputs_unconfirmed = False  # the last run ended without outputs confirmed off
+        # offscreen, the runs' end boxes ("Run failed", outputs not confirmed off): the
+        # command ends with the first as its error after the screenshot
+        self.headless_failures: list[str] = []
         self._latest_step: Any = None
         self._frf_lines: dict[tuple[str, str], dict[float, complex]] = {}
         self._channel_labels: list[str] = []
@@ -922,6 +925,8 @@ class OperatorWindow(QtWidgets.QMainWindow):
         self._set_state(event.status if event.status in STATE_STYLES else "aborted")
         self.eta_label.setText(f"{event.n_done}/{event.n_steps} steps; run {event.status}")
         if event.status == "failed" or unsafe:
+            if headless():  # a screenshot run: the picture shows the box, the command fails
+                self.headless_failures.append(text)
             # Non-modal: the event loop (and STOP, and the plots) must keep running.
             title = "Outputs not confirmed off" if unsafe else "Run failed"
             box = QtWidgets.QMessageBox(QtWidgets.QMessageBox.Icon.Critical, title,
@@ -1142,11 +1147,11 @@ def run_gui(session_file: Path | None = None, screenshot: Path | None = None,
     if window.control is not None and not window.control.finished.is_set():
         window.control.stop("screenshot taken")
         window.control.finished.wait(10.0)
-    failures = list(window.replay.headless_failures)
+    failures = window.headless_failures + window.replay.headless_failures
     _dispose(app, window)
     if not ok:
         raise OSError(f"could not write the screenshot {screenshot}")
-    if failures:  # the picture shows the failed analysis; the command must fail too
+    if failures:  # the picture shows the failed run or analysis; the command fails too
         raise GuiError(failures[0] + f" (screenshot written to {screenshot})")
     return 0
 

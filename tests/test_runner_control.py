@@ -448,6 +448,32 @@ def test_listener_failure_is_not_a_fault_unless_critical(tmp_path):
     assert not bench.drive.enabled
 
 
+def test_a_failing_critical_listener_does_not_keep_the_end_from_the_others(tmp_path):
+    """A session writer whose writes all fail after one refused write (its file left
+    without writing again) raises on the Fault and RunFinished too: the listeners after it
+    (the GUI's) never heard that the run ended and the window showed "RUNNING — OUTPUTS ON"
+    with the outputs off (session 51)."""
+    bench = make_bench()
+    heard = []
+    with prepare(tmp_path, bench) as session:
+        failed = []
+
+        def writer(event):
+            if failed or (isinstance(event, r.StepFinished) and event.step.index == 2):
+                failed.append(event)
+                raise OSError(5, "Input/output error")
+        session.runner.subscribe(writer, critical=True)
+        session.runner.subscribe(heard.append)
+        final = session.run()
+    assert final.status == "failed" and "Input/output error" in final.reason
+    assert len(failed) > 2  # it refused the Fault and the run's end as well
+    faults = [e for e in heard if isinstance(e, r.Fault)]
+    ends = [e for e in heard if isinstance(e, r.RunFinished)]
+    assert len(faults) == 1 and "Input/output error" in faults[0].reason
+    assert len(ends) == 1 and ends[0].status == "failed" and not ends[0].unsafe
+    assert not bench.drive.enabled
+
+
 def test_reprocess_from_raw_echoes(tmp_path):
     bench = make_bench()
     with prepare(tmp_path, bench) as session:
