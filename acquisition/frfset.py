@@ -131,22 +131,45 @@ def write_frf(target: h5py.File | h5py.Group | str | Path, frf: FrfSet, name: st
         import os
         import secrets
 
-        from pelvislab.acquisition.session import new_hdf5_file, publish_new_file
+        from pelvislab.acquisition.session import (
+            WriteRefusedError,
+            fsync_path,
+            publish_new_file,
+        )
 
         path = Path(target)
         if path.exists():
             raise FileExistsError(f"{path} exists; not overwriting")
+        # Built in memory, then written as plain bytes: a write the disk refuses (full, a
+        # quota, ulimit -f) is an ordinary OSError. Built on disk, HDF5 crashed inside its
+        # flush or close after such a write, or dropped it and the file was published with
+        # zeros for data (review, session 51). An FRF file is a few MB at most.
+        memory = h5py.File(f"{path.name}.in-memory", "w", driver="core", backing_store=False)
+        try:
+            memory.attrs["schema"] = FRF_SCHEMA
+            memory.attrs["schema_version"] = FRF_SCHEMA_VERSION
+            write_frf(memory, frf, name)
+            memory.flush()
+            image = memory.id.get_file_image()
+        finally:
+            memory.close()
         # written under a hidden name and published complete: an interrupted write leaves
         # no half file under the real name, and a file that appears meanwhile is kept
         tmp = path.parent / f".{path.name}.{os.getpid()}.{secrets.token_hex(4)}.tmp"
         try:
-            # what the arrays take, doubled by new_hdf5_file for HDF5's own structures
-            estimate = 16 * frf.H.size + sum(np.asarray(a).nbytes for a in (
-                frf.frequency_hz, frf.H_std, frf.acquired_at_s) if a is not None)
-            with new_hdf5_file(tmp, path, estimate) as handle:
-                handle.attrs["schema"] = FRF_SCHEMA
-                handle.attrs["schema_version"] = FRF_SCHEMA_VERSION
-                write_frf(handle, frf, name)
+            try:
+                fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o644)
+                try:
+                    view = memoryview(image)
+                    while view:
+                        view = view[os.write(fd, view):]
+                finally:
+                    os.close(fd)
+                fsync_path(tmp)
+            except OSError as exc:
+                reason = os.strerror(exc.errno) if exc.errno else str(exc)
+                raise WriteRefusedError(exc.errno, f"writing {path} failed: {reason}; "
+                                        "nothing was written under that name") from None
             publish_new_file(tmp, path)
         finally:
             tmp.unlink(missing_ok=True)

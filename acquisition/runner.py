@@ -1984,6 +1984,7 @@ def reprocess_session(source: Path | str, target: Path | str, tracking_options: 
     from pelvislab.acquisition.session import (
         SESSION_SCHEMA,
         SESSION_SCHEMA_VERSION,
+        _is_write_failure,
         create_log,
         log_entry,
         new_hdf5_file,
@@ -2027,6 +2028,8 @@ def reprocess_session(source: Path | str, target: Path | str, tracking_options: 
                             raise OSError(problem)
                         reader.handle.copy(reader.handle["runs"][name], runs_out, name=name)
                     except Exception as exc:  # a record damaged by a kill: say so, go on
+                        if _is_write_failure(exc):  # the new file refused it: not the record
+                            raise
                         damaged_runs.append(f"run {name} not copied: "
                                             f"{' '.join(str(exc).split())[:200]}")
             create_log(out, reader.log_lines() + damaged_runs + [

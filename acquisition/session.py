@@ -28,6 +28,7 @@ import logging
 import math
 import os
 import re
+import shutil
 import socket
 import time
 import weakref
@@ -645,17 +646,18 @@ def _write_guarded(method: Any) -> Any:
     return guarded
 
 
-class NoRoomError(OSError):
-    """Too little free disk or file-size-limit room to start writing a file; its text is
-    the one line the command prints."""
+class WriteRefusedError(OSError):
+    """A file that cannot be written: too little free disk or file-size-limit room to
+    start it, or a write the system refused. ``WriteRefusedError(errno, text)``; its
+    ``str`` is ``text``, the one line the command prints."""
 
     def __str__(self) -> str:
         return str(self.strerror or super().__str__())
 
 
-NEW_FILE_MARGIN_BYTES = 1 * 2**20
-"""Room a new derived file (an FRF-only file, a reprocessed session) needs beyond twice its
-estimated size before it is started (:func:`new_hdf5_file`)."""
+NEW_FILE_MARGIN_BYTES = 64 * 1024
+"""Room a new derived file (a reprocessed session) needs beyond 1.25 times its estimated
+size before it is started (:func:`new_hdf5_file`): HDF5's own structures."""
 
 
 @contextlib.contextmanager
@@ -663,47 +665,73 @@ def new_hdf5_file(tmp: Path, target: Path, bytes_estimate: int) -> Iterator[h5py
     """Create the HDF5 file ``tmp`` (to be published as ``target`` by the caller, who also
     removes ``tmp``), yield it, flush and close it.
 
-    Refused before anything is written (:class:`NoRoomError`, ENOSPC or EFBIG) when the
-    disk or the file-size limit (``ulimit -f``) leaves less than twice ``bytes_estimate``
-    plus :data:`NEW_FILE_MARGIN_BYTES`. A write refused all the same (a disk filled by
-    another process, a quota, an I/O error) raises :class:`SessionWriteError` naming
-    ``target`` and the system's reason; the handle is then left without writing to its
-    file again (:func:`_close_without_writing`): HDF5's flush and close after a refused
-    write crashed the process (segmentation fault, measured for ``model frf --out`` and
-    ``reprocess`` at a file-size limit, session 51)."""
+    Refused before anything is written (:class:`WriteRefusedError`, ENOSPC or EFBIG) when the
+    disk or the file-size limit (``ulimit -f``) leaves less than 1.25 times
+    ``bytes_estimate`` plus :data:`NEW_FILE_MARGIN_BYTES`. A write refused all the same
+    (a disk filled by another process, a quota, an I/O error), also one HDF5 reports only
+    while it frees an object (an "unraisable" error: the file would have been published
+    with zeros where the data should be; review, session 51), raises
+    :class:`SessionWriteError` naming ``target`` and the system's reason; the handle is
+    then left without writing to its file again (:func:`_close_without_writing`): HDF5's
+    flush and close after a refused write crashed the process (segmentation fault)."""
     import errno
-    import shutil
+    import sys
 
-    need = 2 * max(0, int(bytes_estimate)) + NEW_FILE_MARGIN_BYTES
+    need = int(1.25 * max(0, int(bytes_estimate))) + NEW_FILE_MARGIN_BYTES
     free = shutil.disk_usage(target.parent).free
     if free < need:
-        raise NoRoomError(errno.ENOSPC, f"cannot write {target}: {free / 2**20:.1f} MB free in "
-                      f"{target.parent}, it needs about {need / 2**20:.1f} MB")
+        raise WriteRefusedError(errno.ENOSPC, f"cannot write {target}: {free / 2**20:.1f} MB "
+                                f"free in {target.parent}, it needs about "
+                                f"{need / 2**20:.1f} MB")
     room = file_size_limit_room(tmp)
     if room is not None and room < need:
-        raise NoRoomError(errno.EFBIG, f"cannot write {target}: the file-size limit (ulimit -f) "
-                      f"is {room / 2**20:.2f} MB, it needs about {need / 2**20:.1f} MB; "
-                      "raise it")
+        raise WriteRefusedError(errno.EFBIG, f"cannot write {target}: the file-size limit "
+                                f"(ulimit -f) is {room / 2**20:.2f} MB, it needs about "
+                                f"{need / 2**20:.2f} MB; raise it")
     try:
         handle = h5py.File(tmp, "w-")
     except OSError as exc:
         raise OSError(getattr(exc, "errno", None) or errno.EIO,
                       f"cannot create {target}: {_write_failure_reason(exc)}") from None
+    refused: list[BaseException] = []
+    previous_hook = sys.unraisablehook
+
+    def note_refused_writes(unraisable: Any) -> None:
+        if "h5py" in repr(unraisable.object) and _is_write_failure(unraisable.exc_value):
+            refused.append(unraisable.exc_value)
+        previous_hook(unraisable)
+
+    sys.unraisablehook = note_refused_writes
     try:
-        yield handle
-        handle.flush()  # a refused write raises here; inside close() it crashed
-    except (OSError, RuntimeError) as exc:
-        if not _is_write_failure(exc):
+        try:
+            yield handle
+            handle.flush()  # a refused write raises here; inside close() it crashed
+            if refused:
+                raise refused[0]
+        except (OSError, RuntimeError) as exc:
+            if not _is_write_failure(exc):
+                handle.close()
+                raise
+            _close_without_writing(handle)
+            WRITE_FAILURES.append(str(tmp))
+            raise SessionWriteError(f"writing {target} failed: {_write_failure_reason(exc)}; "
+                                    "nothing was written under that name") from None
+        except BaseException:
             handle.close()
             raise
-        _close_without_writing(handle)
-        WRITE_FAILURES.append(str(tmp))
-        raise SessionWriteError(f"writing {target} failed: {_write_failure_reason(exc)}; "
-                                "nothing was written under that name") from None
-    except BaseException:
-        handle.close()
-        raise
-    handle.close()
+        try:
+            handle.close()
+        except (OSError, RuntimeError) as exc:
+            WRITE_FAILURES.append(str(tmp))
+            raise SessionWriteError(f"writing {target} failed: {_write_failure_reason(exc)}; "
+                                    "nothing was written under that name") from None
+        if refused:
+            WRITE_FAILURES.append(str(tmp))
+            raise SessionWriteError(f"writing {target} failed: "
+                                    f"{_write_failure_reason(refused[0])}; nothing was "
+                                    "written under that name")
+    finally:
+        sys.unraisablehook = previous_hook
 
 
 def being_written_here(path: Path | str) -> bool:
