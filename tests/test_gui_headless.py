@@ -115,24 +115,6 @@ def test_a_failed_analysis_in_a_screenshot_fails_the_command(tmp_path):
     assert png.exists()  # the picture still shows the failed analysis' status
 
 
-GUI_WITH_A_WRITE_FAILURE = """
-import errno, sys
-from pelvislab.acquisition import session
-original = session.SessionWriter.append_step.__wrapped__
-calls = []
-def failing(self, step):
-    calls.append(1)
-    if len(calls) == 2:  # HDF5 refusing the second step's write
-        raise OSError(errno.EIO, "Driver write request failed (errno = 5, "
-                      "error message = 'Input/output error')")
-    return original(self, step)
-session.SessionWriter.append_step = session._write_guarded(failing)
-from pelvislab.app.cli import main
-sys.argv[1:] = {argv!r}
-sys.exit(main())
-"""
-
-
 def test_a_run_failed_in_a_screenshot_fails_the_command(tmp_path):
     # session 51: a session file refusing a write made its writer refuse the Fault and the
     # run's end too, and the window never heard of them: "RUNNING — OUTPUTS ON" in the
@@ -140,14 +122,14 @@ def test_a_run_failed_in_a_screenshot_fails_the_command(tmp_path):
     # answers offscreen: the command's error, the picture still written
     from pelvislab.acquisition.session import SessionReader
     from pelvislab.app.cli import main
-    from pelvislab.tests.test_runner_aiming import PROTOCOL as AIM_PROTOCOL
+    from pelvislab.tests.test_session_kill_windows import INJECT_WRITE_FAILURE, PROTOCOL
 
     protocol = tmp_path / "p.toml"
-    protocol.write_text(AIM_PROTOCOL.split("[[setups]]\nname = \"b\"")[0])  # three steps
+    protocol.write_text(PROTOCOL)  # three steps; the second one's write is refused
     out, png = tmp_path / "s.h5", tmp_path / "x.png"
     argv = ["gui", "--start", str(protocol), "--out", str(out), "--after", "8",
             "--screenshot", str(png)]
-    done = subprocess.run([sys.executable, "-c", GUI_WITH_A_WRITE_FAILURE.format(argv=argv)],
+    done = subprocess.run([sys.executable, "-c", INJECT_WRITE_FAILURE.format(argv=argv)],
                           env=ENV, capture_output=True, text=True, timeout=120)
     assert done.returncode == 1, (done.returncode, done.stderr[-2000:])
     last = done.stderr.strip().splitlines()[-1]

@@ -19,12 +19,11 @@ from pathlib import Path
 import pytest
 
 from pelvislab.app.cli import main
-from pelvislab.tests.test_runner_aiming import PROTOCOL as AIM_PROTOCOL
+from pelvislab.tests.test_session_kill_windows import PROTOCOL  # three steps, two channels
 
 pytestmark = pytest.mark.skipif(not sys.platform.startswith("linux"),
                                 reason="RLIMIT_FSIZE as on Linux")
 
-PROTOCOL = AIM_PROTOCOL.split("[[setups]]\nname = \"b\"")[0]  # three steps, two channels
 MODEL_FRF = ["model", "frf", "--points", "sacrum_x,SIAS_R_x"]
 
 def _cli_under_limit(limit_bytes: int, *argv: str, cwd: Path) -> subprocess.CompletedProcess:
