@@ -665,8 +665,8 @@ def new_hdf5_file(tmp: Path, target: Path, bytes_estimate: int) -> Iterator[h5py
     """Create the HDF5 file ``tmp`` (to be published as ``target`` by the caller, who also
     removes ``tmp``), yield it, flush and close it.
 
-    Refused before anything is written (:class:`WriteRefusedError`, ENOSPC or EFBIG) when the
-    disk or the file-size limit (``ulimit -f``) leaves less than 1.25 times
+    Refused before anything is written (:class:`WriteRefusedError`, ENOSPC or EFBIG) when
+    the disk or the file-size limit (``ulimit -f``) leaves less than 1.25 times
     ``bytes_estimate`` plus :data:`NEW_FILE_MARGIN_BYTES`. A write refused all the same
     (a disk filled by another process, a quota, an I/O error), also one HDF5 reports only
     while it frees an object (an "unraisable" error: the file would have been published
@@ -691,8 +691,9 @@ def new_hdf5_file(tmp: Path, target: Path, bytes_estimate: int) -> Iterator[h5py
     try:
         handle = h5py.File(tmp, "w-")
     except OSError as exc:
-        raise OSError(getattr(exc, "errno", None) or errno.EIO,
-                      f"cannot create {target}: {_write_failure_reason(exc)}") from None
+        raise WriteRefusedError(getattr(exc, "errno", None) or errno.EIO,
+                                f"cannot create {target}: "
+                                f"{_write_failure_reason(exc)}") from None
     refused: list[BaseException] = []
     previous_hook = sys.unraisablehook
 
@@ -700,6 +701,13 @@ def new_hdf5_file(tmp: Path, target: Path, bytes_estimate: int) -> Iterator[h5py
         if "h5py" in repr(unraisable.object) and _is_write_failure(unraisable.exc_value):
             refused.append(unraisable.exc_value)
         previous_hook(unraisable)
+
+    def close_unless_refused() -> None:  # another error ended the block
+        if refused:
+            _close_without_writing(handle)
+            WRITE_FAILURES.append(str(tmp))
+        else:
+            handle.close()
 
     sys.unraisablehook = note_refused_writes
     try:
@@ -710,14 +718,14 @@ def new_hdf5_file(tmp: Path, target: Path, bytes_estimate: int) -> Iterator[h5py
                 raise refused[0]
         except (OSError, RuntimeError) as exc:
             if not _is_write_failure(exc):
-                handle.close()
+                close_unless_refused()
                 raise
             _close_without_writing(handle)
             WRITE_FAILURES.append(str(tmp))
             raise SessionWriteError(f"writing {target} failed: {_write_failure_reason(exc)}; "
                                     "nothing was written under that name") from None
         except BaseException:
-            handle.close()
+            close_unless_refused()
             raise
         try:
             handle.close()
