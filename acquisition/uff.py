@@ -349,7 +349,7 @@ def write_uff(path: str | Path, frf: FrfSet, modes: UffModes | None = None,
     if not binary:
         ascii_frequency_note(frf.frequency_hz)
     sets = uff_datasets(frf, modes, binary, geometry)
-    from pelvislab.acquisition.session import publish_new_file
+    from pelvislab.acquisition.session import WriteRefusedError, publish_new_file
 
     # a hidden name of this process: published complete, never over a file that appeared
     # meanwhile (a replace would overwrite it)
@@ -359,12 +359,33 @@ def write_uff(path: str | Path, frf: FrfSet, modes: UffModes | None = None,
         # one dataset per call, always appending to the fresh file: pyuff's binary-58 writer
         # reopens the file ("wb" in overwrite mode truncates what it just wrote)
         for dset in sets:
-            uff.write_sets(dset, mode="add")
+            try:
+                uff.write_sets(dset, mode="add")
+            except Exception as exc:
+                # pyuff says "Error writing data-set #58" over the system's reason
+                refused = _os_error_behind(exc)
+                if refused is None:
+                    raise
+                raise WriteRefusedError(refused.errno, f"writing {path} failed: "
+                                        f"{os.strerror(refused.errno)}; nothing was "
+                                        "written under that name") from None
         publish_new_file(tmp, path)
     finally:
         if tmp.exists():
             tmp.unlink()
     return len(sets)
+
+
+def _os_error_behind(exc: BaseException) -> OSError | None:
+    """The first ``OSError`` with an errno in ``exc`` or the exceptions it was raised
+    from or during, else None."""
+    seen = 0
+    while exc is not None and seen < 10:
+        if isinstance(exc, OSError) and exc.errno:
+            return exc
+        exc = exc.__cause__ or exc.__context__
+        seen += 1
+    return None
 
 
 def _direction_from_code(code: int, where: str) -> np.ndarray:

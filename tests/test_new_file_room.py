@@ -95,3 +95,13 @@ def test_a_write_hdf5_drops_while_freeing_an_object_fails_the_reprocess(tmp_path
     assert line == ("pelvislab reprocess: error: writing r.h5 failed: Input/output error; "
                     "nothing was written under that name"), line
     assert sorted(p.name for p in tmp_path.iterdir()) == ["p.toml", "s.h5"]
+
+
+def test_a_uff_export_the_limit_cannot_hold_names_the_systems_reason(tmp_path):
+    # pyuff said "Error writing data-set #58" over "File too large" (session 51)
+    assert main([*MODEL_FRF, "--out", str(tmp_path / "m.h5")]) == 0
+    done = _cli_under_limit(4 * 1024, "export-uff", "m.h5", "e.uff", cwd=tmp_path)
+    line = _one_line_error(done)
+    assert line == ("pelvislab export-uff: error: writing e.uff failed: File too large; "
+                    "nothing was written under that name"), line
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["m.h5"]
