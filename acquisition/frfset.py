@@ -135,6 +135,7 @@ def write_frf(target: h5py.File | h5py.Group | str | Path, frf: FrfSet, name: st
             WriteRefusedError,
             fsync_path,
             publish_new_file,
+            refused_write_text,
         )
 
         path = Path(target)
@@ -167,9 +168,7 @@ def write_frf(target: h5py.File | h5py.Group | str | Path, frf: FrfSet, name: st
                     os.close(fd)
                 fsync_path(tmp)
             except OSError as exc:
-                reason = os.strerror(exc.errno) if exc.errno else str(exc)
-                raise WriteRefusedError(exc.errno, f"writing {path} failed: {reason}; "
-                                        "nothing was written under that name") from None
+                raise WriteRefusedError(exc.errno, refused_write_text(path, exc)) from None
             publish_new_file(tmp, path)
         finally:
             tmp.unlink(missing_ok=True)

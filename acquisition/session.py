@@ -586,6 +586,13 @@ def _write_failure_reason(exc: BaseException) -> str:
     return found.group(1) if found else " ".join(str(exc).split())[:160]
 
 
+def refused_write_text(target: Path | str, exc: BaseException) -> str:
+    """The one line for a new file ``target`` whose write ``exc`` refused (the system's
+    reason; the caller has removed what it wrote)."""
+    return (f"writing {target} failed: {_write_failure_reason(exc)}; nothing was written "
+            "under that name")
+
+
 def _is_write_failure(exc: BaseException) -> bool:
     """Whether ``exc`` is HDF5 failing to write (not, say, a read of a damaged object)."""
     import errno
@@ -709,6 +716,10 @@ def new_hdf5_file(tmp: Path, target: Path, bytes_estimate: int) -> Iterator[h5py
         else:
             handle.close()
 
+    def failed(exc: BaseException) -> SessionWriteError:
+        WRITE_FAILURES.append(str(tmp))
+        return SessionWriteError(refused_write_text(target, exc))
+
     sys.unraisablehook = note_refused_writes
     try:
         try:
@@ -721,23 +732,16 @@ def new_hdf5_file(tmp: Path, target: Path, bytes_estimate: int) -> Iterator[h5py
                 close_unless_refused()
                 raise
             _close_without_writing(handle)
-            WRITE_FAILURES.append(str(tmp))
-            raise SessionWriteError(f"writing {target} failed: {_write_failure_reason(exc)}; "
-                                    "nothing was written under that name") from None
+            raise failed(exc) from None
         except BaseException:
             close_unless_refused()
             raise
         try:
             handle.close()
         except (OSError, RuntimeError) as exc:
-            WRITE_FAILURES.append(str(tmp))
-            raise SessionWriteError(f"writing {target} failed: {_write_failure_reason(exc)}; "
-                                    "nothing was written under that name") from None
+            raise failed(exc) from None
         if refused:
-            WRITE_FAILURES.append(str(tmp))
-            raise SessionWriteError(f"writing {target} failed: "
-                                    f"{_write_failure_reason(refused[0])}; nothing was "
-                                    "written under that name")
+            raise failed(refused[0])
     finally:
         sys.unraisablehook = previous_hook
 

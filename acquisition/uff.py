@@ -349,7 +349,11 @@ def write_uff(path: str | Path, frf: FrfSet, modes: UffModes | None = None,
     if not binary:
         ascii_frequency_note(frf.frequency_hz)
     sets = uff_datasets(frf, modes, binary, geometry)
-    from pelvislab.acquisition.session import WriteRefusedError, publish_new_file
+    from pelvislab.acquisition.session import (
+        WriteRefusedError,
+        publish_new_file,
+        refused_write_text,
+    )
 
     # a hidden name of this process: published complete, never over a file that appeared
     # meanwhile (a replace would overwrite it)
@@ -366,9 +370,8 @@ def write_uff(path: str | Path, frf: FrfSet, modes: UffModes | None = None,
                 refused = _os_error_behind(exc)
                 if refused is None:
                     raise
-                raise WriteRefusedError(refused.errno, f"writing {path} failed: "
-                                        f"{os.strerror(refused.errno)}; nothing was "
-                                        "written under that name") from None
+                raise WriteRefusedError(refused.errno,
+                                        refused_write_text(path, refused)) from None
         publish_new_file(tmp, path)
     finally:
         if tmp.exists():
