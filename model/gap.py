@@ -3684,8 +3684,9 @@ def diagnose(data: GapData, model: PelvisModel, options: GapOptions | None = Non
     held-out lines better by ``reading_min_gain`` of what is left); a named effect is then
     tested
     against the null under the reading not chosen and against one damping per dashpot
-    alone; a named local effect is finally placed on every measured line
-    (:func:`_place_on_all_lines_stage`).
+    alone; before those two tests a named local effect may move to the place its
+    variant fits best on every measured line, and the move stands only when the verdict
+    and those tests name it there too (:func:`_place_on_all_lines_stage`).
     Returns the design 4.4 report (``Diagnosis.report``) plus arrays for plots.
     """
     opt = options or GapOptions()
@@ -3822,6 +3823,7 @@ def diagnose(data: GapData, model: PelvisModel, options: GapOptions | None = Non
         if progress:
             progress(f"other dashpot reading ({other_reading.model.dashpot_lever}): "
                      f"verdict {v_o.verdict}")
+
     def later_nulls(v: _Verdict, ranked: Sequence[CandidateResult]) -> _Verdict:
         if other_reading is not None and s.ctx is not other_reading.ctx and (
                 v.verdict in EFFECT_NAMES):
