@@ -3838,26 +3838,25 @@ def diagnose(data: GapData, model: PelvisModel, options: GapOptions | None = Non
         v = _null_extension_null_stage(s, v, results)
         return _tolerance_null_stage(s, v, ranked)
 
-    moved = None
+    v_before_nulls = v  # its candidate is the one the plots show
+    moved = False
     if opt.place_on_all_lines:
         t11 = time.perf_counter()
-        moved = _place_on_all_lines_stage(s, v, ranked, results, cal)
-        if moved is not None:
+        placed = _place_on_all_lines_stage(s, v, ranked, results, cal)
+        if placed is not None:
             # kept only when the later nulls name the effect at its new place too
-            v_moved = later_nulls(moved[0], moved[1])
-            moved = (moved[0], moved[1], v_moved) if v_moved.verdict == v.verdict else None
+            v_after_nulls = later_nulls(*placed)
+            moved = v_after_nulls.verdict == v.verdict
+            if moved:
+                (v_before_nulls, ranked), v = placed, v_after_nulls
         timing["place_on_all_lines_s"] = time.perf_counter() - t11
-    if moved is not None:
-        v_before_nulls, ranked, v = moved
-    else:
-        v_before_nulls = v
     H_best = None
     shown = v_before_nulls.best if v_before_nulls.best is not None else (
         ranked[0] if ranked else None)
     if shown is not None:
         H_best, _ = evaluate(ctx, shown.theta, shown.candidate.build(shown.u, ctx))
     residual_map = normalised_residual(data, s.H_base, fill=np.nan)
-    if moved is None:
+    if not moved:
         v = later_nulls(v, ranked)
     t9 = time.perf_counter()
     not_excluded = _not_excluded(s, results)
