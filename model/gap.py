@@ -172,7 +172,9 @@ class GapOptions:
       False runs the joint fits as before it, for the tests of the later stages);
     * ``place_on_all_lines``: a named local effect is moved to the place of its variant
       with the lowest χ² over fitted and held-out lines when the held-out lines cannot
-      tell the places apart (:func:`_place_on_all_lines_stage`; session 52);
+      tell the places apart (:func:`_place_on_all_lines_stage`; session 52); a named
+      spring to ground's places are compared after ``max_nfev_place`` further
+      evaluations each (session 53; 0: not refitted);
     * ``jobs``: worker processes for the candidate fits (0 = every available core; 1 =
       serial). The result does not depend on it (:func:`pelvislab.model.parallel.parallel_map`).
     """
@@ -3416,34 +3418,36 @@ def _range_about_fit(u_fit: float, half: float, rise_at_null: float,
 def _ground_spring_refits(s: _Stages, best: CandidateResult,
                           by_place: dict[str, CandidateResult],
                           results: Sequence[CandidateResult]) -> list[CandidateResult]:
-    """For a named spring to ground (``best``): every place's fit in ``by_place``
-    continued, and the spring refitted on every other bone's grounded place from the
-    named fit's line (the same stiffness vector and point, and the same damping per
-    dashpot where it was fitted with it); all with ``max_nfev_place`` evaluations, so
-    that the places are compared at one budget. Returns the new results ([] when the
-    named fit is not a spring to ground)."""
+    """For a named spring to ground (``best``): each fit in ``by_place`` (the named fit,
+    and each other place's best-scoring fit of its variant where there is one) continued,
+    and the spring refitted from the named fit's line on every other bone's grounded
+    place that the line passes within reach of (the same stiffness vector, the point slid
+    along the line to the nearest to that place's centre, the same damping per dashpot
+    where the named fit has it); each with ``max_nfev_place`` further evaluations.
+    Returns the new results ([] when the named fit is not a spring to ground)."""
     # the iliolumbar ligament (L5, the ground here, to the iliac crest beside the left
     # sacroiliac joint) acts alike on the sacrum and the ilium: fresh judge-like set
     # 1818_022 (1.4e5 N/m on the left innominate, one damping per dashpot) named the
     # spring on the sacrum (3.6e5 N/m; held-out chi2 403.0, 1607 over all lines): the
     # innominate's own fits had stopped at 467.8 held out, and the line was found on the
     # sacrum only through a support's line after the search between bones. From the named
-    # line the innominate reaches 386.7 (1540) with 120 evaluations, 390.5 (1601) with
-    # 40. Fitted with springs and damping per dashpot only, the innominate is named at
-    # 427.8 (1993 after 40 evaluations); from its line the sacrum reached 404.0 (1608)
-    # and was taken until every place's fit was continued with the same 120 evaluations:
-    # the innominate 388.2 (1553), the sacrum 392.6 (1561)
+    # line the innominate reaches 387.2 (1543) with 120 evaluations (390.5, 1601 with 40);
+    # the sacrum continued, 392.6 (1562). Fitted with springs and damping per dashpot
+    # only, the innominate is named at 427.8 (1993 after 40 evaluations) and from its line
+    # the sacrum reaches 404.0 (1608), which took the place until the named fit was
+    # continued too: 388.2 (1553)
     opt, c = s.opt, best.candidate
     line = c.line_spring
-    if line is None or line.bone_b:
+    if line is None or line.bone_b or opt.max_nfev_place <= 0:
         return []
-    n_own = c.n_params
     extension = None
     if best.beyond_null is not None:
         extension = _best_by_effect(results).get(PER_DASHPOT_DAMPING)
-        if extension is None:
+        # the named fit was built with this extension (the only per-dashpot fit before
+        # the verdict); anything else and the places are not refitted
+        if extension is None or not c.variant.endswith(" + " + extension.candidate.variant):
             return []
-        n_own -= extension.candidate.n_params
+    n_own = c.n_params - (extension.candidate.n_params if extension is not None else 0)
     others = []
     for oc in candidate_library(s.ctx, (c.effect,)):
         if (oc.line_spring is None or oc.line_spring.bone_b or oc.place == c.place
@@ -3453,13 +3457,19 @@ def _ground_spring_refits(s: _Stages, best: CandidateResult,
         if cand.variant == c.variant:
             others.append(cand)
     vector = best.u[:3] * np.sqrt(line.k0_n_per_m)  # sqrt(k) times the axis
+    axis = vector / max(float(np.linalg.norm(vector)), 1e-300)
     point_m = line.centre_m + best.u[3:6]
     starts = [(r.candidate, np.concatenate([np.log(r.theta), r.u]), r.screened_places)
               for r in by_place.values()]
     for cand in others:
         place = cand.line_spring
-        u = np.concatenate([vector / np.sqrt(place.k0_n_per_m), point_m - place.centre_m,
-                            best.u[n_own:]])
+        # one line, any point on it: the spring's elongation n·(t + θ×p) and moment p×n
+        # do not change when p slides along n
+        offset_m = point_m - place.centre_m
+        offset_m -= axis * float(offset_m @ axis)
+        if np.any(np.abs(offset_m) > place.reach_m):
+            continue  # the line passes beyond this place's reach: another line
+        u = np.concatenate([vector / np.sqrt(place.k0_n_per_m), offset_m, best.u[n_own:]])
         starts.append((cand, np.concatenate([np.log(best.theta), u]), best.screened_places))
     out = [_fitted_result(cand, fitted, s.held.n, n_screened)
            for (cand, _x, n_screened), fitted in zip(starts, parallel_map(
@@ -3481,19 +3491,21 @@ def _place_on_all_lines_stage(s: _Stages, v: _Verdict, ranked: Sequence[Candidat
     the same parameters, so between them the held-out split only discards three
     quarters of the evidence. Of the named fit's variant (same parameter count, with or
     without the null extension as named), each place represented by its best-scoring
-    fit, the place with the lowest χ² over fitted and held-out lines together is tried
-    when it is not the named one, its held-out χ² is within √n of the named fit's (n
+    fit, the fit with the lowest χ² over fitted and held-out lines together is tried
+    when it is not the named fit, its held-out χ² is within √n of the named fit's (n
     held-out values: the noise sd of one held-out χ², a loose guard), its held-out gap
     is at most ``none_gap`` or the named fit's, and it is not within the chain's
-    tolerances (:func:`_set_tolerance`). For a named spring to ground, each place's fit
-    is continued and the spring is refitted on every other bone from the named line
-    (:func:`_ground_spring_refits`); a place's fit is then the lower over all lines of
-    its own and these. The fit tried is put in the named fit's stead (the ranking
-    sorted again by score) and the verdict is drawn again (:func:`_verdict_stage`,
-    every rule and test); the move stands when that verdict names the same effect at
-    the new place. Returns that verdict (its reason ending "placed at X rather than
-    Y: ...") and ranking, or None: no move. The caller keeps the move only when the
-    later nulls name the effect too (:func:`diagnose`)."""
+    tolerances (:func:`_set_tolerance`). For a named spring to ground, those fits are
+    continued and the spring is refitted on the other bones from the named line
+    (:func:`_ground_spring_refits`), so that the places are compared after the same
+    further budget; a place's fit is then the lowest over all lines of these, the named
+    place's continued fit included (tried as a move to the same place). The fit tried
+    is put in the named fit's stead (the ranking sorted again by score) and the verdict
+    is drawn again (:func:`_verdict_stage`, every rule and test); the move stands when
+    that verdict names the same effect with that fit. Returns that verdict (its reason
+    ending "placed at X rather than Y: ..." or "fitted further at X: ...") and ranking,
+    or None: no move. The caller keeps the move only when the later nulls name the
+    effect too (:func:`diagnose`)."""
     best = v.best
     if best is None or v.verdict != best.candidate.effect:
         return None
@@ -3516,9 +3528,8 @@ def _place_on_all_lines_stage(s: _Stages, v: _Verdict, ranked: Sequence[Candidat
             by_place[r.candidate.place] = r
     alt = min(by_place.values(), key=total)
     held_sd = float(np.sqrt(s.held.n))
-    if alt.candidate.place == c.place or alt.chi2_heldout > best.chi2_heldout + held_sd or (
+    if alt is best or alt.chi2_heldout > best.chi2_heldout + held_sd or (
             alt.gap_after > max(s.opt.none_gap, best.gap_after)):
-        # the named place stays, with its own fit (a continued one only compares places)
         return None
     _set_tolerance(s, alt, results)
     if alt.tolerance_note:
@@ -3530,10 +3541,12 @@ def _place_on_all_lines_stage(s: _Stages, v: _Verdict, ranked: Sequence[Candidat
     if v_alt.verdict != v.verdict or v_alt.best is not alt:
         return None
     # against the named place's fit as compared (continued, for a spring to ground)
-    total_named, total_alt = total(by_place[c.place]), total(alt)
-    note = (f"; placed at {alt.candidate.place} rather than {c.place}: chi2 over fitted and "
-            f"held-out lines {total_alt:.4g} against {total_named:.4g} with the same "
-            f"parameters (held out {alt.chi2_heldout:.4g} against {best.chi2_heldout:.4g})")
+    named = by_place[c.place] if alt.candidate.place != c.place else best
+    where = (f"placed at {alt.candidate.place} rather than {c.place}"
+             if alt.candidate.place != c.place else f"fitted further at {c.place}")
+    note = (f"; {where}: chi2 over fitted and held-out lines {total(alt):.4g} against "
+            f"{total(named):.4g} with the same parameters (held out "
+            f"{alt.chi2_heldout:.4g} against {named.chi2_heldout:.4g})")
     return replace(v_alt, reason=v_alt.reason + note), ranked_alt
 
 
