@@ -2424,6 +2424,13 @@ def _polish_stage(s: _Stages, cands: Sequence[Candidate],
     return new
 
 
+def _fitted_spring_line(res: CandidateResult) -> tuple[np.ndarray, np.ndarray]:
+    """A fitted line spring's √k times its axis (√(N/m)) and its point (m), the form in
+    which it moves to another place: there u = (vector / √k0, point − centre)."""
+    line = res.candidate.line_spring
+    return res.u[:3] * np.sqrt(line.k0_n_per_m), line.centre_m + res.u[3:6]
+
+
 def _ground_spring_on_other_bones_stage(s: _Stages, cands: Sequence[Candidate],
                                         results: Sequence[CandidateResult]
                                         ) -> list[CandidateResult]:
@@ -2443,9 +2450,7 @@ def _ground_spring_on_other_bones_stage(s: _Stages, cands: Sequence[Candidate],
     if spring is None or spring.candidate.line_spring is None \
             or spring.candidate.line_spring.bone_b or not spring.gap_after > opt.restart_gap:
         return []
-    line = spring.candidate.line_spring
-    vector = spring.u[:3] * np.sqrt(line.k0_n_per_m)  # sqrt(k) times the axis
-    point_m = line.centre_m + spring.u[3:6]
+    vector, point_m = _fitted_spring_line(spring)
     others = [c for c in cands if c.effect == "missing_ligament" and c.line_spring is not None
               and not c.line_spring.bone_b and c.place != spring.candidate.place]
     if not others:
@@ -3461,9 +3466,8 @@ def _ground_spring_refits(s: _Stages, best: CandidateResult,
         cand = oc if extension is None else with_extension(oc, extension.candidate)
         if cand.variant == c.variant:
             others.append(cand)
-    vector = best.u[:3] * np.sqrt(line.k0_n_per_m)  # sqrt(k) times the axis
+    vector, point_m = _fitted_spring_line(best)
     axis = vector / max(float(np.linalg.norm(vector)), 1e-300)
-    point_m = line.centre_m + best.u[3:6]
     starts = [(r.candidate, np.concatenate([np.log(r.theta), r.u]), r.screened_places)
               for r in by_place.values()]
     for cand in others:
