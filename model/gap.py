@@ -175,6 +175,9 @@ class GapOptions:
       tell the places apart (:func:`_place_on_all_lines_stage`; session 52); a named
       spring to ground's places are compared after ``max_nfev_place`` further
       evaluations each (session 53; 0: not refitted);
+    * ``refine_places``: of the candidates with a refined form (a bed contact's damped
+      contact), the best fits of this many places are continued in that form when their
+      effect leads and is not at the noise (:func:`_refine_stage`; session 54; 0: off);
     * ``jobs``: worker processes for the candidate fits (0 = every available core; 1 =
       serial). The result does not depend on it (:func:`pelvislab.model.parallel.parallel_map`).
     """
@@ -225,6 +228,7 @@ class GapOptions:
     global_own_starts: bool = True
     place_on_all_lines: bool = True
     max_nfev_place: int = 120
+    refine_places: int = 2
 
 
 @dataclass
@@ -2548,6 +2552,36 @@ def _support_on_line_stage(s: _Stages, results: Sequence[CandidateResult]
     return new
 
 
+def _refine_stage(s: _Stages, results: Sequence[CandidateResult]) -> list[CandidateResult]:
+    """Candidates' refined forms (``Candidate.refined``: a bed contact with its contact
+    damped) continued from their fits: the best fit of each of the ``refine_places``
+    best-scoring places with a refined form, when their effect is one of the
+    ``polish_effects`` leading effects and not at the noise (gap above ``restart_gap``).
+    The refined form starts from that fit, its extra parameters at their start, and is
+    scored as every candidate (χ² + 2k), so it is named only when its extra parameters
+    pay for themselves. Returns the new results."""
+    opt = s.opt
+    if opt.refine_places <= 0:
+        return []
+    leading = sorted(_best_by_effect(results).values(), key=lambda r: r.score)
+    effects = {r.candidate.effect for r in leading[:opt.polish_effects]
+               if r.gap_after > opt.restart_gap}
+    firsts: dict[str, CandidateResult] = {}
+    for r in sorted(results, key=lambda r: r.score):
+        if (r.candidate.refined is not None and r.candidate.effect in effects
+                and r.beyond_null is None and r.candidate.place not in firsts):
+            firsts[r.candidate.place] = r
+    jobs = list(firsts.values())[:opt.refine_places]
+
+    def refine(res: CandidateResult) -> tuple[np.ndarray, np.ndarray, float, float]:
+        cand, extra = res.candidate.refined
+        x0 = np.concatenate([np.log(res.theta), res.u, extra])
+        return _joint_finish(cand, s.fit, s.held, x0, s.bounds, opt, opt.max_nfev_joint)
+
+    return [_fitted_result(res.candidate.refined[0], fitted, s.held.n, res.screened_places)
+            for res, fitted in zip(jobs, parallel_map(refine, jobs, opt.jobs), strict=True)]
+
+
 def _null_extension_stage(s: _Stages, results: Sequence[CandidateResult]
                           ) -> list[CandidateResult]:
     """Every effect refitted together with one damping per dashpot, when that null
@@ -3840,6 +3874,9 @@ def diagnose(data: GapData, model: PelvisModel, options: GapOptions | None = Non
     t5 = time.perf_counter()
     results += _support_on_line_stage(s, results)
     timing["support_on_line_s"] = time.perf_counter() - t5
+    t12 = time.perf_counter()
+    results += _refine_stage(s, results)
+    timing["refine_s"] = time.perf_counter() - t12
     t4 = time.perf_counter()
     results += _null_extension_stage(s, results)
     timing["null_extension_s"] = time.perf_counter() - t4
