@@ -991,7 +991,7 @@ def support_on_line(spring: Candidate, u_spring: np.ndarray, frequency_hz: np.nd
         w_s = 2 * np.pi * np.exp(u[6])
         m = np.exp(u[8])
         k_s = m * w_s**2 + 2j * np.exp(u[7]) * m * w_s * c.omega - c.omega**2 * m
-        k_cd = k_c + 2j * np.exp(u[9]) * np.sqrt(k_c * m) * c.omega
+        k_cd = damped_contact(k_c, np.exp(u[9]), m, c.omega)
         # k_eff n nᵀ = (k_eff / k_c) k₀ g gᵀ (g carries √(k_c/k₀))
         ratio = k_cd * k_s / ((k_cd + k_s) * k_c)
         return EffectTerms(dZ=ratio[:, None, None] * (k0 * np.outer(g, g))[None])
@@ -1135,6 +1135,14 @@ def _contact_points(ctx: Context) -> list[tuple[str, str, np.ndarray]]:
     return places
 
 
+def damped_contact(k_c_n_per_m: float | np.ndarray, zeta_c: float, mass_kg: float,
+                   omega: np.ndarray) -> np.ndarray:
+    """A lossy contact's dynamic stiffness (N/m) at ``omega`` (rad/s): its stiffness with
+    a dashpot of damping ratio ζ_c against the body it carries, ``k_c + iω 2ζ_c √(k_c m)``
+    (a foam pad, or the skin over a landmark)."""
+    return k_c_n_per_m + 2j * zeta_c * np.sqrt(k_c_n_per_m * mass_kg) * omega
+
+
 DAMPED_BED_VARIANT = "bed contact, damped"
 """The bed contact's refined form: its contact damped (:func:`_support_candidates`)."""
 DAMPED_BED_START = 0.01
@@ -1179,6 +1187,7 @@ def _support_candidates(ctx: Context) -> list[Candidate]:
         return d
 
     labels = ("log_f", "log_zeta", "log_m", "log_kc")
+    lo_damped, hi_damped = np.append(lo, np.log(1e-3)), np.append(hi, np.log(3.0))
     for bone, point, ref in _contact_points(ctx):
         for axname, dirs in axes.items():
             def build(u: np.ndarray, c: Context, bone: str = bone, ref: np.ndarray = ref,
@@ -1189,14 +1198,14 @@ def _support_candidates(ctx: Context) -> list[Candidate]:
                 ks = m * ws**2 + 2j * np.exp(u[1]) * m * ws * c.omega - c.omega**2 * m
                 kc = np.exp(u[3])
                 if u.size > 4:  # the refined form: the contact damped
-                    kc = kc + 2j * np.exp(u[4]) * np.sqrt(kc * m) * c.omega
+                    kc = damped_contact(kc, np.exp(u[4]), m, c.omega)
                 keff = kc * ks / (kc + ks)
                 return EffectTerms(dZ=keff[:, None, None] * gram[None])
 
             place = f"{bone}{point} {axname}"
             damped = Candidate("support_resonance", DAMPED_BED_VARIANT, place, "bone",
-                               (*labels, "log_zeta_c"), np.append(lo, np.log(1e-3)),
-                               np.append(hi, np.log(3.0)), (), build, describe, bone)
+                               (*labels, "log_zeta_c"), lo_damped, hi_damped, (), build,
+                               describe, bone)
             cands.append(Candidate(
                 "support_resonance", "bed contact", place, "bone", labels, lo, hi, starts,
                 build, describe, bone, refined=(damped, np.log([DAMPED_BED_START]))))
